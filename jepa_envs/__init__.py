@@ -1,0 +1,35 @@
+"""Gymnasium environments for every task of the JEPA Policy paper behind one interface.
+
+``import jepa_envs`` registers the ids; ``gym.make("JEPA/ToolHang-v0")`` then builds the task.
+Backends are imported only when their env is made, so PushT works without robosuite or LIBERO.
+"""
+from __future__ import annotations
+
+import gymnasium as gym
+
+from jepa_envs.spec import TaskSpec, all_task_specs, get_task_spec, register_task
+
+_ENTRY_POINTS = {
+    "embedded": "jepa_envs.pusht:PushTEnv",
+    "robomimic": "jepa_envs.robomimic_env:RobomimicEnv",
+    "libero": "jepa_envs.libero_env:LiberoEnv",
+    "mimicgen": "jepa_envs.mimicgen_env:MimicGenEnv",
+}
+
+
+def _register_all() -> None:
+    for spec in all_task_specs():
+        if spec.suite not in _ENTRY_POINTS or spec.env_id in gym.registry:
+            continue
+        gym.register(
+            id=spec.env_id,
+            entry_point=_ENTRY_POINTS[spec.suite],
+            max_episode_steps=spec.max_episode_steps,
+            kwargs={"task": spec.name},
+            disable_env_checker=True,
+        )
+
+
+_register_all()
+
+__all__ = ["TaskSpec", "get_task_spec", "all_task_specs", "register_task"]

