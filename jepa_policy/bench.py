@@ -1,0 +1,214 @@
+"""Benchmarks: decision latency of the arms (Table 5) and training throughput / peak memory (Sec. 4.1).
+
+Latency follows the paper's protocol: batch 1, EMA weights, eager mode, arms interleaved in one process
+(each round times every arm once, so drift of the machine hits all arms alike), 30 warm-up and 300 timed calls
+per arm, with device synchronisation around each call. Network passes are counted by forward hooks on the
+model's top-level parts during one decision, not assumed.
+"""
+from __future__ import annotations
+
+import contextlib
+import resource
+import time
+
+import numpy as np
+import torch
+from torch.optim.swa_utils import AveragedModel, get_ema_multi_avg_fn
+
+from jepa_envs.spec import get_task_spec
+from jepa_policy.train import build_policy_model, load_config, resolve_device
+
+
+def _random_stats(spec) -> dict:
+    stats = {"action": {"min": -np.ones(spec.action_dim, np.float32), "max": np.ones(spec.action_dim, np.float32)}}
+    for key, dim in spec.lowdim:
+        stats[key] = {"min": -np.ones(dim, np.float32), "max": np.ones(dim, np.float32)}
+    return stats
+
+
+def _synthetic_obs(spec, batch: int, steps: int, device, gen: torch.Generator) -> dict:
+    s = spec.image_size
+    obs = {k: torch.randint(0, 256, (batch, steps, s, s, 3), dtype=torch.uint8, generator=gen).to(device)
+           for k in spec.image_keys}
+    for key, dim in spec.lowdim:
+        obs[key] = (torch.rand(batch, steps, dim, generator=gen) * 2 - 1).to(device)
+    return obs
+
+
+def _ema_model(spec, arm: str, device, **overrides):
+    """A randomly initialised model wrapped like training wraps it; the benchmark acts with the EMA copy."""
+    from jepa_policy.config import ModelConfig
+
+    model = build_policy_model(ModelConfig.for_task(spec, arm=arm, **overrides)).to(device)
+    model.set_normalizer_stats(_random_stats(spec))
+    ema = AveragedModel(model, multi_avg_fn=get_ema_multi_avg_fn(0.995), use_buffers=True)
+    ema.update_parameters(model)
+    return ema.module.eval()
+
+
+def count_passes(model: torch.nn.Module, call) -> dict[str, int]:
+    """How many times each top-level part of ``model`` runs during ``call()`` (forward hooks)."""
+    counts: dict[str, int] = {}
+    handles = []
+    for name, child in model.named_children():
+        def hook(_module, _inputs, _output, name=name):
+            counts[name] = counts.get(name, 0) + 1
+        handles.append(child.register_forward_hook(hook))
+    try:
+        call()
+    finally:
+        for h in handles:
+            h.remove()
+    return counts
+
+
+def _sync(device) -> None:
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+
+
+def bench_latency(task: str = "ToolHang", arms=("mip", "jepa", "diffusion"), warmup: int = 30, iters: int = 300,
+                  dp_steps=(100, 16), device: str = "auto", seed: int = 0) -> dict:
+    """Time one decision (``model.predict`` at batch 1) per arm; the diffusion arm once per sampler length."""
+    if warmup < 0 or iters < 1:
+        raise ValueError(f"need warmup >= 0 and iters >= 1, got {warmup}, {iters}")
+    spec = get_task_spec(task)
+    dev = resolve_device(device)
+    torch.manual_seed(seed)
+    # (label, arm, model, want_future). JEPA's control path skips the future head in its second pass (Table 5);
+    # "jepa+audit" is the monitored path that also returns z_hat.
+    variants = []
+    for arm in arms:
+        if arm == "diffusion":
+            for steps in dp_steps:
+                model = _ema_model(spec, arm, dev, diffusion_infer_steps=int(steps),
+                                   diffusion_train_steps=max(100, int(steps)))
+                variants.append((f"diffusion-{steps}", arm, model, False))
+        else:
+            model = _ema_model(spec, arm, dev)
+            variants.append((arm, arm, model, False))
+            if arm == "jepa":
+                variants.append(("jepa+audit", arm, model, True))
+    gen = torch.Generator().manual_seed(seed)
+    obs = _synthetic_obs(spec, 1, spec.obs_steps, dev, gen)
+
+    rows = {}
+    for label, arm, model, want in variants:
+        with torch.inference_mode():
+            passes = count_passes(model, lambda: model.predict(obs, want_future=want))
+        rows[label] = {"arm": arm, "want_future": want, "params_m": sum(p.numel() for p in model.parameters()) / 1e6,
+                       "passes": passes, "times_ms": []}
+    with torch.inference_mode():
+        for i in range(warmup + iters):
+            for label, _arm, model, want in variants:
+                _sync(dev)
+                t0 = time.perf_counter()
+                model.predict(obs, want_future=want)
+                _sync(dev)
+                if i >= warmup:
+                    rows[label]["times_ms"].append((time.perf_counter() - t0) * 1e3)
+    for row in rows.values():
+        times = np.asarray(row.pop("times_ms"))
+        row.update(mean_ms=float(times.mean()), p95_ms=float(np.percentile(times, 95)),
+                   median_ms=float(np.median(times)), max_hz=float(1e3 / times.mean()))
+    ratios = {}
+    if "jepa" in rows and "mip" in rows:
+        ratios["jepa_over_mip"] = rows["jepa"]["mean_ms"] / rows["mip"]["mean_ms"]
+    for steps in dp_steps:
+        if f"diffusion-{steps}" in rows and "jepa" in rows:
+            ratios[f"dp{steps}_over_jepa"] = rows[f"diffusion-{steps}"]["mean_ms"] / rows["jepa"]["mean_ms"]
+    return {"task": spec.name, "device": str(dev), "device_name": _device_name(dev), "warmup": warmup,
+            "iters": iters, "torch": torch.__version__, "threads": torch.get_num_threads(), "arms": rows,
+            "ratios": ratios}
+
+
+def _device_name(dev) -> str:
+    if dev.type == "cuda":
+        return torch.cuda.get_device_name(dev)
+    import platform
+    return platform.processor() or platform.machine()
+
+
+def format_latency(result: dict) -> str:
+    lines = [f"decision latency, {result['task']}, batch 1, EMA weights, {result['device']} "
+             f"({result['device_name']}), {result['warmup']} warm-up + {result['iters']} timed calls, interleaved",
+             f"{'arm':<16}{'params':>9}{'mean ms':>10}{'p95 ms':>10}{'max Hz':>9}  passes"]
+    for label, row in result["arms"].items():
+        passes = ", ".join(f"{k}x{v}" for k, v in row["passes"].items())
+        lines.append(f"{label:<16}{row['params_m']:>8.2f}M{row['mean_ms']:>10.2f}{row['p95_ms']:>10.2f}"
+                     f"{row['max_hz']:>9.1f}  {passes}")
+    for name, value in result["ratios"].items():
+        lines.append(f"{name}: {value:.3f}")
+    return "\n".join(lines)
+
+
+def _peak_rss_mib() -> float:
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0  # Linux reports KiB
+
+
+def bench_train(task: str = "ToolHang", preset: str = "paper", arm: str = "jepa", steps: int = 3, warmup: int = 1,
+                device: str = "auto", batch_size: int | None = None, seed: int = 0) -> dict:
+    """Training samples/s and peak memory on synthetic batches of the task's shapes under a preset's config.
+
+    Peak memory is ``torch.cuda.max_memory_allocated`` on CUDA and the process's peak RSS on CPU.
+    """
+    if steps < 1 or warmup < 0:
+        raise ValueError(f"need steps >= 1 and warmup >= 0, got {steps}, {warmup}")
+    cfg = load_config(task, preset, arm=arm)
+    spec = get_task_spec(task)
+    if cfg.image_size:
+        spec = spec.with_image_size(cfg.image_size)
+    batch = batch_size or cfg.batch_size
+    dev = resolve_device(device)
+    torch.manual_seed(seed)
+    from jepa_policy.config import ModelConfig
+
+    rss_before = _peak_rss_mib()
+    model = build_policy_model(ModelConfig.for_task(spec, arm=arm, **cfg.model)).to(dev)
+    model.set_normalizer_stats(_random_stats(spec))
+    model.train()
+    optimizer = torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
+    ema = AveragedModel(model, multi_avg_fn=get_ema_multi_avg_fn(cfg.ema_decay), use_buffers=True)
+    gen = torch.Generator().manual_seed(seed)
+    data = {"obs": _synthetic_obs(spec, batch, spec.obs_steps, dev, gen),
+            "future_obs": {k: v[:, -1] for k, v in _synthetic_obs(spec, batch, 1, dev, gen).items()
+                           if k in spec.image_keys},
+            "action": (torch.rand(batch, spec.horizon, spec.action_dim, generator=gen) * 2 - 1).to(dev)}
+    autocast = torch.autocast("cuda", dtype=torch.bfloat16) if dev.type == "cuda" and cfg.bf16 \
+        else contextlib.nullcontext()
+    if dev.type == "cuda":
+        torch.cuda.reset_peak_memory_stats(dev)
+    times = []
+    for i in range(warmup + steps):
+        _sync(dev)
+        t0 = time.perf_counter()
+        optimizer.zero_grad(set_to_none=True)
+        with autocast:
+            loss, _ = model.compute_loss(data)
+        loss.backward()
+        optimizer.step()
+        ema.update_parameters(model)
+        _sync(dev)
+        if i >= warmup:
+            times.append(time.perf_counter() - t0)
+    step_s = float(np.mean(times))
+    result = {"task": spec.name, "preset": preset, "arm": arm, "device": str(dev), "device_name": _device_name(dev),
+              "batch_size": batch, "image_size": spec.image_size, "steps": steps,
+              "params_m": sum(p.numel() for p in model.parameters()) / 1e6,
+              "s_per_step": step_s, "samples_per_s": batch / step_s}
+    if dev.type == "cuda":
+        result.update(peak_allocated_mib=torch.cuda.max_memory_allocated(dev) / 2**20,
+                      peak_reserved_mib=torch.cuda.max_memory_reserved(dev) / 2**20)
+    else:
+        result.update(peak_rss_mib=_peak_rss_mib(), peak_rss_before_mib=rss_before)
+    return result
+
+
+def format_train(result: dict) -> str:
+    mem = (f"peak allocated {result['peak_allocated_mib']:.0f} MiB, reserved {result['peak_reserved_mib']:.0f} MiB"
+           if "peak_allocated_mib" in result else
+           f"peak RSS {result['peak_rss_mib']:.0f} MiB (before the model: {result['peak_rss_before_mib']:.0f} MiB)")
+    return (f"train {result['task']}/{result['arm']} preset={result['preset']} on {result['device']} "
+            f"({result['device_name']}): batch {result['batch_size']}, {result['image_size']}px, "
+            f"{result['params_m']:.2f} M params, {result['s_per_step']:.3f} s/step, "
+            f"{result['samples_per_s']:.1f} samples/s, {mem}")

@@ -1,0 +1,167 @@
+"""Seeded rollouts, success rate, per-decision future-consistency error, and the reporting protocols.
+
+Per decision t the policy predicts z_hat for frame t+k; when that frame arrives the same encoder gives
+z_real = E_rgb(o_{t+k}) and the record stores e_fc = d_NMSE(z_hat, z_real) (paper Sec. 3.6). A decision whose
+episode ends before t+k has no valid target and is recorded with ``nmse: null``.
+"""
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable
+
+import gymnasium as gym
+import numpy as np
+
+import jepa_envs  # noqa: F401  (registers the JEPA/* ids)
+
+
+def nmse(z_hat: np.ndarray, z: np.ndarray) -> np.ndarray:
+    """Target-RMS-normalised MSE per row, d_NMSE = ||(z_hat - z) / max(rms(z), 1e-6)||^2 / d_z (Sec. 3.3)."""
+    z_hat, z = np.asarray(z_hat, dtype=np.float64), np.asarray(z, dtype=np.float64)
+    if z_hat.shape != z.shape:
+        raise ValueError(f"z_hat shape {z_hat.shape} differs from target shape {z.shape}")
+    rms = np.sqrt(np.mean(z * z, axis=-1, keepdims=True))
+    return np.mean(((z_hat - z) / np.maximum(rms, 1e-6)) ** 2, axis=-1)
+
+
+@dataclass
+class DecisionEvent:
+    """What the per-decision hook receives: once at prediction time, once when the target is realized."""
+
+    kind: str                   # "prediction" (z_real, nmse are None) or "realized"
+    episode: int
+    seed: int
+    step: int                   # decision step t
+    target_step: int            # t + k
+    z_hat: np.ndarray
+    z_real: np.ndarray | None = None
+    nmse: float | None = None
+
+
+def reporting_protocols(curve: list[dict]) -> dict:
+    """The four summaries of Table 6 from a curve of periodic evaluations [{"step", "success_rate"}, ...]."""
+    if not curve:
+        raise ValueError("empty evaluation curve; train with eval_every > 0 to record one")
+    rates = [float(p["success_rate"]) for p in sorted(curve, key=lambda p: p["step"])]
+    return {
+        "best": max(rates),
+        "mean_last5": float(np.mean(rates[-5:])),
+        "mean_all": float(np.mean(rates)),
+        "last": rates[-1],
+        "evaluations": len(rates),
+    }
+
+
+def _make_env_fn(env_id: str, image_size: int, max_steps: int | None):
+    def make():
+        kwargs = {"image_size": image_size}
+        if max_steps:
+            kwargs["max_episode_steps"] = max_steps
+        return gym.make(env_id, **kwargs)
+    return make
+
+
+def evaluate(policy, episodes: int, seed: int, num_envs: int = 4, max_steps: int | None = None,
+             video_dir: str | Path | None = None, on_decision: Callable[[DecisionEvent], None] | None = None,
+             keep_latents: bool = False, out: str | Path | None = None) -> dict:
+    """Run ``episodes`` rollouts with seeds seed, seed+1, ... in lockstep vector envs.
+
+    Only the frames the policy uses are rendered (``policy.images_needed``) unless videos are written.
+    Returns the report (success rate, mean NMSE, per-episode records); ``out`` also writes the records as JSONL.
+    """
+    if episodes < 1 or num_envs < 1:
+        raise ValueError(f"need episodes >= 1 and num_envs >= 1, got {episodes}, {num_envs}")
+    spec = policy.spec
+    num_envs = min(num_envs, episodes)
+    envs = gym.vector.SyncVectorEnv([_make_env_fn(spec.env_id, spec.image_size, max_steps)] * num_envs)
+    records = []
+    try:
+        for first in range(0, episodes, num_envs):
+            ids = list(range(first, min(first + num_envs, episodes)))
+            records += _run_round(envs, policy, ids, seed, video_dir, on_decision, keep_latents)
+    finally:
+        envs.close()
+    valid = [d["nmse"] for r in records for d in r["decisions"] if d["nmse"] is not None]
+    report = {
+        "task": spec.name,
+        "episodes": episodes,
+        "seed": seed,
+        "success_rate": float(np.mean([r["success"] for r in records])),
+        "mean_length": float(np.mean([r["length"] for r in records])),
+        "mean_nmse": float(np.mean(valid)) if valid else None,
+        "records": records,
+    }
+    if out:
+        Path(out).parent.mkdir(parents=True, exist_ok=True)
+        with open(out, "w") as f:
+            for r in records:
+                f.write(json.dumps(r) + "\n")
+    return report
+
+
+def _run_round(envs, policy, ids, seed, video_dir, on_decision, keep_latents) -> list[dict]:
+    n = envs.num_envs
+    seeds = [seed + i for i in ids] + [seed + ids[-1] + 1 + j for j in range(n - len(ids))]  # spare envs run too
+    live = np.array([j < len(ids) for j in range(n)])
+    success, length = np.zeros(n, bool), np.zeros(n, int)
+    decisions = [[] for _ in range(n)]
+    pending: list = []          # decisions whose target frame has not arrived
+    frames = [[] for _ in range(n)]
+    want_video = video_dir is not None
+
+    policy.reset()
+    envs.call("set_render_images", True)
+    obs, _ = envs.reset(seed=seeds)
+    while live.any():
+        if want_video:
+            for j in np.flatnonzero(live):
+                frames[j].append(np.concatenate([obs[key][j] for key in policy.spec.image_keys], axis=1))
+        before = policy.last_decision
+        action = policy.act(obs)
+        decision = policy.last_decision
+        if decision is not before and decision.z_hat is not None:
+            pending.append(decision)
+            if on_decision:
+                for j in np.flatnonzero(live):
+                    on_decision(DecisionEvent("prediction", ids[j], seeds[j], decision.step,
+                                              decision.target_step, decision.z_hat[j]))
+        elif decision is not before:
+            for j in np.flatnonzero(live):
+                decisions[j].append({"step": decision.step, "target_step": decision.target_step, "nmse": None})
+        envs.call("set_render_images", want_video or policy.images_needed(policy.t + 1))
+        obs, _, terminated, truncated, infos = envs.step(action)
+        t_new = policy.t + 1
+        length += live
+        if "is_success" in infos:
+            success |= live & np.asarray(infos["is_success"], bool)
+        due = [d for d in pending if d.target_step == t_new]
+        if due:
+            z_real = policy.encode_future(obs)
+            for d in due:
+                err = nmse(d.z_hat, z_real)
+                for j in np.flatnonzero(live):
+                    rec = {"step": d.step, "target_step": d.target_step, "nmse": float(err[j])}
+                    if keep_latents:
+                        rec.update(z_hat=d.z_hat[j].tolist(), z_real=z_real[j].tolist())
+                    decisions[j].append(rec)
+                    if on_decision:
+                        on_decision(DecisionEvent("realized", ids[j], seeds[j], d.step, d.target_step,
+                                                  d.z_hat[j], z_real[j], float(err[j])))
+                pending.remove(d)
+        ended = live & (np.asarray(terminated) | np.asarray(truncated))
+        for j in np.flatnonzero(ended):  # decisions still waiting for a frame that never comes
+            for d in pending:
+                decisions[j].append({"step": d.step, "target_step": d.target_step, "nmse": None})
+        live &= ~ended
+
+    records = []
+    for j, episode in enumerate(ids):
+        records.append({"episode": episode, "seed": seeds[j], "success": bool(success[j]),
+                        "length": int(length[j]), "decisions": sorted(decisions[j], key=lambda d: d["step"])})
+        if want_video and frames[j]:
+            import imageio.v2 as imageio
+            Path(video_dir).mkdir(parents=True, exist_ok=True)
+            imageio.mimsave(Path(video_dir) / f"episode_{episode:04d}_seed{seeds[j]}.gif", frames[j], duration=0.1)
+    return records

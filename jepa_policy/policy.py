@@ -1,0 +1,157 @@
+"""The acting runtime (LeRobot-style): observation history, action queue, decision metadata.
+
+The paper's schedule (Sec. 4.1, "Timing"): at a decision step t the policy predicts H actions from the frames
+t-obs_steps+1 .. t, executes the first ``n_action_steps`` (8) of them, then decides again. Each decision also
+predicts z_hat for the frame t+k (Sec. 3.6); once that frame arrives, ``encode_future`` gives the realized
+latent E_rgb(o_{t+k}) so a robot loop or the evaluator can score e_fc = NMSE(z_hat, z_real).
+
+Observations are single env observations (``<camera>_image`` uint8 (S,S,3) and low-dim float32 (D,)) or a
+batch of them with a leading env axis (vector envs, all stepping in lockstep).
+"""
+from __future__ import annotations
+
+from collections import deque
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from jepa_envs.spec import TaskSpec, get_task_spec
+
+
+@dataclass
+class Decision:
+    """One replanning event: what was predicted at step t and when its future target arrives."""
+
+    step: int                 # t: episode step of the newest observation frame used
+    k: int                    # future horizon in env steps
+    actions: np.ndarray       # (H, A) or (B, H, A), unnormalised
+    z_hat: np.ndarray | None  # (D,) or (B, D): predicted E_rgb(o_{t+k}); None for arms without a future head
+
+    @property
+    def target_step(self) -> int:
+        return self.step + self.k
+
+
+class Policy:
+    """Acts with a trained model (EMA weights when loaded from a checkpoint)."""
+
+    def __init__(self, model: torch.nn.Module, spec: TaskSpec, device: str | torch.device = "cpu"):
+        self.device = torch.device(device)
+        self.model = model.to(self.device).eval()
+        self.spec = spec
+        self.obs_steps, self.n_action_steps, self.k = spec.obs_steps, spec.n_action_steps, spec.future_k
+        if not 1 <= self.n_action_steps <= spec.horizon:
+            raise ValueError(f"n_action_steps={self.n_action_steps} must be in [1, horizon={spec.horizon}]")
+        self.reset()
+
+    @classmethod
+    def from_checkpoint(cls, path: str | Path, device: str | torch.device = "cpu", ema: bool = True) -> "Policy":
+        """Load a ``jepa-policy train`` checkpoint; acts with the EMA weights unless ``ema=False``."""
+        from jepa_policy.config import ModelConfig
+        from jepa_policy.train import build_policy_model, load_checkpoint
+
+        ckpt = load_checkpoint(path, map_location="cpu")
+        model = build_policy_model(ModelConfig.from_dict(ckpt["model_config"]))
+        if ema:
+            prefix = "module."
+            state = {k[len(prefix):]: v for k, v in ckpt["ema"].items() if k.startswith(prefix)}
+        else:
+            state = ckpt["model"]
+        model.load_state_dict(state)
+        spec = get_task_spec(ckpt["task"]).with_image_size(ckpt["image_size"])
+        policy = cls(model, spec, device)
+        policy.checkpoint_step = int(ckpt["step"])
+        return policy
+
+    # ------------------------------------------------------------------ state
+    def reset(self) -> None:
+        """Forget the history and the queued actions; call at the start of every episode."""
+        self._history: deque = deque(maxlen=self.obs_steps)
+        self._queue: deque = deque()
+        self.t = -1                       # episode step of the newest observation seen
+        self.last_decision: Decision | None = None
+        self._batched: bool | None = None
+
+    def images_needed(self, step: int) -> bool:
+        """Whether the frame of episode step ``step`` is used: the history of a decision or its future target.
+
+        Decisions happen at multiples of ``n_action_steps``; a render-on-demand loop renders only these frames.
+        """
+        n = self.n_action_steps
+        history = any((step + j) % n == 0 for j in range(self.obs_steps))
+        target = step >= self.k and (step - self.k) % n == 0
+        return history or target
+
+    # ------------------------------------------------------------------ public acting API
+    def act(self, obs: dict) -> np.ndarray:
+        """Consume one observation and return the action to execute now ((A,) or (B, A))."""
+        self._push(obs)
+        if not self._queue:
+            decision = self._decide(want_future=True)
+            for i in range(self.n_action_steps):
+                self._queue.append(decision.actions[..., i, :])
+        return self._queue.popleft()
+
+    def predict(self, obs: dict, want_future: bool = True) -> tuple[np.ndarray, np.ndarray | None]:
+        """Consume one observation and return (action chunk (H, A), z_hat for frame t+k) without queueing."""
+        self._push(obs)
+        decision = self._decide(want_future=want_future)
+        return decision.actions, decision.z_hat
+
+    @torch.inference_mode()
+    def encode_future(self, obs: dict) -> np.ndarray:
+        """Realized future latent z = E_rgb(o) of an observation ((D,) or (B, D)); needs only its images."""
+        batched = self._is_batched(obs)
+        images = {}
+        for key in self.spec.image_keys:
+            arr = np.asarray(obs[key])
+            images[key] = torch.from_numpy(np.ascontiguousarray(arr if batched else arr[None])).to(self.device)
+        z = self.model.encode_future(images).float().cpu().numpy()
+        return z if batched else z[0]
+
+    # ------------------------------------------------------------------ internals
+    def _is_batched(self, obs: dict) -> bool:
+        key = self.spec.image_keys[0]
+        if key not in obs:
+            raise KeyError(f"observation lacks {key!r}; it has {sorted(obs)}")
+        ndim = np.asarray(obs[key]).ndim
+        if ndim not in (3, 4):
+            raise ValueError(f"{key} must be (S,S,3) or (B,S,S,3) uint8, got shape {np.asarray(obs[key]).shape}")
+        return ndim == 4
+
+    def _push(self, obs: dict) -> None:
+        batched = self._is_batched(obs)
+        if self._batched is None:
+            self._batched = batched
+        elif batched != self._batched:
+            raise ValueError("mixing batched and unbatched observations in one episode; call reset() first")
+        frame = {}
+        for key in (*self.spec.image_keys, *self.spec.lowdim_keys):
+            if key not in obs:
+                raise KeyError(f"observation lacks {key!r}; the task {self.spec.name} needs "
+                               f"{list(self.spec.image_keys) + list(self.spec.lowdim_keys)}")
+            arr = np.asarray(obs[key])
+            frame[key] = arr if batched else arr[None]
+        if not self._history:  # pad the start of the episode by repeating the first frame, as in training
+            self._history.extend([frame] * (self.obs_steps - 1))
+        self._history.append(frame)
+        self.t += 1
+
+    @torch.inference_mode()
+    def _decide(self, want_future: bool) -> Decision:
+        obs = {}
+        for key in self.spec.image_keys:
+            stacked = np.stack([f[key] for f in self._history], axis=1)
+            obs[key] = torch.from_numpy(np.ascontiguousarray(stacked, dtype=np.uint8)).to(self.device)
+        for key in self.spec.lowdim_keys:
+            stacked = np.stack([f[key] for f in self._history], axis=1).astype(np.float32)
+            obs[key] = torch.from_numpy(stacked).to(self.device)
+        actions, z_hat = self.model.predict(obs, want_future=want_future)
+        actions = actions.float().cpu().numpy()
+        z = None if z_hat is None else z_hat.float().cpu().numpy()
+        if not self._batched:
+            actions, z = actions[0], (None if z is None else z[0])
+        self.last_decision = Decision(step=self.t, k=self.k, actions=actions, z_hat=z)
+        return self.last_decision

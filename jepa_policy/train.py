@@ -1,0 +1,397 @@
+"""Training loop of JEPA Policy and its comparison arms (paper Sec. 3.3-3.4 objective, Sec. 4.1 protocol).
+
+Read top to bottom like a CleanRL script: the typed ``TrainConfig`` (also the CLI of ``jepa-policy train``),
+then ``train`` which builds data, model, optimiser, EMA and schedule, and runs the steps.
+
+Determinism. The model's own randomness (crop windows, second-step noise) is drawn from torch's global RNG,
+which is re-seeded for every shard of every step from (seed, step, shard). A resumed run therefore repeats
+the uninterrupted run exactly, and a step split over W DDP ranks x A accumulation shards computes the same
+shards whatever W and A are (shard s of a global batch holds its positions s::(W*A)).
+"""
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import json
+import os
+import random
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+import torch.distributed as dist
+from torch.optim.swa_utils import AveragedModel, get_ema_multi_avg_fn
+
+from jepa_envs.spec import get_task_spec
+from jepa_policy.dataset import ResumableBatchSampler, WindowDataset, make_loader, normalizer_stats
+
+CONFIG_DIR = Path(__file__).parent / "configs"
+
+
+@dataclass
+class TrainConfig:
+    """Hyper-parameters of one run. Defaults are the paper's (Sec. 4.1); presets live in ``configs/<task>.json``."""
+
+    task: str = "PushT"
+    arm: str = "jepa"                 # jepa | mip | dual_independent | dual_cross | backcut | fwdcut | sigreg | lambda_a0 | diffusion
+    dataset: str = ""                 # demonstration file (jepa_envs.data.load_dataset)
+    out_dir: str = "runs/jepa"
+    resume: str = ""                  # checkpoint to continue from ("" = fresh run)
+    steps: int = 300_000
+    stop_at: int = 0                  # stop and checkpoint at this step (time-sliced jobs); 0 = run to ``steps``
+    batch_size: int = 256             # global batch over all ranks and accumulation shards
+    grad_accum: int = 1               # shards per rank and step (same result as more ranks)
+    lr: float = 1e-4
+    weight_decay: float = 1e-6        # diffusion_policy / MIP released default for AdamW
+    beta1: float = 0.95
+    beta2: float = 0.999
+    warmup_steps: int = 500
+    ema_decay: float = 0.995          # Polyak averaging of the policy weights, used to evaluate and act
+    seed: int = 42
+    image_size: int = 0               # 0 = the task spec's size
+    device: str = "auto"              # auto | cpu | cuda | cuda:N
+    bf16: bool = True                 # bf16 autocast, used only on CUDA
+    num_workers: int = 0
+    log_every: int = 100
+    ckpt_every: int = 10_000
+    eval_every: int = 10_000          # 0 = no periodic evaluation
+    eval_episodes: int = 40
+    eval_seed: int = 100_000          # fixed evaluation seed (Sec. 4.1)
+    eval_envs: int = 4                # parallel environments of one evaluation
+    progress: bool = True
+    model: dict = field(default_factory=dict)  # ModelConfig overrides, e.g. {"image_size": 64}
+
+    def to_dict(self) -> dict:
+        return dataclasses.asdict(self)
+
+    @classmethod
+    def from_dict(cls, data: dict) -> "TrainConfig":
+        """Build a config from plain data, checking names and types so a typo fails loudly."""
+        fields = {f.name: f for f in dataclasses.fields(cls)}
+        unknown = sorted(set(data) - set(fields))
+        if unknown:
+            raise ValueError(f"unknown training option(s) {unknown}; valid options: {sorted(fields)}")
+        values = {}
+        for name, value in data.items():
+            kind = type(getattr(cls(), name))
+            if kind is float and isinstance(value, int) and not isinstance(value, bool):
+                value = float(value)
+            if not isinstance(value, kind) or (kind is int and isinstance(value, bool)):
+                raise TypeError(f"training option {name!r} must be {kind.__name__}, got {value!r}")
+            values[name] = value
+        cfg = cls(**values)
+        cfg.validate()
+        return cfg
+
+    def validate(self) -> None:
+        """Reject settings that cannot run, with the fix in the message."""
+        spec = get_task_spec(self.task)
+        checks = [
+            (self.steps >= 1, "steps must be >= 1"),
+            (0 <= self.stop_at <= self.steps, "stop_at must be in [0, steps] (0 = run to the end)"),
+            (self.batch_size >= 1, "batch_size must be >= 1"),
+            (self.grad_accum >= 1 and self.batch_size % self.grad_accum == 0,
+             "grad_accum must be >= 1 and divide batch_size"),
+            (self.lr > 0, "lr must be > 0"),
+            (0.0 <= self.ema_decay < 1.0, "ema_decay must be in [0, 1)"),
+            (0 <= self.warmup_steps <= self.steps, "warmup_steps must be in [0, steps]"),
+            (self.log_every >= 1 and self.ckpt_every >= 1, "log_every and ckpt_every must be >= 1"),
+            (self.eval_every >= 0 and self.eval_episodes >= 1, "eval_every >= 0 and eval_episodes >= 1"),
+        ]
+        for ok, message in checks:
+            if not ok:
+                raise ValueError(f"invalid training config: {message}")
+        from jepa_policy.config import ModelConfig
+        ModelConfig.for_task(spec.with_image_size(self.image_size or spec.image_size), arm=self.arm, **self.model)
+
+
+def load_config(task: str, preset: str = "paper", **overrides) -> TrainConfig:
+    """The named preset of ``configs/<task>.json`` with keyword overrides applied."""
+    path = CONFIG_DIR / f"{get_task_spec(task).name}.json"
+    if not path.exists():
+        raise FileNotFoundError(f"no config file {path}; available: {sorted(p.stem for p in CONFIG_DIR.glob('*.json'))}")
+    data = json.loads(path.read_text())
+    extra = sorted(set(data) - {"task", "description", "presets"})
+    if extra or "presets" not in data or "task" not in data:
+        raise ValueError(f"{path} must hold exactly 'task', 'presets' and optionally 'description'; found {sorted(data)}")
+    presets = data["presets"]
+    if preset not in presets:
+        raise KeyError(f"{path.name} has no preset {preset!r}; choose one of {sorted(presets)}")
+    values = {"task": data["task"], **presets[preset], **overrides}
+    if "model" in presets[preset] and "model" in overrides:
+        values["model"] = {**presets[preset]["model"], **overrides["model"]}
+    return TrainConfig.from_dict(values)
+
+
+# ----------------------------------------------------------------------------- helpers with one job each
+
+def shard_seed(seed: int, step: int, shard: int) -> int:
+    """Seed of the model's randomness for one shard of one step (see the module docstring)."""
+    return int(np.random.SeedSequence([seed, step, shard]).generate_state(1)[0])
+
+
+def cosine_with_warmup(optimizer: torch.optim.Optimizer, warmup_steps: int, total_steps: int):
+    """Linear warm-up to the base lr, then cosine decay to zero at ``total_steps``."""
+    after = torch.optim.lr_scheduler.CosineAnnealingLR(optimizer, T_max=max(1, total_steps - warmup_steps))
+    if warmup_steps == 0:
+        return after
+    warm = torch.optim.lr_scheduler.LinearLR(optimizer, start_factor=1.0 / warmup_steps, total_iters=warmup_steps)
+    return torch.optim.lr_scheduler.SequentialLR(optimizer, [warm, after], milestones=[warmup_steps])
+
+
+def resolve_device(name: str, local_rank: int = 0) -> torch.device:
+    if name == "auto":
+        return torch.device(f"cuda:{local_rank}" if torch.cuda.is_available() else "cpu")
+    if name.startswith("cuda") and not torch.cuda.is_available():
+        raise RuntimeError(f"device {name!r} asked for but CUDA is not available; use --device cpu")
+    return torch.device(name)
+
+
+def rng_state() -> dict:
+    state = {"python": random.getstate(), "numpy": np.random.get_state(), "torch": torch.get_rng_state()}
+    if torch.cuda.is_available():
+        state["cuda"] = torch.cuda.get_rng_state_all()
+    return state
+
+
+def set_rng_state(state: dict) -> None:
+    random.setstate(state["python"])
+    np.random.set_state(state["numpy"])
+    torch.set_rng_state(state["torch"])
+    if "cuda" in state and torch.cuda.is_available():
+        torch.cuda.set_rng_state_all(state["cuda"])
+
+
+def seed_everything(seed: int) -> None:
+    random.seed(seed)
+    np.random.seed(seed % 2**32)
+    torch.manual_seed(seed)
+
+
+class LossModule(torch.nn.Module):
+    """Puts ``compute_loss`` behind ``forward`` so DistributedDataParallel sees (and syncs) the call."""
+
+    def __init__(self, model: torch.nn.Module):
+        super().__init__()
+        self.model = model
+
+    def forward(self, batch):
+        return self.model.compute_loss(batch)
+
+
+def _to_device(batch, device):
+    if isinstance(batch, dict):
+        return {k: _to_device(v, device) for k, v in batch.items()}
+    return batch.to(device, non_blocking=True)
+
+
+def _shard(batch, part: int, parts: int):
+    if isinstance(batch, dict):
+        return {k: _shard(v, part, parts) for k, v in batch.items()}
+    return batch[part::parts]
+
+
+def _scalars(info: dict) -> dict:
+    out = {}
+    for key, value in info.items():
+        if isinstance(value, torch.Tensor) and value.numel() == 1:
+            out[key] = float(value.detach())
+        elif isinstance(value, (int, float)) and not isinstance(value, bool):
+            out[key] = float(value)
+    return out
+
+
+def build_policy_model(model_cfg):
+    """Construct the network of a ModelConfig (imported here so the data half imports without the model)."""
+    from jepa_policy.model import build_model
+    return build_model(model_cfg)
+
+
+def save_checkpoint(path: Path, *, model, ema, optimizer, scheduler, step: int, cfg: TrainConfig, model_cfg,
+                    spec, stats: dict, curve: list, sampler_position: dict) -> None:
+    """Everything a run needs to continue bit-exactly, and everything ``Policy.from_checkpoint`` needs to act."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    payload = {
+        "format": "jepa-policy-checkpoint/1",
+        "step": step,
+        "train_config": cfg.to_dict(),
+        "model_config": model_cfg.to_dict(),
+        "task": spec.name,
+        "image_size": spec.image_size,
+        "normalizer_stats": stats,
+        "model": model.state_dict(),
+        "ema": ema.state_dict(),
+        "optimizer": optimizer.state_dict(),
+        "scheduler": scheduler.state_dict(),
+        "rng": rng_state(),
+        "sampler": sampler_position,
+        "eval_curve": curve,
+    }
+    tmp = path.with_suffix(".tmp")
+    torch.save(payload, tmp)
+    os.replace(tmp, path)
+
+
+def load_checkpoint(path: str | Path, map_location="cpu") -> dict:
+    path = Path(path)
+    if not path.exists():
+        raise FileNotFoundError(f"checkpoint {path} does not exist; pass the .pt file written by `jepa-policy train`")
+    payload = torch.load(path, map_location=map_location, weights_only=False)
+    if not isinstance(payload, dict) or payload.get("format") != "jepa-policy-checkpoint/1":
+        raise ValueError(f"{path} is not a jepa-policy checkpoint (missing format tag)")
+    return payload
+
+
+# ----------------------------------------------------------------------------- the loop
+
+def train(cfg: TrainConfig, demos=None) -> dict:
+    """Run (or continue) training; returns the final checkpoint path, the step, the eval curve and the logs.
+
+    Launch with ``torchrun --nproc-per-node N -m jepa_policy.cli train ...`` for DistributedDataParallel;
+    ``demos`` may be a loaded ``DemoDataset`` (tests), otherwise ``cfg.dataset`` is loaded.
+    """
+    cfg.validate()
+    from jepa_policy.config import ModelConfig
+
+    world = int(os.environ.get("WORLD_SIZE", "1"))
+    rank, local_rank = int(os.environ.get("RANK", "0")), int(os.environ.get("LOCAL_RANK", "0"))
+    device = resolve_device(cfg.device, local_rank)
+    owns_group = world > 1 and not dist.is_initialized()
+    if owns_group:
+        dist.init_process_group(backend="nccl" if device.type == "cuda" else "gloo")
+    is_main = rank == 0
+
+    # data
+    if demos is None:
+        if not cfg.dataset:
+            raise ValueError("no dataset given; record one with `jepa-envs make-demos PushT --episodes 50 "
+                             "--out demos.hdf5` and pass --dataset demos.hdf5")
+        from jepa_envs.data import load_dataset
+        demos = load_dataset(cfg.dataset, task=cfg.task, image_size=cfg.image_size or None)
+    spec = demos.spec
+    if spec.name != get_task_spec(cfg.task).name:
+        raise ValueError(f"dataset is for task {spec.name!r} but the config trains {cfg.task!r}")
+    windows = WindowDataset.from_demos(demos)
+    stats = normalizer_stats(demos.actions, demos.obs, spec.lowdim_keys)
+
+    # model, EMA, optimiser, schedule (Sec. 4.1: AdamW 1e-4, EMA 0.995, cosine with warm-up)
+    seed_everything(cfg.seed)  # identical initial weights on every rank
+    model_cfg = ModelConfig.for_task(spec, arm=cfg.arm, **cfg.model)
+    model = build_policy_model(model_cfg).to(device)
+    model.set_normalizer_stats(stats)
+    ema = AveragedModel(model, multi_avg_fn=get_ema_multi_avg_fn(cfg.ema_decay), use_buffers=True)
+    optimizer = torch.optim.AdamW(model.parameters(), lr=cfg.lr, betas=(cfg.beta1, cfg.beta2),
+                                  weight_decay=cfg.weight_decay)
+    scheduler = cosine_with_warmup(optimizer, cfg.warmup_steps, cfg.steps)
+    step, curve = 0, []
+    if cfg.resume:
+        ckpt = load_checkpoint(cfg.resume, map_location=device)
+        model.load_state_dict(ckpt["model"])
+        ema.load_state_dict(ckpt["ema"])
+        optimizer.load_state_dict(ckpt["optimizer"])
+        scheduler.load_state_dict(ckpt["scheduler"])
+        set_rng_state(ckpt["rng"])
+        step, curve = int(ckpt["step"]), list(ckpt["eval_curve"])
+
+    net = LossModule(model)
+    if world > 1:
+        net = torch.nn.parallel.DistributedDataParallel(
+            net, device_ids=[device.index] if device.type == "cuda" else None)
+    sampler = ResumableBatchSampler(len(windows), cfg.batch_size, cfg.seed, rank, world)
+    sampler.start_at(step)
+    loader = make_loader(windows, sampler, cfg.num_workers, pin_memory=device.type == "cuda")
+
+    out = Path(cfg.out_dir)
+    ckpt_path = out / "checkpoints" / "latest.pt"
+    writer, log_file, progress = None, None, None
+    if is_main:
+        out.mkdir(parents=True, exist_ok=True)
+        (out / "train_config.json").write_text(json.dumps(cfg.to_dict(), indent=2))
+        from torch.utils.tensorboard import SummaryWriter
+        from tqdm import tqdm
+        writer = SummaryWriter(str(out / "tensorboard"))
+        log_file = open(out / "log.jsonl", "a")
+        progress = tqdm(total=cfg.steps, initial=step, disable=not cfg.progress, desc=f"{cfg.task}/{cfg.arm}")
+
+    def save():
+        if is_main:
+            save_checkpoint(ckpt_path, model=model, ema=ema, optimizer=optimizer, scheduler=scheduler, step=step,
+                            cfg=cfg, model_cfg=model_cfg, spec=spec, stats=stats, curve=curve,
+                            sampler_position=sampler_position(step))
+
+    def sampler_position(s):
+        epoch, taken = divmod(s, sampler.batches_per_epoch())
+        return {"epoch": epoch, "batches_taken": taken}
+
+    def periodic_eval():
+        if is_main:
+            from jepa_policy.evaluate import evaluate
+            from jepa_policy.policy import Policy
+            policy = Policy(ema.module, spec, device=device)
+            report = evaluate(policy, episodes=cfg.eval_episodes, seed=cfg.eval_seed, num_envs=cfg.eval_envs)
+            curve.append({"step": step, "success_rate": report["success_rate"],
+                          "mean_nmse": report["mean_nmse"]})
+            (out / "eval_curve.json").write_text(json.dumps(curve, indent=2))
+            writer.add_scalar("eval/success_rate", report["success_rate"], step)
+            log_file.write(json.dumps({"step": step, "eval_success_rate": report["success_rate"]}) + "\n")
+            log_file.flush()
+        if world > 1:
+            dist.barrier()
+
+    autocast = torch.autocast("cuda", dtype=torch.bfloat16) if device.type == "cuda" and cfg.bf16 \
+        else contextlib.nullcontext()
+    shards = cfg.grad_accum
+    history, t_last, samples_since = [], time.perf_counter(), 0
+    model.train()
+    batches = iter(loader)
+    last = cfg.stop_at or cfg.steps
+    while step < last:
+        batch = _to_device(next(batches), device)
+        optimizer.zero_grad(set_to_none=True)
+        infos = []
+        for j in range(shards):
+            torch.manual_seed(shard_seed(cfg.seed, step, rank * shards + j))
+            sync = contextlib.nullcontext() if (world == 1 or j == shards - 1) else net.no_sync()
+            with sync:
+                with autocast:
+                    loss, info = net(_shard(batch, j, shards))
+                (loss / shards).backward()
+            infos.append({"loss": float(loss.detach()), **_scalars(info)})
+        optimizer.step()
+        scheduler.step()
+        ema.update_parameters(model)
+        step += 1
+        samples_since += cfg.batch_size
+
+        if is_main:
+            progress.update(1)
+            if step % cfg.log_every == 0 or step == cfg.steps:
+                now = time.perf_counter()
+                row = {k: float(np.mean([i[k] for i in infos if k in i])) for k in infos[0]}
+                row.update(step=step, lr=scheduler.get_last_lr()[0],
+                           samples_per_s=samples_since / max(now - t_last, 1e-9))
+                t_last, samples_since = now, 0
+                for key, value in row.items():
+                    if key != "step":
+                        writer.add_scalar(f"train/{key}", value, step)
+                log_file.write(json.dumps(row) + "\n")
+                log_file.flush()
+                progress.set_postfix(loss=f"{row['loss']:.4f}")
+                history.append(row)
+        if cfg.eval_every and step % cfg.eval_every == 0:
+            periodic_eval()
+        if step % cfg.ckpt_every == 0 or step == last:
+            save()
+
+    if is_main:
+        progress.close()
+        writer.close()
+        log_file.close()
+    if world > 1:
+        dist.barrier()
+    if owns_group:
+        dist.destroy_process_group()
+    return {"checkpoint": str(ckpt_path), "step": step, "curve": curve, "history": history,
+            "model": model, "ema": ema}
