@@ -1,0 +1,152 @@
+"""``jepa-envs``: make expert demonstrations, list and describe tasks, benchmark the env layer.
+
+Subcommands are registered with :func:`subcommand`; add one by decorating a ``run(args)`` function and giving
+it an ``add_arguments(parser)`` function (see ``make-demos`` below).
+"""
+from __future__ import annotations
+
+import argparse
+import importlib.util
+import json
+import sys
+import time
+from dataclasses import asdict, dataclass
+from typing import Callable
+
+from jepa_envs.spec import all_task_specs, get_task_spec
+
+# third-party package each suite needs, and our module that wraps it
+BACKENDS = {
+    "embedded": ("pymunk", "jepa_envs.pusht"),
+    "robomimic": ("robosuite", "jepa_envs.robomimic_env"),
+    "libero": ("libero", "jepa_envs.libero_env"),
+    "mimicgen": ("mimicgen", "jepa_envs.mimicgen_env"),
+}
+
+
+@dataclass(frozen=True)
+class Subcommand:
+    name: str
+    help: str
+    add_arguments: Callable[[argparse.ArgumentParser], None]
+    run: Callable[[argparse.Namespace], int]
+
+
+SUBCOMMANDS: dict[str, Subcommand] = {}
+
+
+def subcommand(name: str, help: str, add_arguments: Callable[[argparse.ArgumentParser], None] = lambda p: None):
+    """Register ``run(args) -> exit code`` as ``jepa-envs <name>``."""
+    def register(run: Callable[[argparse.Namespace], int]):
+        SUBCOMMANDS[name] = Subcommand(name, help, add_arguments, run)
+        return run
+    return register
+
+
+def backend_available(suite: str) -> tuple[bool, str]:
+    """Whether a suite's backend can be imported here, and why not."""
+    if suite not in BACKENDS:
+        return False, f"no backend for suite {suite!r}"
+    package, module = BACKENDS[suite]
+    if importlib.util.find_spec(package) is None:
+        return False, f"package {package!r} not installed"
+    if importlib.util.find_spec(module) is None:
+        return False, f"module {module} missing"
+    return True, "ok"
+
+
+def _spec_or_exit(task: str):
+    try:
+        return get_task_spec(task)
+    except KeyError as exc:
+        raise SystemExit(f"error: {exc.args[0]}") from exc
+
+
+# -- make-demos -----------------------------------------------------------------------------------------------
+
+def _make_demos_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("task", help="task name, e.g. PushT")
+    p.add_argument("--episodes", type=int, required=True, help="number of successful demonstrations")
+    p.add_argument("--out", required=True, help="output HDF5 file (robomimic layout)")
+    p.add_argument("--seed", type=int, default=0, help="first episode seed (episodes use seed, seed+1, ...)")
+    p.add_argument("--image-size", type=int, default=None, help="camera image size (default: the task's)")
+    p.add_argument("--difficulty", default="easy", help="PushT difficulty preset: easy (default), medium, hard")
+
+
+@subcommand("make-demos", "write scripted-expert demonstrations to HDF5", _make_demos_args)
+def make_demos(args: argparse.Namespace) -> int:
+    spec = _spec_or_exit(args.task)
+    if spec.suite != "embedded":
+        raise SystemExit(f"error: no scripted expert exists for {spec.name} ({spec.suite}); only PushT has one. "
+                         f"Use the public {spec.suite} demonstrations with jepa_envs.data.load_dataset instead")
+    if args.episodes < 1:
+        raise SystemExit(f"error: --episodes must be >= 1, got {args.episodes}")
+    from jepa_envs.data import write_dataset
+    from jepa_envs.pusht_expert import generate_demos
+
+    t0 = time.perf_counter()
+    episodes, env_args = generate_demos(args.episodes, seed=args.seed, image_size=args.image_size,
+                                        difficulty=args.difficulty)
+    write_dataset(args.out, episodes, env_args)
+    steps = sum(len(ep["actions"]) for ep in episodes)
+    attempts = env_args["expert"]["attempts"]
+    print(f"wrote {len(episodes)} demos ({steps} steps, expert success {len(episodes)}/{attempts}) to {args.out} "
+          f"in {time.perf_counter() - t0:.1f} s")
+    return 0
+
+
+# -- list / info ----------------------------------------------------------------------------------------------
+
+@subcommand("list", "tasks and whether their backend can be imported here")
+def list_tasks(args: argparse.Namespace) -> int:
+    print(f"{'task':<20}{'gym id':<30}{'suite':<11}backend")
+    for spec in all_task_specs():
+        ok, why = backend_available(spec.suite)
+        print(f"{spec.name:<20}{spec.env_id:<30}{spec.suite:<11}{'available' if ok else 'unavailable: ' + why}")
+    return 0
+
+
+def _info_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("task", help="task name or gym id")
+
+
+@subcommand("info", "the task spec of one task as JSON", _info_args)
+def info(args: argparse.Namespace) -> int:
+    spec = _spec_or_exit(args.task)
+    data = asdict(spec)
+    data["backend_available"] = backend_available(spec.suite)[0]
+    print(json.dumps(data, indent=2))
+    return 0
+
+
+# -- bench ----------------------------------------------------------------------------------------------------
+
+def _bench_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--tasks", nargs="+", default=None, help="tasks to measure (default: every buildable task)")
+    p.add_argument("--steps", type=int, default=200, help="env steps per measurement")
+
+
+@subcommand("bench", "steps/s raw backend vs our interface, and render-every-step vs render-on-demand", _bench_args)
+def bench(args: argparse.Namespace) -> int:
+    from jepa_envs.bench import run_bench
+
+    run_bench(args.tasks, args.steps)
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="jepa-envs", description=__doc__.splitlines()[0])
+    sub = parser.add_subparsers(dest="command", required=True)
+    for cmd in SUBCOMMANDS.values():
+        p = sub.add_parser(cmd.name, help=cmd.help)
+        cmd.add_arguments(p)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    return SUBCOMMANDS[args.command].run(args)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,221 @@
+"""Scripted expert for JEPA/PushT-v0: sampling-based push planning by simulation.
+
+Every time its queue of targets runs out the expert plans one *push*: it samples candidate contacts on the T's
+outline with a push direction and length, builds a smooth path of absolute agent targets (go around the block
+if the straight line would hit it, then push), simulates each candidate on a copy of the pymunk space
+(``Space.copy``) and keeps the one that brings the block closest to the goal pose (or reaches success).
+The sampling is random (seeded), so demonstrations vary, and the targets move at a bounded speed along
+polylines, so they are smooth and imitable.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass
+
+import numpy as np
+
+from jepa_envs.pusht import (AGENT_RADIUS, GOAL_POSE, T_OUTLINE, T_RADIUS, WORLD_SIZE, PushTEnv, PushTSim,
+                             coverage, point_t_distance, transform, wrap_angle)
+
+ANGLE_WEIGHT = 60.0  # world units per radian in the pose cost (about the T's radius of gyration)
+
+
+def pose_cost(pose, goal=GOAL_POSE) -> float:
+    """Distance of a block pose to the goal: translation + ANGLE_WEIGHT * |angle error| (world units)."""
+    return math.hypot(pose[0] - goal[0], pose[1] - goal[1]) + ANGLE_WEIGHT * abs(wrap_angle(pose[2] - goal[2]))
+
+
+def _outline_edges() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Start points, end points and outward unit normals of the T's outline edges (block frame)."""
+    starts = T_OUTLINE
+    ends = np.roll(T_OUTLINE, -1, axis=0)
+    d = ends - starts
+    normals = np.stack([d[:, 1], -d[:, 0]], axis=1) / np.linalg.norm(d, axis=1, keepdims=True)
+    for i in range(len(normals)):
+        mid = (starts[i] + ends[i]) / 2
+        if point_t_distance(mid + normals[i], (0.0, 0.0, 0.0)) == 0.0:
+            normals[i] = -normals[i]
+    return starts, ends, normals
+
+
+_EDGE_START, _EDGE_END, _EDGE_NORMAL = _outline_edges()
+_EDGE_LEN = np.linalg.norm(_EDGE_END - _EDGE_START, axis=1)
+
+
+@dataclass
+class ExpertConfig:
+    num_candidates: int = 24          # pushes simulated per decision
+    speed: float = 15.0               # world units per control step while approaching
+    push_speed: float = 10.0          # world units per control step while pushing
+    standoff: float = 10.0            # gap between agent and block before a push
+    max_push_angle_deg: float = 35.0  # push direction deviates at most this much from the contact normal
+    hold_steps: int = 2               # targets repeated at the end of a push so the agent catches up
+
+
+class PushTExpert:
+    """Plans and executes pushes; call ``act(env)`` once per control step."""
+
+    def __init__(self, seed: int | None = None, config: ExpertConfig | None = None):
+        self.rng = np.random.default_rng(seed)
+        self.config = config or ExpertConfig()
+        self._queue: list[np.ndarray] = []
+
+    def reset(self) -> None:
+        self._queue = []
+
+    def act(self, env) -> np.ndarray:
+        """The next absolute agent target (float32 (2,)) for the env's current state."""
+        base = env.unwrapped
+        if not isinstance(base, PushTEnv):
+            raise TypeError(f"PushTExpert drives JEPA/PushT-v0, got {type(base).__name__}")
+        if not self._queue:
+            self._queue = self.plan(base.backend, base.success_threshold)
+        return self._queue.pop(0).astype(np.float32)
+
+    def plan(self, sim: PushTSim, success_threshold: float) -> list[np.ndarray]:
+        """Targets of the best of several rounds of simulated candidate pushes."""
+        current = pose_cost(sim.block_pose)
+        best_targets, best_score = None, math.inf
+        for _ in range(3):  # widen the search when no candidate improves on the current pose
+            for _ in range(self.config.num_candidates):
+                targets = self._candidate(sim, current)
+                score, used = self._simulate(sim, targets, success_threshold)
+                if score < best_score:
+                    best_targets, best_score = targets[:used], score
+            if best_score < current - 1.0:
+                break
+        return best_targets
+
+    def _simulate(self, sim: PushTSim, targets: list[np.ndarray], threshold: float) -> tuple[float, int]:
+        """Cost after running ``targets`` on a copy of ``sim`` (-1 and the steps used when it succeeds)."""
+        trial = sim.clone()
+        try:
+            for i, target in enumerate(targets):
+                trial.step(target)
+                pose = trial.block_pose
+                # the exact coverage is only worth computing near the goal
+                if pose_cost(pose) < 30.0 and coverage(pose) >= threshold:
+                    return -1.0 + i * 1e-3, i + 1  # earlier success is better
+            return pose_cost(trial.block_pose), len(targets)
+        finally:
+            trial.free()
+
+    def _candidate(self, sim: PushTSim, current_cost: float) -> list[np.ndarray]:
+        cfg, rng = self.config, self.rng
+        pose = sim.block_pose
+        edge = rng.choice(len(_EDGE_LEN), p=_EDGE_LEN / _EDGE_LEN.sum())
+        t = rng.uniform(0.1, 0.9)
+        contact = _EDGE_START[edge] + t * (_EDGE_END[edge] - _EDGE_START[edge])
+        normal = _EDGE_NORMAL[edge]
+        turn = math.radians(rng.uniform(-cfg.max_push_angle_deg, cfg.max_push_angle_deg))
+        c, s = math.cos(turn), math.sin(turn)
+        direction = -np.array([c * normal[0] - s * normal[1], s * normal[0] + c * normal[1]])
+        start_local = contact + normal * (AGENT_RADIUS + cfg.standoff)
+        max_len = float(np.clip(0.8 * current_cost + 5.0, 5.0, 80.0))
+        push_len = rng.uniform(0.2, 1.0) * max_len
+        end_local = start_local + direction * (cfg.standoff + push_len)
+        start, end = transform(np.stack([start_local, end_local]), pose)
+        agent = np.asarray(sim.agent.position, dtype=np.float64)
+        speed = cfg.speed * rng.uniform(0.8, 1.2)
+        targets = _densify(_approach_path(agent, start, pose), speed)
+        targets += _densify([start, end], cfg.push_speed * rng.uniform(0.8, 1.2))[1:]
+        targets += [targets[-1]] * cfg.hold_steps
+        lo, hi = AGENT_RADIUS + 6.0, WORLD_SIZE - AGENT_RADIUS - 6.0
+        return [np.clip(p, lo, hi) for p in targets]
+
+
+def _segment_clear(a: np.ndarray, b: np.ndarray, pose, clearance: float) -> bool:
+    n = max(2, int(np.linalg.norm(b - a) / 6.0) + 1)
+    return all(point_t_distance(a + (b - a) * f, pose) >= clearance for f in np.linspace(0.0, 1.0, n))
+
+
+def _approach_path(agent: np.ndarray, start: np.ndarray, pose) -> list[np.ndarray]:
+    """Waypoints from the agent to a push start: straight when clear, else around the block on a safe circle."""
+    if _segment_clear(agent, start, pose, AGENT_RADIUS + 4.0):
+        return [agent, start]
+    centre = np.array(pose[:2])
+    radius = T_RADIUS + AGENT_RADIUS + 10.0
+    a0 = math.atan2(agent[1] - centre[1], agent[0] - centre[0])
+    a1 = math.atan2(start[1] - centre[1], start[0] - centre[0])
+    sweep = wrap_angle(a1 - a0)
+    arc = [centre + radius * np.array([math.cos(a0 + sweep * f), math.sin(a0 + sweep * f)])
+           for f in np.linspace(0.0, 1.0, max(2, int(abs(sweep) / 0.3) + 1))]
+    return [agent, *arc, start]
+
+
+def _densify(waypoints: list[np.ndarray], step: float) -> list[np.ndarray]:
+    """Points every ``step`` world units along a polyline, ending exactly on its last waypoint."""
+    out = [np.asarray(waypoints[0], dtype=np.float64)]
+    carry = 0.0
+    for a, b in zip(waypoints[:-1], waypoints[1:]):
+        a, b = np.asarray(a, dtype=np.float64), np.asarray(b, dtype=np.float64)
+        length = float(np.linalg.norm(b - a))
+        pos = step - carry
+        while pos <= length:
+            out.append(a + (b - a) * (pos / length))
+            pos += step
+        carry = length - (pos - step)
+    if np.linalg.norm(out[-1] - waypoints[-1]) > 1e-9:
+        out.append(np.asarray(waypoints[-1], dtype=np.float64))
+    return out[1:] if len(out) > 1 else out
+
+
+def collect_episode(env, seed: int, expert: PushTExpert, max_steps: int | None = None) -> dict:
+    """Run the expert for one seeded episode; returns obs/actions/states/rewards/dones and ``success``."""
+    base = env.unwrapped
+    max_steps = max_steps or base.task_spec.max_episode_steps
+    obs, info = env.reset(seed=seed)
+    expert.reset()
+    frames: dict[str, list] = {k: [] for k in obs}
+    actions, states, rewards, dones = [], [], [], []
+    success = False
+    for _ in range(max_steps):
+        for k, v in obs.items():
+            frames[k].append(v)
+        states.append(base.get_state())
+        action = expert.act(env)
+        obs, reward, terminated, truncated, info = env.step(action)
+        actions.append(action)
+        rewards.append(reward)
+        success = bool(info["is_success"])
+        dones.append(terminated or truncated)
+        if terminated or truncated:
+            break
+    dones[-1] = True
+    return {
+        "obs": {k: np.stack(v) for k, v in frames.items()},
+        "actions": np.asarray(actions, dtype=np.float32),
+        "states": np.asarray(states, dtype=np.float64),
+        "rewards": np.asarray(rewards, dtype=np.float32),
+        "dones": np.asarray(dones, dtype=np.uint8),
+        "success": success,
+        "seed": seed,
+    }
+
+
+def generate_demos(num_episodes: int, seed: int = 0, image_size: int | None = None, only_successes: bool = True,
+                   max_attempts_factor: int = 2, **env_options) -> tuple[list[dict], dict]:
+    """``num_episodes`` expert demos on seeds seed, seed+1, ...; returns (episodes, env_args).
+
+    With ``only_successes`` failed episodes are dropped and further seeds are tried (up to
+    ``max_attempts_factor * num_episodes`` in all). ``env_args`` is what ``jepa_envs.data.write_dataset`` stores.
+    """
+    if num_episodes < 1:
+        raise ValueError(f"num_episodes must be >= 1, got {num_episodes}")
+    env = PushTEnv(image_size=image_size, **env_options)
+    try:
+        episodes, attempts = [], 0
+        while len(episodes) < num_episodes:
+            if attempts >= max_attempts_factor * num_episodes:
+                raise RuntimeError(f"the PushT expert succeeded in only {len(episodes)} of {attempts} episodes; "
+                                   "use an easier difficulty or only_successes=False")
+            ep = collect_episode(env, seed + attempts, PushTExpert(seed=[seed, attempts]))
+            attempts += 1
+            if ep["success"] or not only_successes:
+                episodes.append(ep)
+        # the effective difficulty fields, so the file alone rebuilds the same env
+        env_kwargs = {"image_size": env.task_spec.image_size, **asdict(env.difficulty)}
+        return episodes, {"env_name": "PushT", "type": "jepa_envs", "env_kwargs": env_kwargs,
+                          "expert": {"seed": seed, "attempts": attempts}}
+    finally:
+        env.close()

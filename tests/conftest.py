@@ -1,0 +1,16 @@
+"""Shared fixtures: small real data made by the project's own generators."""
+from __future__ import annotations
+
+import pytest
+
+
+@pytest.fixture(scope="session")
+def pusht_demo_file(tmp_path_factory):
+    """A robomimic-layout HDF5 file with 4 PushT expert demos at 84x84 (made by jepa_envs' own expert)."""
+    from jepa_envs.data import write_dataset
+    from jepa_envs.pusht_expert import generate_demos
+
+    episodes, env_args = generate_demos(4, seed=100)
+    path = tmp_path_factory.mktemp("pusht_demos") / "pusht_4.hdf5"
+    write_dataset(path, episodes, env_args)
+    return path
