@@ -32,4 +32,8 @@ def _register_all() -> None:
 
 _register_all()
 
+from jepa_envs.real_robot.registration import register_real_robot_envs  # noqa: E402
+
+register_real_robot_envs()
+
 __all__ = ["TaskSpec", "get_task_spec", "all_task_specs", "register_task"]

@@ -1,0 +1,85 @@
+"""The interface every hardware backend of the bridge implements.
+
+The bridge owns timing, safety and episodes; a backend only moves the robot and reads its sensors. All
+methods are called from the bridge's single event-loop thread, so backends need no locking.
+"""
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from jepa_envs.spec import TaskSpec
+
+
+class BackendUnavailable(ImportError):
+    """A backend's hardware SDK is not installed; the message says what to install."""
+
+
+@dataclass
+class StepResult:
+    """What one executed control step returns."""
+
+    obs: dict[str, np.ndarray]
+    reward: float = 0.0
+    terminated: bool = False
+    truncated: bool = False
+    info: dict = field(default_factory=dict)
+
+
+class RobotBackend(ABC):
+    """A robot the bridge can drive with absolute actions at ``task_spec.control_hz``."""
+
+    task_spec: TaskSpec
+    #: "sim": success comes from the simulator; "operator": the operator confirms it at episode end
+    success_source: str = "operator"
+    #: whether the bridge must pace actions in wall-clock time (real hardware) or may run them back to back
+    realtime: bool = True
+
+    @property
+    @abstractmethod
+    def action_low(self) -> np.ndarray: ...
+
+    @property
+    @abstractmethod
+    def action_high(self) -> np.ndarray: ...
+
+    @property
+    def rotation6d_starts(self) -> list[int]:
+        """Indices where 6-D rotation blocks start in the action (checked for degeneracy)."""
+        return []
+
+    @abstractmethod
+    def reset(self, seed: int | None = None) -> tuple[dict[str, np.ndarray], dict]:
+        """Start an episode from the home configuration; returns the first observation and info."""
+
+    @abstractmethod
+    def apply(self, action: np.ndarray) -> StepResult:
+        """Command one absolute action and return the observation after one control period."""
+
+    @abstractmethod
+    def hold(self) -> None:
+        """Stop where the robot is now (watchdog, lost link, e-stop, refused action)."""
+
+    @abstractmethod
+    def home(self) -> None:
+        """Drive to the home configuration (explicit operator or reset request only)."""
+
+    @abstractmethod
+    def observe(self) -> dict[str, np.ndarray]:
+        """The current observation without moving."""
+
+    def current_action(self) -> np.ndarray | None:
+        """The absolute action that matches the current pose (jump-limit reference), None if unknown."""
+        return None
+
+    def joint_positions(self) -> np.ndarray | None:
+        """Measured joint positions of all arms, None for backends without joints."""
+        return None
+
+    def set_render_images(self, enabled: bool) -> None:
+        """Skip (False) or produce (True) camera images on the following steps."""
+
+    def close(self) -> None:
+        """Release the hardware or simulator."""

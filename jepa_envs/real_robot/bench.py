@@ -1,0 +1,152 @@
+"""``jepa-robot-bridge bench``: what the bridge costs over loopback compared with the sim env in-process.
+
+A bridge serving a simulation task runs in a child process (two processes, as on the robot); the proxy env
+times ``step`` (one action) and ``step_chunk`` (8 actions) round trips. The same backend is timed in-process
+for the reference. Images: ``--cameras`` streams of ``--image-size`` pixels (default three 128x128, the real
+robot's payload, Sec. 4.8). Run time is bounded by ``--max-seconds``.
+"""
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+import time
+
+import numpy as np
+
+
+def percentiles_ms(samples_s: list[float]) -> dict:
+    """p50 / p99 / mean in milliseconds."""
+    x = np.asarray(samples_s, np.float64) * 1e3
+    return {"n": int(x.size), "p50_ms": float(np.percentile(x, 50)), "p99_ms": float(np.percentile(x, 99)),
+            "mean_ms": float(x.mean())}
+
+
+def bench_actions(backend, count: int) -> np.ndarray:
+    """A smooth in-bounds absolute action path (identity rotation for arm tasks) so no safety rule fires."""
+    low, high = backend.action_low, backend.action_high
+    t = np.arange(count)[:, None]
+    actions = low + (high - low) * (0.5 + 0.2 * np.sin(t / 15.0 + np.arange(low.size)))
+    for start in backend.rotation6d_starts:
+        actions[:, start:start + 6] = [1.0, 0.0, 0.0, 0.0, 1.0, 0.0]
+    return actions
+
+
+def _time_in_process(backend, actions: np.ndarray, steps: int, chunks: int, n: int, deadline: float):
+    step_s, chunk_s = [], []
+    backend.reset(seed=0)
+    for i in range(steps):
+        if time.monotonic() > deadline:
+            break
+        t0 = time.perf_counter()
+        result = backend.apply(actions[i % len(actions)])
+        step_s.append(time.perf_counter() - t0)
+        if result.terminated or result.truncated:
+            backend.reset(seed=i)
+    backend.reset(seed=0)
+    for c in range(chunks):
+        if time.monotonic() > deadline:
+            break
+        t0 = time.perf_counter()
+        done = False
+        for j in range(n):
+            result = backend.apply(actions[(c * n + j) % len(actions)])
+            done = done or result.terminated or result.truncated
+        chunk_s.append(time.perf_counter() - t0)
+        if done:
+            backend.reset(seed=c)
+    return step_s, chunk_s
+
+
+def _time_bridge(env, actions: np.ndarray, steps: int, chunks: int, n: int, deadline: float):
+    step_s, chunk_s = [], []
+    env.reset(seed=0)
+    for i in range(steps):
+        if time.monotonic() > deadline:
+            break
+        t0 = time.perf_counter()
+        _, _, terminated, truncated, _ = env.step(actions[i % len(actions)])
+        step_s.append(time.perf_counter() - t0)
+        if terminated or truncated:
+            env.reset(seed=i)
+    env.reset(seed=0)
+    for c in range(chunks):
+        if time.monotonic() > deadline:
+            break
+        chunk = np.stack([actions[(c * n + j) % len(actions)] for j in range(n)])
+        t0 = time.perf_counter()
+        _, _, terminated, truncated, _ = env.step_chunk(chunk)
+        chunk_s.append(time.perf_counter() - t0)
+        if terminated or truncated:
+            env.reset(seed=c)
+    return step_s, chunk_s
+
+
+def run_bench(args) -> int:
+    """Run the benchmark described in the module docstring and print its numbers."""
+    import jepa_envs  # noqa: F401
+    from jepa_envs.real_robot.backends.sim import SimBackend
+    from jepa_envs.real_robot.bridge import OperatorClient
+    from jepa_envs.real_robot.proxy import RealRobotEnv
+
+    deadline = time.monotonic() + args.max_seconds
+    backend = SimBackend(args.task, image_size=args.image_size, camera_replicas=args.cameras)
+    try:
+        n = backend.task_spec.n_action_steps
+        actions = bench_actions(backend, 256)
+        obs, _ = backend.reset(seed=0)
+        payload = sum(v.nbytes for v in obs.values())
+        in_step, in_chunk = _time_in_process(backend, actions, args.steps, args.chunks, n,
+                                             time.monotonic() + args.max_seconds / 3)
+    finally:
+        backend.close()
+    server = subprocess.Popen(
+        [sys.executable, "-m", "jepa_envs.real_robot.cli", "serve", "--backend", "sim", "--task", args.task,
+         "--image-size", str(args.image_size), "--camera-replicas", str(args.cameras), "--chunk-budget",
+         "1000000", "--bind", "tcp://127.0.0.1:*", "--operator-bind", "tcp://127.0.0.1:*", "--no-prompt"],
+        stdout=subprocess.PIPE, text=True)
+    try:
+        banner = server.stdout.readline()
+        if " on " not in banner:
+            raise RuntimeError(f"the bench bridge did not start (said {banner!r})")
+        control = banner.split(" on ")[1].split(",")[0].strip()
+        operator = banner.rsplit("operator socket ", 1)[1].strip()
+        env = RealRobotEnv(task=args.task, address=control, client_name="bench")
+        try:
+            br_step, br_chunk = _time_bridge(env, actions, args.steps, args.chunks, n, deadline)
+        finally:
+            env.close()
+        with OperatorClient(operator) as op:
+            status = op.status()
+            op.shutdown()
+        server.wait(timeout=30)
+    finally:
+        if server.poll() is None:
+            server.kill()
+            server.wait()
+    result = {
+        "task": args.task, "cameras": args.cameras, "image_size": args.image_size,
+        "obs_payload_bytes": int(payload), "actions_per_chunk": n,
+        "in_process": {"step": percentiles_ms(in_step), "chunk": percentiles_ms(in_chunk)},
+        "bridge": {"step": percentiles_ms(br_step), "chunk": percentiles_ms(br_chunk)},
+        "bridge_frame_to_chunk": status["episode"]["frame_to_chunk_latency"] if status["episode"] else None,
+    }
+    for level in ("step", "chunk"):
+        result[f"overhead_{level}_p50_ms"] = (result["bridge"][level]["p50_ms"]
+                                              - result["in_process"][level]["p50_ms"])
+        result[f"overhead_{level}_p99_ms"] = (result["bridge"][level]["p99_ms"]
+                                              - result["in_process"][level]["p99_ms"])
+    print(f"task {args.task}: {args.cameras} camera(s) of {args.image_size}x{args.image_size}, "
+          f"{payload / 1024:.1f} KiB per observation")
+    print(f"{'':>22}{'p50 ms':>10}{'p99 ms':>10}{'n':>7}")
+    for where in ("in_process", "bridge"):
+        for level in ("step", "chunk"):
+            r = result[where][level]
+            print(f"{where + ' ' + level:>22}{r['p50_ms']:>10.3f}{r['p99_ms']:>10.3f}{r['n']:>7}")
+    print(f"overhead per step  p50 {result['overhead_step_p50_ms']:.3f} ms, p99 {result['overhead_step_p99_ms']:.3f} ms")
+    print(f"overhead per chunk p50 {result['overhead_chunk_p50_ms']:.3f} ms, p99 "
+          f"{result['overhead_chunk_p99_ms']:.3f} ms ({n} actions, one round trip)")
+    if args.json:
+        with open(args.json, "w") as f:
+            json.dump(result, f, indent=2)
+    return 0

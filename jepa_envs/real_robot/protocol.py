@@ -1,0 +1,112 @@
+"""Wire protocol between the robot bridge and its clients (ZeroMQ frames carrying msgpack maps).
+
+Every message is one msgpack map with ``"v"`` (the protocol version) and ``"type"``. Numpy arrays travel as
+``{"__nd__": True, "dtype": "<u1", "shape": [...], "data": <raw bytes>}``; nothing is ever pickled, and object
+dtypes are refused on both ends. The full message catalogue is in ``docs/real_robot.md``.
+"""
+from __future__ import annotations
+
+from typing import Any
+
+import msgpack
+import numpy as np
+
+PROTOCOL_VERSION = 1
+
+# client -> bridge (control socket, ZeroMQ DEALER -> ROUTER)
+HELLO = "hello"
+RESET = "reset"
+STEP = "step"
+CHUNK = "chunk"
+HEARTBEAT = "heartbeat"
+RENDER_IMAGES = "render_images"
+BYE = "bye"
+# bridge -> client
+WELCOME = "welcome"
+RESULT = "result"
+PENDING = "pending"  # reply deferred: waiting for the operator's confirmation
+ERROR = "error"
+# operator -> bridge (operator socket, ZeroMQ REQ -> REP)
+OP_ESTOP = "estop"
+OP_CLEAR_ESTOP = "clear_estop"
+OP_CONFIRM = "confirm"
+OP_HOME = "home"
+OP_STATUS = "status"
+OP_SHUTDOWN = "shutdown"
+
+# error codes a client can act on
+ERR_VERSION = "version_mismatch"
+ERR_BUSY = "busy"
+ERR_NOT_CONTROLLING = "not_controlling"
+ERR_BAD_MESSAGE = "bad_message"
+ERR_INVALID_ACTION = "invalid_action"
+ERR_ESTOP = "estop_latched"
+ERR_TASK = "task_mismatch"
+ERR_NO_EPISODE = "no_episode"
+
+
+class ProtocolError(RuntimeError):
+    """A message that does not follow the protocol (wrong version, malformed map, refused dtype)."""
+
+
+def _encode_default(obj: Any) -> Any:
+    if isinstance(obj, np.ndarray):
+        if obj.dtype.hasobject:
+            raise ProtocolError(f"object arrays cannot be sent (dtype {obj.dtype}); convert to a numeric dtype")
+        arr = np.ascontiguousarray(obj)
+        return {"__nd__": True, "dtype": arr.dtype.str, "shape": list(arr.shape), "data": arr.tobytes()}
+    if isinstance(obj, np.generic):
+        return obj.item()
+    if isinstance(obj, (tuple, set)):
+        return list(obj)
+    raise ProtocolError(f"cannot encode {type(obj).__name__}; send numbers, strings, lists, maps or numpy arrays")
+
+
+def _decode_hook(obj: dict) -> Any:
+    if obj.get("__nd__") is True:
+        dtype = np.dtype(obj["dtype"])
+        if dtype.hasobject:
+            raise ProtocolError(f"refusing object dtype {dtype} on the wire")
+        shape = tuple(int(s) for s in obj["shape"])
+        data = obj["data"]
+        expected = int(np.prod(shape, dtype=np.int64)) * dtype.itemsize
+        if len(data) != expected:
+            raise ProtocolError(f"array payload has {len(data)} bytes, shape {shape} of {dtype} needs {expected}")
+        # copy: frombuffer views are read-only and would pin the message buffer
+        return np.frombuffer(data, dtype=dtype).reshape(shape).copy()
+    return obj
+
+
+def encode(message: dict) -> bytes:
+    """Serialise one protocol message; stamps the protocol version when the caller did not."""
+    if "type" not in message:
+        raise ProtocolError("every message needs a 'type'")
+    message.setdefault("v", PROTOCOL_VERSION)
+    return msgpack.packb(message, default=_encode_default, use_bin_type=True)
+
+
+def decode(payload: bytes) -> dict:
+    """Parse one protocol message; raises ProtocolError for anything that is not a versioned map."""
+    try:
+        message = msgpack.unpackb(payload, object_hook=_decode_hook, raw=False, strict_map_key=False)
+    except ProtocolError:
+        raise
+    except Exception as exc:  # msgpack raises several unrelated types for garbage input
+        raise ProtocolError(f"undecodable message ({type(exc).__name__}: {exc})") from exc
+    if not isinstance(message, dict) or "type" not in message or "v" not in message:
+        raise ProtocolError("a message must be a map with 'v' and 'type'")
+    return message
+
+
+def check_version(message: dict) -> None:
+    """Raise ProtocolError naming both versions when a peer speaks another protocol version."""
+    if message.get("v") != PROTOCOL_VERSION:
+        raise ProtocolError(
+            f"protocol version mismatch: peer speaks v{message.get('v')}, this side speaks v{PROTOCOL_VERSION}; "
+            "install the same jepa-policy-toolkit version on the robot computer and the policy computer"
+        )
+
+
+def error(code: str, text: str, **extra: Any) -> dict:
+    """An error reply; ``code`` is one of the ERR_* constants, ``text`` tells the user what to do."""
+    return {"type": ERROR, "code": code, "message": text, **extra}

@@ -1,0 +1,154 @@
+"""Safety rules the bridge applies to every action, whatever the client sends.
+
+Pure functions and one small guard class, so each rule can be tested without a bridge: finite and
+well-shaped actions (else refused outright), workspace and gripper bounds on the absolute action, a per-step
+jump limit against the previously commanded action, joint limits on the measured joint positions after every
+driver step (the ARX-5 SDK solves IK inside its controller, so joints are checked where they are known), and
+the timing rules (watchdog deadline, link timeout) that the bridge's event loop enforces.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Literal
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, field_validator
+
+
+class InvalidAction(ValueError):
+    """An action that can never be executed (NaN, infinite, wrong shape, degenerate rotation)."""
+
+
+class SafetyConfig(BaseModel):
+    """Limits of one robot set-up; the bridge refuses to start with an inconsistent one."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    action_low: list[float] | None = None   # workspace / gripper lower bound per action dim (None: backend's)
+    action_high: list[float] | None = None
+    max_step_delta: list[float] | float | None = None  # per-step jump limit per action dim (None: off)
+    on_violation: Literal["refuse", "clip"] = "refuse"
+    rotation6d_starts: list[int] = []  # index of each 6-D rotation block (its two 3-vectors must not degenerate)
+    joint_low: list[float] | None = None  # per joint of all arms, checked on measured joint positions
+    joint_high: list[float] | None = None
+    command_deadline_s: float = 2.0       # watchdog: longest silence between commands inside an episode
+    link_timeout_s: float | None = None   # lost link: default one control period
+    heartbeat_interval_s: float | None = None  # default a quarter of the link timeout
+
+    @field_validator("command_deadline_s")
+    @classmethod
+    def _positive_deadline(cls, v: float) -> float:
+        if v <= 0:
+            raise ValueError("command_deadline_s must be > 0 seconds")
+        return v
+
+    def resolved_link_timeout(self, control_hz: float) -> float:
+        return float(self.link_timeout_s) if self.link_timeout_s else 1.0 / float(control_hz)
+
+    def resolved_heartbeat(self, control_hz: float) -> float:
+        if self.heartbeat_interval_s:
+            return float(self.heartbeat_interval_s)
+        return self.resolved_link_timeout(control_hz) / 4.0
+
+
+@dataclass
+class Verdict:
+    """Outcome of checking one action: what to execute (None when refused) and why."""
+
+    action: np.ndarray | None
+    violations: list[str] = field(default_factory=list)
+    clipped: bool = False
+
+    @property
+    def refused(self) -> bool:
+        return self.action is None
+
+    def report(self) -> dict:
+        return {"refused": self.refused, "clipped": self.clipped, "violations": list(self.violations)}
+
+
+def validate_action(action, dim: int, rotation6d_starts: list[int] = ()) -> np.ndarray:
+    """Return ``action`` as float64 (dim,) or raise InvalidAction naming what is wrong with it."""
+    arr = np.asarray(action)
+    if arr.dtype.kind not in "fiu":
+        raise InvalidAction(f"action must be numeric, got dtype {arr.dtype}")
+    arr = arr.astype(np.float64)
+    if arr.shape != (dim,):
+        raise InvalidAction(f"action has shape {arr.shape}, this task needs ({dim},); send one absolute action")
+    if not np.all(np.isfinite(arr)):
+        bad = np.flatnonzero(~np.isfinite(arr)).tolist()
+        raise InvalidAction(f"action has NaN or infinite entries at indices {bad}; the policy output is broken")
+    for start in rotation6d_starts:
+        a, b = arr[start:start + 3], arr[start + 3:start + 6]
+        if np.linalg.norm(a) < 1e-3 or np.linalg.norm(b) < 1e-3 or np.linalg.norm(np.cross(a, b)) < 1e-3:
+            raise InvalidAction(f"6-D rotation at index {start} is degenerate (zero or parallel columns)")
+    return arr
+
+
+def validate_chunk(actions, dim: int, rotation6d_starts: list[int] = ()) -> np.ndarray:
+    """Validate a whole (N, dim) chunk before any of it moves the robot."""
+    arr = np.asarray(actions)
+    if arr.ndim != 2 or arr.shape[1] != dim or arr.shape[0] < 1:
+        raise InvalidAction(f"action chunk has shape {arr.shape}, this task needs (N, {dim}) with N >= 1")
+    return np.stack([validate_action(a, dim, rotation6d_starts) for a in arr])
+
+
+class ActionGuard:
+    """Applies bounds, jump and joint limits to one validated action (Sec. 4.8 safety checks)."""
+
+    def __init__(self, config: SafetyConfig, low: np.ndarray, high: np.ndarray):
+        self.config = config
+        dim = len(low)
+        self.low = np.asarray(config.action_low if config.action_low is not None else low, dtype=np.float64)
+        self.high = np.asarray(config.action_high if config.action_high is not None else high, dtype=np.float64)
+        if self.low.shape != (dim,) or self.high.shape != (dim,):
+            raise ValueError(f"safety action_low/action_high need {dim} entries each (the task's action size)")
+        if np.any(self.low > self.high):
+            raise ValueError("safety action_low must be <= action_high in every dimension")
+        delta = config.max_step_delta
+        self.max_delta = None if delta is None else np.broadcast_to(np.asarray(delta, np.float64), (dim,)).copy()
+        if self.max_delta is not None and np.any(self.max_delta <= 0):
+            raise ValueError("safety max_step_delta must be > 0 in every dimension")
+        self.joint_low = None if config.joint_low is None else np.asarray(config.joint_low, np.float64)
+        self.joint_high = None if config.joint_high is None else np.asarray(config.joint_high, np.float64)
+
+    def check(self, action: np.ndarray, previous: np.ndarray | None) -> Verdict:
+        """Check a validated action against the previously executed one; clip or refuse by configuration."""
+        violations: list[str] = []
+        out_low, out_high = action < self.low, action > self.high
+        if np.any(out_low | out_high):
+            idx = np.flatnonzero(out_low | out_high).tolist()
+            violations.append(f"workspace/gripper bounds exceeded at action indices {idx}")
+        if self.max_delta is not None and previous is not None:
+            jump = np.abs(action - previous)
+            if np.any(jump > self.max_delta):
+                idx = np.flatnonzero(jump > self.max_delta).tolist()
+                violations.append(f"per-step jump {jump[idx].round(4).tolist()} above limit at indices {idx}")
+        if not violations:
+            executed = action
+        elif self.config.on_violation == "refuse":
+            return Verdict(None, violations)
+        else:
+            executed = action.copy()
+            if self.max_delta is not None and previous is not None:
+                executed = np.clip(executed, previous - self.max_delta, previous + self.max_delta)
+            executed = np.clip(executed, self.low, self.high)
+        return Verdict(executed, violations, clipped=bool(violations))
+
+    def joint_violation(self, q: np.ndarray | None) -> str | None:
+        """Check measured joint positions (None: the backend has no joints) against the configured limits."""
+        if q is None or (self.joint_low is None and self.joint_high is None):
+            return None
+        return joint_limit_violation(np.asarray(q, np.float64), self.joint_low, self.joint_high)
+
+
+def joint_limit_violation(q: np.ndarray, low: np.ndarray | None, high: np.ndarray | None) -> str | None:
+    """Name the joints of ``q`` outside [low, high], or None when all are inside."""
+    bad = np.zeros(q.shape, dtype=bool)
+    if low is not None:
+        bad |= q < low
+    if high is not None:
+        bad |= q > high
+    if np.any(bad):
+        return f"joint limits exceeded at joints {np.flatnonzero(bad).tolist()} (q={q[bad].round(3).tolist()})"
+    return None

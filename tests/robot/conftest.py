@@ -1,0 +1,51 @@
+"""Fixtures: simulated robot bridges on free loopback ports, proxy envs and operator clients, all closed after."""
+from __future__ import annotations
+
+import pytest
+
+import jepa_envs  # noqa: F401
+from jepa_envs.real_robot.backends.sim import SimBackend
+from jepa_envs.real_robot.bridge import BridgeConfig, OperatorClient, RobotBridge
+from jepa_envs.real_robot.proxy import RealRobotEnv
+from jepa_envs.real_robot.safety import SafetyConfig
+
+# generous timing for tests not about timing: the machine is shared and may stall threads for a while
+RELAXED = {"link_timeout_s": 2.0, "command_deadline_s": 60.0}
+
+
+class Robot:
+    """Builds bridges, clients and operator handles; ``close`` tears down everything in reverse order."""
+
+    def __init__(self, tmp_path):
+        self.tmp_path = tmp_path
+        self._closers: list = []
+
+    def bridge(self, task: str = "PushT", chunk_budget: int | None = None, realtime: bool = False,
+               success_source: str = "sim", **safety) -> RobotBridge:
+        backend = SimBackend(task, realtime=realtime, success_source=success_source)
+        config = BridgeConfig("tcp://127.0.0.1:*", "tcp://127.0.0.1:*", str(self.tmp_path / "episodes"),
+                              chunk_budget)
+        bridge = RobotBridge(backend, SafetyConfig(**{**RELAXED, **safety}), config).start()
+        self._closers.append(bridge.close)
+        return bridge
+
+    def client(self, bridge: RobotBridge, **kwargs) -> RealRobotEnv:
+        env = RealRobotEnv(address=bridge.control_endpoint, timeout_s=20.0, **kwargs)
+        self._closers.append(env.close)
+        return env
+
+    def operator(self, bridge: RobotBridge) -> OperatorClient:
+        op = OperatorClient(bridge.operator_endpoint)
+        self._closers.append(op.close)
+        return op
+
+    def close(self) -> None:
+        for close in reversed(self._closers):
+            close()
+
+
+@pytest.fixture
+def robot(tmp_path):
+    r = Robot(tmp_path)
+    yield r
+    r.close()
