@@ -249,7 +249,17 @@ class RobotBridge:
         if kind not in handlers:
             self._send(identity, {**P.error(P.ERR_BAD_MESSAGE, f"unknown message type {kind!r}"), "seq": seq})
             return
-        reply = handlers[kind](identity, msg)
+        try:
+            reply = handlers[kind](identity, msg)
+        except Exception as exc:  # a backend or disk failure must not kill the loop that guards the robot
+            log.exception("bridge failed to handle %s", kind)
+            self._executing = False
+            self.backend.hold()
+            self._safety_event("internal_error", f"{type(exc).__name__}: {exc}")
+            if self._episode_running():
+                self._end_episode("interrupted", f"bridge error: {exc}")
+            reply = P.error(P.ERR_INTERNAL, f"the bridge failed on {kind!r} ({type(exc).__name__}: {exc}); the "
+                                            "robot holds; see the bridge log")
         if reply is not None:
             self._send(identity, {**reply, "seq": seq})
 
@@ -304,7 +314,8 @@ class RobotBridge:
         manifest = {**dict(msg.get("manifest") or {}), "seed": seed, "backend": type(self.backend).__name__,
                     "protocol": P.PROTOCOL_VERSION, "safety": self.safety.model_dump(),
                     "client": self._session.client}
-        self._episode = EpisodeRecord(task=self.spec.name, chunk_budget=self.chunk_budget, manifest=manifest)
+        self._episode = EpisodeRecord(task=self.spec.name, chunk_budget=self.chunk_budget,
+                                      action_dim=self.spec.action_dim, manifest=manifest)
         self._episode.add_decision_frame(obs)
         self._operator_outcome = None
         self._prev_action = self.backend.current_action()

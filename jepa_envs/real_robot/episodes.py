@@ -38,6 +38,7 @@ class EpisodeRecord:
 
     task: str
     chunk_budget: int
+    action_dim: int
     manifest: dict = field(default_factory=dict)
     episode_id: str = field(default_factory=lambda: time.strftime("%Y%m%d-%H%M%S-") + uuid.uuid4().hex[:8])
     started_at: float = field(default_factory=time.time)
@@ -108,7 +109,7 @@ class EpisodeRecord:
             for key in (self.decision_obs[0] if self.decision_obs else {}):
                 data = np.stack([o[key] for o in self.decision_obs])
                 obs_group.create_dataset(key, data=data, compression="gzip" if data.dtype == np.uint8 else None)
-            width = len(self.requested[0]) if self.requested else 0
+            width = self.action_dim
             f.create_dataset("actions_requested", data=np.asarray(self.requested, np.float64).reshape(-1, width))
             f.create_dataset("actions_executed", data=np.asarray(self.executed, np.float64).reshape(-1, width))
             f.create_dataset("action_times", data=np.asarray(self.action_times, np.float64))

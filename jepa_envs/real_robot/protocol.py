@@ -43,6 +43,7 @@ ERR_INVALID_ACTION = "invalid_action"
 ERR_ESTOP = "estop_latched"
 ERR_TASK = "task_mismatch"
 ERR_NO_EPISODE = "no_episode"
+ERR_INTERNAL = "internal_error"
 
 
 class ProtocolError(RuntimeError):

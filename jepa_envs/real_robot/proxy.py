@@ -57,9 +57,10 @@ class RealRobotEnv(JEPAEnv):
 
     def __init__(self, task: str | None = None, address: str = "tcp://127.0.0.1:5555",
                  timeout_s: float = 30.0, client_name: str | None = None, manifest: dict | None = None,
-                 render_mode: str | None = None):
+                 confirmation_timeout_s: float = 900.0, render_mode: str | None = None):
         self.address = address
         self.timeout_s = float(timeout_s)
+        self.confirmation_timeout_s = float(confirmation_timeout_s)
         self.manifest = dict(manifest or {})
         self._ctx = zmq.Context()
         self._sock = self._ctx.socket(zmq.DEALER)
@@ -102,12 +103,15 @@ class RealRobotEnv(JEPAEnv):
             remaining = deadline - time.monotonic()
             if remaining <= 0 or not self._sock.poll(int(remaining * 1000)):
                 raise TimeoutError(f"the robot bridge at {self.address} did not answer {message['type']!r} within "
-                                   f"{timeout:.1f}s; check that `jepa-robot-bridge serve` runs there")
+                                   f"{timeout:.1f}s; check that `jepa-robot-bridge serve` runs there (and, "
+                                   "at an episode's end, that the operator confirmed its outcome)")
             reply = P.decode(self._sock.recv())
             if reply.get("seq") not in (None, self._seq):
                 continue   # a late answer to a request that already timed out
             if reply["type"] == P.PENDING:
-                deadline = float("inf")   # the operator decides; the bridge keeps watching the link
+                # the operator decides now; the bridge keeps watching the link meanwhile
+                deadline = time.monotonic() + self.confirmation_timeout_s
+                timeout = self.confirmation_timeout_s
                 continue
             if reply["type"] == P.ERROR:
                 code, text = reply.get("code", ""), reply.get("message", "")

@@ -1,0 +1,301 @@
+"""The bridge and proxy against the simulated robot: conventions, equivalence with in-process, every safety rule."""
+from __future__ import annotations
+
+import threading
+import time
+
+import gymnasium as gym
+import numpy as np
+import pytest
+import zmq
+from gymnasium.utils.env_checker import check_env
+
+from jepa_envs.real_robot import protocol as P
+from jepa_envs.real_robot.episodes import load_episode
+from jepa_envs.real_robot.proxy import ActionRefused, BridgeBusy, BridgeError
+
+
+def test_proxy_conventions_and_check_env(robot):
+    bridge = robot.bridge()
+    env = robot.client(bridge, task="PushT")
+    spec = env.task_spec
+    assert spec.name == "PushT" and env.chunk_budget == 38
+    direct = gym.make("JEPA/PushT-v0")
+    try:
+        assert env.observation_space == direct.observation_space
+        assert env.action_space == direct.action_space
+    finally:
+        direct.close()
+    obs, info = env.reset(seed=1)
+    assert obs["top_image"].dtype == np.uint8 and obs["top_image"].shape == (84, 84, 3)
+    assert obs["agent_pos"].dtype == np.float32 and "is_success" in info
+    check_env(env, skip_render_check=True)
+
+
+def _actions_toward(start: np.ndarray, goal: np.ndarray, n: int) -> np.ndarray:
+    return np.linspace(start, goal, n).astype(np.float32)
+
+
+def test_seeded_scripted_episode_same_through_bridge(robot):
+    """A scripted push from a seeded start: same observations, rewards and success in-process and bridged."""
+    direct = gym.make("JEPA/PushT-v0")
+    try:
+        obs, _ = direct.reset(seed=7)
+        script = _actions_toward(obs["agent_pos"], np.array([256.0, 256.0]), 40)
+        ref = [direct.step(a) for a in script]
+    finally:
+        direct.close()
+    bridge = robot.bridge(chunk_budget=5)
+    env = robot.client(bridge, task="PushT")
+    obs_b, _ = env.reset(seed=7)
+    got = [env.step(a) for a in script[:16]]
+    for c in range(2, 5):   # the rest as chunks of 8, the synchronous loop of Sec. 4.8
+        got.append(env.step_chunk(script[8 * c:8 * c + 8]))
+    for r, g in zip(ref[:16], got[:16]):
+        assert np.array_equal(r[0]["top_image"], g[0]["top_image"])
+        assert np.array_equal(r[0]["agent_pos"], g[0]["agent_pos"])
+        assert r[1] == pytest.approx(g[1])
+    for c, g in enumerate(got[16:], start=2):
+        r = ref[8 * c + 7]
+        assert np.array_equal(r[0]["top_image"], g[0]["top_image"])
+        assert g[1] == pytest.approx(sum(x[1] for x in ref[8 * c:8 * c + 8]))
+    final = got[-1]
+    assert final[4]["chunks_used"] == 5 and final[3]   # budget spent -> truncated
+    assert final[4]["is_success"] == ref[-1][4]["is_success"]
+    assert final[4]["outcome"] == ("success" if ref[-1][4]["is_success"] else "failure")
+
+
+def test_out_of_bounds_refused_and_reported(robot):
+    bridge = robot.bridge(action_low=[100.0, 100.0], action_high=[400.0, 400.0])
+    env = robot.client(bridge)
+    obs, _ = env.reset(seed=0)
+    assert np.array_equal(env.action_space.low, [100.0, 100.0])
+    before = obs["agent_pos"].copy()
+    obs, _, terminated, truncated, info = env.step(np.array([450.0, 200.0]))
+    assert np.array_equal(obs["agent_pos"], before), "a refused action must not move the robot"
+    assert info["executed"] == 0 and info["safety"][0]["refused"]
+    assert "indices [0]" in info["safety"][0]["violations"][0]
+    assert not (terminated or truncated)
+    obs, _, _, _, info = env.step(np.array([300.0, 200.0]))
+    assert info["executed"] == 1 and info["safety"] == []
+    assert not np.array_equal(obs["agent_pos"], before)
+
+
+def test_out_of_bounds_clipped_when_configured(robot):
+    bridge = robot.bridge(action_low=[100.0, 100.0], action_high=[400.0, 400.0], on_violation="clip")
+    env = robot.client(bridge)
+    env.reset(seed=0)
+    _, _, _, _, info = env.step(np.array([450.0, 50.0]))
+    assert info["executed"] == 1 and info["safety"][0]["clipped"] and not info["safety"][0]["refused"]
+    env.reset(seed=1)   # ends and records the first episode
+    manifest, arrays = load_episode(bridge.saved_manifests[-1])
+    assert np.array_equal(arrays["actions_requested"][-1], [450.0, 50.0])
+    assert np.array_equal(arrays["actions_executed"][-1], [400.0, 100.0])
+    assert manifest["outcome"] == "interrupted" and manifest["safety_events"][0]["kind"] == "clipped"
+
+
+def test_jump_limit_stops_chunk_at_violation(robot):
+    bridge = robot.bridge(max_step_delta=20.0)
+    env = robot.client(bridge)
+    obs, _ = env.reset(seed=0)
+    start = obs["agent_pos"].astype(np.float64)
+    chunk = np.stack([start + [5.0 * (i + 1), 0.0] for i in range(8)])
+    chunk[3] += [60.0, 0.0]   # a jump of 65 > 20 at index 3
+    obs, _, _, _, info = env.step_chunk(chunk)
+    assert info["executed"] == 3
+    assert info["safety"][0]["index"] == 3 and info["safety"][0]["refused"]
+    assert "jump" in info["safety"][0]["violations"][0]
+
+
+def test_nan_and_wrong_shape_refused(robot):
+    bridge = robot.bridge()
+    env = robot.client(bridge)
+    obs, _ = env.reset(seed=0)
+    with pytest.raises(ActionRefused, match="NaN"):
+        env.step(np.array([np.nan, 100.0]))
+    with pytest.raises(ActionRefused, match=r"shape \(3,\)"):
+        env.step(np.array([1.0, 2.0, 3.0]))
+    with pytest.raises(ActionRefused, match="NaN"):
+        env.step_chunk(np.array([[200.0, 200.0], [np.inf, 1.0]]))
+    status = robot.operator(bridge).status()
+    assert status["episode"]["steps"] == 0, "nothing of a chunk with a bad action may run"
+    assert [e["kind"] for e in status["events"]] == ["invalid_action"] * 3
+    obs2, _, _, _, info = env.step(obs["agent_pos"])
+    assert info["executed"] == 1
+
+
+def test_watchdog_holds_and_interrupts(robot):
+    bridge = robot.bridge(command_deadline_s=0.3)
+    env = robot.client(bridge)
+    env.reset(seed=0)
+    env.step(np.array([200.0, 200.0]))
+    time.sleep(0.8)
+    status = robot.operator(bridge).status()
+    assert status["episode"]["outcome"] == "interrupted" and status["episode"]["reason"] == "watchdog"
+    obs, reward, terminated, truncated, info = env.step(np.array([210.0, 200.0]))
+    assert truncated and not terminated and info["interrupted"] == "watchdog" and info["executed"] == 0
+    assert not info["is_success"]
+    env.reset(seed=1)   # a new episode after the interruption is fine
+    assert env.step(np.array([200.0, 200.0]))[4]["executed"] == 1
+
+
+def _raw_client(bridge, ctx, task="PushT"):
+    sock = ctx.socket(zmq.DEALER)
+    sock.setsockopt(zmq.LINGER, 0)
+    sock.setsockopt(zmq.RCVTIMEO, 10000)
+    sock.connect(bridge.control_endpoint)
+    sock.send(P.encode({"type": P.HELLO, "task": task, "client": "raw"}))
+    welcome = P.decode(sock.recv())
+    return sock, welcome
+
+
+def test_link_cut_detected_within_one_control_period(robot):
+    bridge = robot.bridge(link_timeout_s=None, realtime=True)   # default: one control period (0.1 s)
+    assert bridge.link_timeout == pytest.approx(0.1)
+    ctx = zmq.Context()
+    sock, welcome = _raw_client(bridge, ctx)
+    try:
+        token = welcome["session"]
+        assert welcome["heartbeat_interval_s"] == pytest.approx(0.025)
+        sock.send(P.encode({"type": P.RESET, "session": token, "seed": 0}))
+        obs = P.decode(sock.recv())["obs"]
+        # a realtime chunk (0.8 s) is executing when the client goes silent: no heartbeats at all
+        sock.send(P.encode({"type": P.CHUNK, "session": token, "actions": np.tile(obs["agent_pos"], (8, 1))}))
+        time.sleep(1.2)
+        status = robot.operator(bridge).status()
+    finally:
+        sock.close(linger=0)
+        ctx.term()
+    assert status["client"] is None
+    assert status["episode"]["outcome"] == "interrupted" and status["episode"]["reason"] == "link_lost"
+    assert status["episode"]["steps"] < 8, "the chunk must stop once the link is lost"
+    lost = [e for e in status["events"] if e["kind"] == "link_lost"][0]
+    delay = lost["detected"] - lost["last_seen"]
+    assert 0.1 <= delay < 0.1 + 0.075, f"link loss detected after {delay:.3f}s, limit one period (0.1 s)"
+
+
+def test_heartbeats_keep_an_idle_client_alive_then_a_killed_one_is_dropped(robot):
+    bridge = robot.bridge(link_timeout_s=0.3, command_deadline_s=60.0)
+    env = robot.client(bridge)
+    env.reset(seed=0)
+    time.sleep(1.0)   # idle thinking time: only the heartbeat thread talks
+    op = robot.operator(bridge)
+    status = op.status()
+    assert status["client"] is not None and status["episode"]["outcome"] is None
+    env._hb_stop.set()   # the policy process dies: heartbeats stop
+    env._hb_thread.join()
+    time.sleep(0.8)
+    status = op.status()
+    assert status["client"] is None and status["episode"]["reason"] == "link_lost"
+    with pytest.raises(BridgeError, match="does not control"):
+        env.step(np.array([200.0, 200.0]))
+
+
+def test_second_client_refused_until_first_leaves(robot):
+    bridge = robot.bridge()
+    first = robot.client(bridge, client_name="policy-A")
+    with pytest.raises(BridgeBusy, match="already controlled by client 'policy-A'"):
+        robot.client(bridge, client_name="policy-B")
+    first.close()
+    second = robot.client(bridge, client_name="policy-B")
+    assert second.reset(seed=0)[0]["top_image"].shape == (84, 84, 3)
+
+
+def test_estop_mid_chunk_then_explicit_clear(robot):
+    bridge = robot.bridge(realtime=True)
+    env = robot.client(bridge)
+    obs, _ = env.reset(seed=0)
+    op = robot.operator(bridge)
+    chunk = np.stack([obs["agent_pos"] + [4.0 * i, 0.0] for i in range(1, 9)])
+    timer = threading.Timer(0.3, op.estop)   # mid-chunk: the chunk takes 0.8 s at 10 Hz
+    timer.start()
+    t0 = time.monotonic()
+    _, _, terminated, truncated, info = env.step_chunk(chunk)
+    elapsed = time.monotonic() - t0
+    timer.join()
+    assert 1 <= info["executed"] < 8 and elapsed < 0.7
+    assert truncated and not terminated and info["interrupted"] == "estop" and info["estop"]
+    with pytest.raises(BridgeError, match="emergency stop is latched"):
+        env.reset(seed=0)
+    op.clear_estop()
+    env.reset(seed=0)
+    assert env.step(obs["agent_pos"])[4]["executed"] == 1
+
+
+def test_operator_confirmation_and_episode_record(robot, tmp_path):
+    bridge = robot.bridge(chunk_budget=2, success_source="operator")
+    env = robot.client(bridge, manifest={"checkpoint": "jepa-policy-100k.pt", "policy": "JEPA Policy"})
+    obs, _ = env.reset(seed=3)
+    chunk = np.tile(obs["agent_pos"], (8, 1))
+    _, _, terminated, truncated, info = env.step_chunk(chunk)
+    assert not (terminated or truncated) and not info["is_success"]
+    op = robot.operator(bridge)
+    timer = threading.Timer(0.3, op.confirm, args=(True,))
+    timer.start()
+    t0 = time.monotonic()
+    _, _, terminated, truncated, info = env.step_chunk(chunk)   # budget spent: waits for the operator
+    timer.join()
+    assert time.monotonic() - t0 >= 0.25
+    assert terminated and not truncated and info["is_success"] and info["outcome"] == "success"
+    manifest, arrays = load_episode(info["episode_manifest"])
+    assert manifest["manifest"]["checkpoint"] == "jepa-policy-100k.pt" and manifest["manifest"]["seed"] == 3
+    assert manifest["outcome"] == "success" and manifest["chunks"] == 2 and manifest["chunk_budget"] == 2
+    assert arrays["obs/top_image"].shape == (3, 84, 84, 3)   # reset + after each chunk
+    assert arrays["actions_executed"].shape == (16, 2) and arrays["chunk_latency_s"].shape == (2,)
+    assert manifest["frame_to_chunk_latency"]["count"] == 1   # first chunk excluded (Sec. 4.8)
+
+
+def test_operator_declares_failure_early(robot):
+    bridge = robot.bridge(success_source="operator")
+    env = robot.client(bridge)
+    obs, _ = env.reset(seed=0)
+    robot.operator(bridge).confirm(False)
+    _, _, terminated, truncated, info = env.step(obs["agent_pos"])
+    assert truncated and not terminated and not info["is_success"] and info["outcome"] == "failure"
+
+
+def test_homing_is_explicit_and_interrupts(robot):
+    bridge = robot.bridge()
+    env = robot.client(bridge)
+    env.reset(seed=0)
+    status = robot.operator(bridge).home()
+    assert status["episode"]["outcome"] == "interrupted" and status["episode"]["reason"] == "homed by the operator"
+
+
+def test_version_and_task_mismatch(robot):
+    bridge = robot.bridge()
+    ctx = zmq.Context()
+    sock = ctx.socket(zmq.DEALER)
+    sock.setsockopt(zmq.LINGER, 0)
+    sock.setsockopt(zmq.RCVTIMEO, 10000)
+    sock.connect(bridge.control_endpoint)
+    try:
+        sock.send(P.encode({"type": P.HELLO, "v": 99}))
+        reply = P.decode(sock.recv())
+    finally:
+        sock.close(linger=0)
+        ctx.term()
+    assert reply["code"] == P.ERR_VERSION and "v99" in reply["message"]
+    with pytest.raises(BridgeError, match="serves task 'PushT'.*'Cabinet'"):
+        robot.client(bridge, task="Cabinet")
+    with pytest.raises(BridgeError, match="serves task 'PushT'"):
+        gym.make("JEPA/RealRobot-Cabinet-v0", address=bridge.control_endpoint, timeout_s=10.0)
+
+
+def test_render_images_switch(robot):
+    bridge = robot.bridge()
+    env = robot.client(bridge)
+    obs, _ = env.reset(seed=0)
+    assert obs["top_image"].any()
+    env.set_render_images(False)
+    obs, *_ = env.step(obs["agent_pos"])
+    assert not obs["top_image"].any()
+    env.set_render_images(True)
+    obs, *_ = env.step(obs["agent_pos"])
+    assert obs["top_image"].any()
+
+
+def test_no_bridge_times_out_with_hint():
+    from jepa_envs.real_robot.proxy import RealRobotEnv
+    with pytest.raises(TimeoutError, match="jepa-robot-bridge serve"):
+        RealRobotEnv(address="tcp://127.0.0.1:9", timeout_s=0.3)
