@@ -137,21 +137,22 @@ def operator(args) -> int:
     from jepa_envs.real_robot.bridge import OperatorClient
 
     with OperatorClient(args.operator) as op:
-        if args.command == "estop":
-            result = op.estop()
-        elif args.command == "clear-estop":
-            result = op.clear_estop()
-        elif args.command == "confirm":
-            result = op.confirm(args.outcome == "success")
-        elif args.command == "home":
-            result = op.home()
-        elif args.command == "shutdown":
-            op.shutdown()
-            result = {"shutdown": True}
-        else:
-            result = op.status()
+        try:
+            result = _operator_call(op, args)
+        except (RuntimeError, TimeoutError) as exc:
+            print(f"error: {exc}", file=sys.stderr)
+            return 1
     print(json.dumps(result, indent=2, default=str))
     return 0
+
+
+def _operator_call(op, args) -> dict:
+    if args.command == "shutdown":
+        op.shutdown()
+        return {"shutdown": True}
+    calls = {"estop": op.estop, "clear-estop": op.clear_estop, "home": op.home, "status": op.status,
+             "confirm": lambda: op.confirm(args.outcome == "success")}
+    return calls[args.command]()
 
 
 def main(argv: list[str] | None = None) -> int:
