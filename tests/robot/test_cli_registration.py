@@ -72,3 +72,5 @@ def test_bench_prints_numbers(capsys, tmp_path):
     for where in ("in_process", "bridge"):
         assert result[where]["step"]["n"] == 20 and result[where]["chunk"]["n"] == 4
         assert 0 < result[where]["step"]["p50_ms"] <= result[where]["step"]["p99_ms"]
+    # 20 steps make 3 decision chunks, then 4 chunks in a new episode; each episode's first is left out
+    assert result["bridge_frame_to_chunk"]["count"] == (3 - 1) + (4 - 1)
