@@ -346,10 +346,10 @@ class RobotBridge:
         info["is_success"] = bool(ep is not None and ep.outcome == "success")
         if self.backend.success_source == "sim" and ep is not None and not ep.finished:
             info["is_success"] = bool(base.get("is_success", False))
+        interrupted = ep.reason if ep is not None and ep.outcome == "interrupted" else ""
         info.update(safety=reports, executed=executed, chunks_used=ep.chunks if ep else 0,
-                    chunk_budget=self.chunk_budget, estop=self._estop,
-                    outcome=ep.outcome if ep else None, interrupted=ep.reason if ep and
-                    ep.outcome == "interrupted" else "")
+                    chunk_budget=self.chunk_budget, estop=self._estop, outcome=ep.outcome if ep else None,
+                    interrupted=interrupted)
         return info
 
     def _run(self, identity: bytes, msg: dict, chunk: bool) -> dict | None:
@@ -415,7 +415,7 @@ class RobotBridge:
         finally:
             self._executing = False
             self._last_command = time.monotonic()
-        if self._abort_reason is not None and ep.finished is False:
+        if self._abort_reason is not None and not ep.finished:
             self._end_episode("interrupted", self._abort_reason)
         if chunk or self._actions_in_chunk == 0:
             ep.add_decision_frame(self._last_obs)
@@ -483,9 +483,9 @@ class RobotBridge:
             self._safety_event("estop", "emergency stop from the operator")
             self._interrupt("estop")
             if self._awaiting is not None:
-                identity, _ = self._awaiting
+                identity, pending = self._awaiting
                 self._awaiting = None
-                self._send(identity, self._ended_reply() | {"seq": _["seq"]})
+                self._send(identity, {**self._ended_reply(), "seq": pending["seq"]})
             return {"type": P.RESULT, "ok": True, "status": self.status()}
         if kind == P.OP_CLEAR_ESTOP:
             self._estop = False
@@ -536,7 +536,7 @@ class RobotBridge:
                 "chunks": ep.chunks, "chunk_budget": self.chunk_budget,
                 "frame_to_chunk_latency": latency_stats(ep.chunk_latency_s)},
             "frame_to_chunk_latency_all": latency_stats(list(self.steady_latencies), skip_first=False),
-            "events": [{k: v for k, v in e.items()} for e in self.events[-20:]],
+            "events": [dict(e) for e in self.events[-20:]],
         }
 
 

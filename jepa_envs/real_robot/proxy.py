@@ -15,7 +15,6 @@ import socket
 import threading
 import time
 
-import gymnasium as gym
 import numpy as np
 import zmq
 from gymnasium import spaces
