@@ -393,25 +393,28 @@ class RobotBridge:
                     ep.add_action(action, None)
                     break   # later actions of the chunk assumed this one was reached
                 result = self.backend.apply(verdict.action)
-                self._frame_time = time.monotonic()
                 self._prev_action = verdict.action
                 ep.add_action(action, verdict.action)
                 executed += 1
                 total_reward += result.reward
+                if self.backend.realtime:
+                    # the slot's frame is the one at its end, after the arm had the period to move
+                    self._pace_until(start + (i + 1) * self.period)
+                else:
+                    self._pump(0)
+                if result.obs is None:
+                    result.obs = self.backend.observe()
+                self._frame_time = time.monotonic()
                 self._last_obs, self._last_info = result.obs, result.info
+                if not chunk:
+                    self._actions_in_chunk = (self._actions_in_chunk + 1) % self.spec.n_action_steps
                 joint_problem = self.guard.joint_violation(self.backend.joint_positions())
                 if joint_problem:
                     self._safety_event("joint_limit", joint_problem)
                     self._interrupt("joint_limit")
                     break
-                if not chunk:
-                    self._actions_in_chunk = (self._actions_in_chunk + 1) % self.spec.n_action_steps
                 if result.terminated or result.truncated:
                     break
-                if self.backend.realtime:
-                    self._pace_until(start + (i + 1) * self.period)
-                else:
-                    self._pump(0)
         finally:
             self._executing = False
             self._last_command = time.monotonic()

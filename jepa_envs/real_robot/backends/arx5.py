@@ -7,11 +7,13 @@ this backend is built; when they are missing the error names what to install (do
 
 Action convention (Sec. 4.1): per arm ``[x, y, z, r6 (6-D rotation), gripper]`` in the arm's base frame,
 gripper 0 = closed, 1 = open; arms ordered as ``task_spec.extra["arms"]``. The SDK's controller interpolates
-each 10 Hz target at its own 500 Hz; cameras stream at the 30 Hz driver rate and the newest frame is taken.
+each 10 Hz target at its own 500 Hz; each camera streams at the 30 Hz driver rate on its own thread and the
+newest frame is taken at the end of each control period (the bridge calls ``observe`` then).
 """
 from __future__ import annotations
 
 import importlib
+import threading
 import time
 import tomllib
 from pathlib import Path
@@ -121,6 +123,44 @@ def action_to_pose6d(action10: np.ndarray) -> tuple[np.ndarray, float]:
     return np.concatenate([action10[:3], rpy]), float(action10[9])
 
 
+class _CameraStream:
+    """One RealSense colour stream read by its own thread at the 30 Hz driver rate; keeps the newest frame."""
+
+    def __init__(self, rs, camera: CameraConfig):
+        self.name = camera.name
+        rs_config = rs.config()
+        rs_config.enable_device(camera.serial)
+        rs_config.enable_stream(rs.stream.color, camera.width, camera.height, rs.format.rgb8, camera.fps)
+        self._pipeline = rs.pipeline()
+        self._pipeline.start(rs_config)
+        self._frame = np.asanyarray(self._pipeline.wait_for_frames().get_color_frame().get_data()).copy()
+        self._lock = threading.Lock()
+        self._stop = threading.Event()
+        self._error: Exception | None = None
+        self._thread = threading.Thread(target=self._run, name=f"realsense-{camera.name}", daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        try:
+            while not self._stop.is_set():
+                frame = np.asanyarray(self._pipeline.wait_for_frames().get_color_frame().get_data()).copy()
+                with self._lock:
+                    self._frame = frame
+        except RuntimeError as exc:   # pyrealsense2 raises RuntimeError when a camera drops out
+            self._error = exc
+
+    def latest(self) -> np.ndarray:
+        if self._error is not None:
+            raise RuntimeError(f"camera {self.name!r} stopped streaming: {self._error}; check its USB link")
+        with self._lock:
+            return self._frame
+
+    def stop(self) -> None:
+        self._stop.set()
+        self._thread.join(timeout=1.0)
+        self._pipeline.stop()
+
+
 class ARX5Backend(RobotBackend):
     """Drives the ARX-5 arms and reads the RealSense cameras of one task set-up."""
 
@@ -138,16 +178,7 @@ class ARX5Backend(RobotBackend):
         self._controllers = [arx5.Arx5CartesianController(by_name[n].model, by_name[n].interface)
                              for n in self._arm_names]
         self._gripper_width = [c.get_robot_config().gripper_width for c in self._controllers]
-        self._pipelines = {}
-        for cam in config.cameras:
-            if cam.name not in spec.cameras:
-                continue
-            rs_config = rs.config()
-            rs_config.enable_device(cam.serial)
-            rs_config.enable_stream(rs.stream.color, cam.width, cam.height, rs.format.rgb8, cam.fps)
-            pipeline = rs.pipeline()
-            pipeline.start(rs_config)
-            self._pipelines[cam.name] = pipeline
+        self._streams = [_CameraStream(rs, cam) for cam in config.cameras if cam.name in spec.cameras]
         per_arm_low = np.concatenate([config.workspace_low, -np.ones(6), [0.0]])
         per_arm_high = np.concatenate([config.workspace_high, np.ones(6), [1.0]])
         self._low = np.tile(per_arm_low, len(self._arm_names))
@@ -171,13 +202,9 @@ class ARX5Backend(RobotBackend):
         size = self.task_spec.image_size
         if not self._render:
             return {k: np.zeros((size, size, 3), np.uint8) for k in self.task_spec.image_keys}
-        images = {}
-        for name, pipeline in self._pipelines.items():
-            frame = pipeline.wait_for_frames().get_color_frame()
-            rgb = np.asanyarray(frame.get_data())
-            # Sec. 4.8: policies receive every view resized to 128x128
-            images[f"{name}_image"] = np.asarray(Image.fromarray(rgb).resize((size, size), Image.BILINEAR))
-        return images
+        # Sec. 4.8: policies receive every view resized to 128x128
+        return {f"{s.name}_image": np.asarray(Image.fromarray(s.latest()).resize((size, size), Image.BILINEAR))
+                for s in self._streams}
 
     def observe(self) -> dict[str, np.ndarray]:
         obs = self._images()
@@ -211,7 +238,7 @@ class ARX5Backend(RobotBackend):
 
     def apply(self, action: np.ndarray) -> StepResult:
         self._command(action, self._period)
-        return StepResult(self.observe())
+        return StepResult(obs=None)   # the bridge observes at the end of the control period
 
     def hold(self) -> None:
         self._command(self.current_action(), 0.0)
@@ -232,6 +259,6 @@ class ARX5Backend(RobotBackend):
     def close(self) -> None:
         """Hold the arms where they are (homing is explicit) and stop the camera streams."""
         self.hold()
-        for pipeline in self._pipelines.values():
-            pipeline.stop()
-        self._pipelines.clear()
+        for stream in self._streams:
+            stream.stop()
+        self._streams.clear()

@@ -19,9 +19,9 @@ class BackendUnavailable(ImportError):
 
 @dataclass
 class StepResult:
-    """What one executed control step returns."""
+    """What one executed control step returns; ``obs`` None: the bridge observes at the end of the period."""
 
-    obs: dict[str, np.ndarray]
+    obs: dict[str, np.ndarray] | None
     reward: float = 0.0
     terminated: bool = False
     truncated: bool = False
@@ -56,7 +56,12 @@ class RobotBackend(ABC):
 
     @abstractmethod
     def apply(self, action: np.ndarray) -> StepResult:
-        """Command one absolute action and return the observation after one control period."""
+        """Command one absolute action.
+
+        Simulators step and return the resulting observation. Real-time backends return at once with
+        ``obs=None``; the bridge waits out the control period (serving e-stop and heartbeats) and then calls
+        ``observe``.
+        """
 
     @abstractmethod
     def hold(self) -> None:
