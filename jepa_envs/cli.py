@@ -123,14 +123,15 @@ def info(args: argparse.Namespace) -> int:
 
 def _bench_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--tasks", nargs="+", default=None, help="tasks to measure (default: every buildable task)")
-    p.add_argument("--steps", type=int, default=200, help="env steps per measurement")
+    p.add_argument("--steps", type=int, default=1000, help="most env steps per arm of each comparison")
+    p.add_argument("--seconds", type=float, default=6.0, help="time budget of each comparison")
 
 
 @subcommand("bench", "steps/s raw backend vs our interface, and render-every-step vs render-on-demand", _bench_args)
 def bench(args: argparse.Namespace) -> int:
     from jepa_envs.bench import run_bench
 
-    run_bench(args.tasks, args.steps)
+    run_bench(args.tasks, args.steps, args.seconds)
     return 0
 
 

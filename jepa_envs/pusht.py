@@ -75,40 +75,42 @@ def transform(points: np.ndarray, pose) -> np.ndarray:
     return points @ np.array([[c, s], [-s, c]]) + np.array([x, y])
 
 
-def _clip_convex(subject: list, clip: np.ndarray) -> list:
-    """Sutherland-Hodgman: the part of convex polygon ``subject`` inside convex polygon ``clip``."""
+def _part_vertices(pose) -> list[list[tuple[float, float]]]:
+    """World vertices of the T's two rectangles at ``pose``, as plain floats (hot path: no numpy)."""
+    x, y, a = pose
+    c, s = math.cos(a), math.sin(a)
+    return [[(x + px * c - py * s, y + px * s + py * c) for px, py in part.tolist()] for part in T_PARTS]
+
+
+def _clip_edges(poly: list[tuple[float, float]]) -> list[tuple[float, float, float, float]]:
+    """Edges (ax, ay, dx, dy) of a convex polygon, oriented so that "inside" is on the left."""
+    area2 = sum(poly[i - 1][0] * poly[i][1] - poly[i][0] * poly[i - 1][1] for i in range(len(poly)))
+    pts = poly if area2 > 0 else poly[::-1]
+    return [(pts[i - 1][0], pts[i - 1][1], pts[i][0] - pts[i - 1][0], pts[i][1] - pts[i - 1][1])
+            for i in range(len(pts))]
+
+
+def _clipped_area(subject: list[tuple[float, float]], edges) -> float:
+    """Area of convex ``subject`` inside the convex polygon given by ``edges`` (Sutherland-Hodgman)."""
     out = subject
-    n = len(clip)
-    # orientation of the clip polygon decides which side of each edge is "inside"
-    sign = 1.0 if _signed_area(clip) > 0 else -1.0
-    for i in range(n):
-        ax, ay = clip[i]
-        bx, by = clip[(i + 1) % n]
+    for ax, ay, dx, dy in edges:
         inp, out = out, []
         if not inp:
-            break
-        for j in range(len(inp)):
-            px, py = inp[j - 1]
-            qx, qy = inp[j]
-            sp = sign * ((bx - ax) * (py - ay) - (by - ay) * (px - ax))
-            sq = sign * ((bx - ax) * (qy - ay) - (by - ay) * (qx - ax))
+            return 0.0
+        px, py = inp[-1]
+        sp = dx * (py - ay) - dy * (px - ax)
+        for qx, qy in inp:
+            sq = dx * (qy - ay) - dy * (qx - ax)
             if sq >= 0:
                 if sp < 0:
-                    t = sp / (sp - sq)
-                    out.append((px + t * (qx - px), py + t * (qy - py)))
+                    f = sp / (sp - sq)
+                    out.append((px + f * (qx - px), py + f * (qy - py)))
                 out.append((qx, qy))
             elif sp >= 0:
-                t = sp / (sp - sq)
-                out.append((px + t * (qx - px), py + t * (qy - py)))
-    return out
-
-
-def _signed_area(poly) -> float:
-    pts = np.asarray(poly, dtype=float)
-    if len(pts) < 3:
-        return 0.0
-    x, y = pts[:, 0], pts[:, 1]
-    return 0.5 * float(np.dot(x, np.roll(y, -1)) - np.dot(y, np.roll(x, -1)))
+                f = sp / (sp - sq)
+                out.append((px + f * (qx - px), py + f * (qy - py)))
+            px, py, sp = qx, qy, sq
+    return abs(0.5 * sum(out[i - 1][0] * out[i][1] - out[i][0] * out[i - 1][1] for i in range(len(out))))
 
 
 def coverage(block_pose, goal_pose=GOAL_POSE) -> float:
@@ -117,10 +119,15 @@ def coverage(block_pose, goal_pose=GOAL_POSE) -> float:
     Both T's are unions of two disjoint convex rectangles, so the intersection area is the sum of the four
     convex-convex intersections.
     """
-    block = [transform(p, block_pose) for p in T_PARTS]
-    goal = [transform(p, goal_pose) for p in T_PARTS]
-    inter = sum(abs(_signed_area(_clip_convex([tuple(v) for v in b], g))) for b in block for g in goal)
-    return float(min(1.0, inter / T_AREA))
+    if math.hypot(block_pose[0] - goal_pose[0], block_pose[1] - goal_pose[1]) >= 2 * T_RADIUS:
+        return 0.0
+    goal_edges = (_GOAL_EDGES if tuple(goal_pose) == GOAL_POSE
+                  else [_clip_edges(p) for p in _part_vertices(goal_pose)])
+    inter = sum(_clipped_area(b, g) for b in _part_vertices(block_pose) for g in goal_edges)
+    return min(1.0, inter / T_AREA)
+
+
+_GOAL_EDGES = [_clip_edges(p) for p in _part_vertices(GOAL_POSE)]
 
 
 def wrap_angle(a: float) -> float:
@@ -254,8 +261,8 @@ class PushTSim:
         img = Image.new("RGB", (big, big), COLORS["background"])
         draw = ImageDraw.Draw(img)
         for pose, color in ((GOAL_POSE, COLORS["goal"]), (self.block_pose, COLORS["block"])):
-            for part in T_PARTS:
-                draw.polygon([tuple(p) for p in transform(part, pose) * scale], fill=color)
+            for part in _part_vertices(pose):
+                draw.polygon([(x * scale, y * scale) for x, y in part], fill=color)
         (ax, ay), r = self.agent.position, AGENT_RADIUS
         draw.ellipse([(ax - r) * scale, (ay - r) * scale, (ax + r) * scale, (ay + r) * scale], fill=COLORS["agent"])
         if supersample > 1:
@@ -299,11 +306,15 @@ class PushTEnv(JEPAEnv):
         self.render_size = int(render_size)
         self.action_space = spaces.Box(0.0, WORLD_SIZE, shape=(2,), dtype=np.float32)
         self.backend = PushTSim()
-        self._coverage = 0.0
+        self._coverage, self._pose = 0.0, GOAL_POSE
 
     # -- contract used by the benchmark and the expert -------------------------------------------------------
+    def hold_action(self) -> np.ndarray:
+        """The action (our convention) that holds the agent still: its current position."""
+        return np.asarray(self.backend.agent.position, dtype=np.float32)
+
     def native_zero_action(self) -> np.ndarray:
-        """The raw-backend action that holds the agent still: its current position."""
+        """The raw-backend action that holds the agent still (the same target, as the backend takes it)."""
         return np.asarray(self.backend.agent.position, dtype=np.float64)
 
     def get_state(self) -> np.ndarray:
@@ -328,7 +339,7 @@ class PushTEnv(JEPAEnv):
         else:
             state = self._sample_initial_state()
         self.backend.set_state(state)
-        self._coverage = coverage(self.backend.block_pose)
+        self._update_coverage()
         return self._observation(), self._info()
 
     def _sample_initial_state(self) -> np.ndarray:
@@ -351,24 +362,27 @@ class PushTEnv(JEPAEnv):
         raise RuntimeError(f"could not sample an initial PushT state for difficulty {d}; widen its ranges")
 
     def step(self, action):
-        action = np.asarray(action, dtype=np.float64).reshape(-1)
-        if action.shape != (2,) or not np.all(np.isfinite(action)):
+        action = np.asarray(action, dtype=np.float64)
+        if action.size != 2 or not (math.isfinite(action.flat[0]) and math.isfinite(action.flat[1])):
             raise ValueError(f"PushT action must be 2 finite numbers (absolute agent target), got {action!r}")
-        self.backend.step(np.clip(action, 0.0, WORLD_SIZE))
-        self._coverage = coverage(self.backend.block_pose)
-        info = self._info()
-        return self._observation(), float(self._coverage), bool(info["is_success"]), False, info
+        x, y = float(action.flat[0]), float(action.flat[1])
+        self.backend.step((min(max(x, 0.0), WORLD_SIZE), min(max(y, 0.0), WORLD_SIZE)))
+        self._update_coverage()
+        success = self._coverage >= self.difficulty.success_threshold
+        return self._observation(), self._coverage, success, False, self._info()
+
+    def _update_coverage(self) -> None:
+        self._pose = self.backend.block_pose
+        self._coverage = coverage(self._pose)
 
     def _observation(self) -> dict:
-        key = self.task_spec.image_keys[0]
-        image = (self.backend.render(self.task_spec.image_size) if self.render_images
-                 else self.blank_images()[key])
-        return {key: image, "agent_pos": np.asarray(self.backend.agent.position, dtype=np.float32)}
+        size = self.task_spec.image_size
+        image = self.backend.render(size) if self.render_images else np.zeros((size, size, 3), dtype=np.uint8)
+        return {"top_image": image, "agent_pos": np.array(self.backend.agent.position, dtype=np.float32)}
 
     def _info(self) -> dict:
-        return {"is_success": bool(self._coverage >= self.difficulty.success_threshold),
-                "coverage": float(self._coverage),
-                "block_pose": np.asarray(self.backend.block_pose, dtype=np.float64)}
+        return {"is_success": self._coverage >= self.difficulty.success_threshold,
+                "coverage": self._coverage, "block_pose": np.array(self._pose)}
 
     def render(self):
         if self.render_mode != "rgb_array":

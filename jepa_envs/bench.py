@@ -1,0 +1,122 @@
+"""``jepa-envs bench``: what our env layer costs, and what render-on-demand saves.
+
+Per task that can be built here, side by side in one process:
+- raw backend vs our interface: steps/s of the backend's own step with its native hold-still action
+  (``env.unwrapped.backend``, ``native_zero_action()``), against ``env.step`` of ``gym.make(id)`` with the
+  equivalent action in our convention (``hold_action()``); overhead = raw rate / our rate - 1 (goal <= 3%).
+  For PushT the raw backend is the pymunk simulation + the camera render + the coverage (reward) computation.
+- render every step vs ``RenderOnDemand`` in a chunked policy loop (n_action_steps per chunk, obs_steps
+  history, future frame k): steps/s and the speed-up (goal >= 2.5x).
+The arms of each comparison run interleaved in blocks of one chunk, so load from other processes hits both.
+Each comparison is bounded by ``--steps`` and a time budget, so the default run takes well under 2 minutes.
+"""
+from __future__ import annotations
+
+import time
+from typing import Callable
+
+import gymnasium as gym
+import numpy as np
+import jepa_envs  # noqa: F401  (registers the ids)
+from jepa_envs.spec import TaskSpec, all_task_specs, get_task_spec
+from jepa_envs.wrappers import RenderOnDemand, render_schedule
+
+
+def interleaved_rates(arms: dict[str, Callable[[], None]], steps: int, budget_s: float, block: int) -> dict:
+    """Steps/s of each zero-argument step function, run round-robin in blocks of ``block`` steps until each
+    made ``steps`` steps or ``budget_s`` seconds passed. The rate is taken from the median block time, so a
+    burst of load from another process on this shared machine does not decide the comparison."""
+    times: dict[str, list[float]] = {k: [] for k in arms}
+    start = time.perf_counter()
+    while min(len(v) for v in times.values()) * block < steps and time.perf_counter() - start < budget_s:
+        for name, step in arms.items():
+            t0 = time.perf_counter()
+            for _ in range(block):
+                step()
+            times[name].append(time.perf_counter() - t0)
+    return {k: block / float(np.median(v)) for k, v in times.items()}
+
+
+def _raw_step(env) -> Callable[[], None]:
+    base = env.unwrapped
+    native = base.native_zero_action()
+    backend = base.backend
+    if type(backend).__name__ == "PushTSim":  # the pymunk sim renders and scores on request, not in step()
+        from jepa_envs.pusht import coverage
+        size = base.task_spec.image_size
+
+        def step():
+            backend.step(native)
+            backend.render(size)
+            coverage(backend.block_pose)
+        return step
+    return lambda: backend.step(native)
+
+
+def _hold_step(env, render_every_step: bool = False) -> Callable[[], None]:
+    action = env.unwrapped.hold_action()
+    if not render_every_step:
+        return lambda: env.step(action)
+
+    def step():
+        env.unwrapped.set_render_images(True)
+        env.step(action)
+    return step
+
+
+def _block_size(step: Callable[[], None], limit: int) -> int:
+    """Steps per timed block: a chunk for fast backends, fewer (down to 1) when one step takes long."""
+    t0 = time.perf_counter()
+    step()
+    return int(min(limit, max(1, round(0.02 / (time.perf_counter() - t0)))))
+
+
+def bench_task(spec: TaskSpec, steps: int, budget_s: float) -> dict:
+    """One row of the table: raw/ours steps/s and every-step/on-demand steps/s for ``spec``."""
+    env = gym.make(spec.env_id, max_episode_steps=10**9)
+    try:
+        env.reset(seed=0)
+        raw, ours = _raw_step(env), _hold_step(env)
+        block = _block_size(raw, spec.n_action_steps)
+        overhead = interleaved_rates({"raw": raw, "ours": ours}, steps, budget_s, block)
+        # whole chunks per block: the render schedule repeats every n_action_steps steps
+        demand = RenderOnDemand(env)
+        demand.reset(seed=0)
+        render = interleaved_rates({"every": _hold_step(env, render_every_step=True), "on_demand": _hold_step(demand)},
+                                   steps, budget_s, spec.n_action_steps)
+    finally:
+        env.close()
+    n = spec.n_action_steps
+    rendered = len(render_schedule(64 * n, n, spec.obs_steps, spec.future_k)) / (64 * n)
+    return {"task": spec.name, "raw": overhead["raw"], "ours": overhead["ours"],
+            "overhead": overhead["raw"] / overhead["ours"] - 1.0, "every": render["every"],
+            "on_demand": render["on_demand"], "speedup": render["on_demand"] / render["every"],
+            "rendered_fraction": rendered}
+
+
+def buildable_tasks() -> list[TaskSpec]:
+    from jepa_envs.cli import backend_available
+
+    return [spec for spec in all_task_specs() if backend_available(spec.suite)[0]]
+
+
+def run_bench(tasks: list[str] | None = None, steps: int = 1000, budget_s: float = 6.0) -> list[dict]:
+    """Measure and print the table; tasks that fail to build are reported and skipped."""
+    specs = [get_task_spec(t) for t in tasks] if tasks else buildable_tasks()
+    print(f"jepa-envs bench: up to {steps} steps or {budget_s:.0f} s per comparison; "
+          "chunked loop = n_action_steps per chunk, obs_steps history + future frame k rendered")
+    header = (f"{'task':<20}{'raw st/s':>10}{'ours st/s':>11}{'overhead':>10}  "
+              f"{'every-step st/s':>16}{'on-demand st/s':>15}{'speed-up':>9}{'frames':>8}")
+    print(header)
+    rows = []
+    for spec in specs:
+        try:
+            row = bench_task(spec, steps, budget_s)
+        except Exception as exc:  # one backend failing to build must not hide the others' numbers
+            print(f"{spec.name:<20}skipped: {type(exc).__name__}: {exc}")
+            continue
+        rows.append(row)
+        print(f"{row['task']:<20}{row['raw']:>10.1f}{row['ours']:>11.1f}{row['overhead']:>+9.1%}  "
+              f"{row['every']:>16.1f}{row['on_demand']:>15.1f}{row['speedup']:>8.2f}x{row['rendered_fraction']:>8.0%}")
+    return rows
+
