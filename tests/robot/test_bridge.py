@@ -1,6 +1,8 @@
 """The bridge and proxy against the simulated robot: conventions, equivalence with in-process, every safety rule."""
 from __future__ import annotations
 
+import subprocess
+import sys
 import threading
 import time
 
@@ -12,6 +14,7 @@ from gymnasium.utils.env_checker import check_env
 
 from jepa_envs.real_robot import protocol as P
 from jepa_envs.real_robot.episodes import load_episode
+from jepa_envs.pusht_expert import PushTExpert, collect_episode
 from jepa_envs.real_robot.proxy import ActionRefused, BridgeBusy, BridgeError
 
 
@@ -32,37 +35,41 @@ def test_proxy_conventions_and_check_env(robot):
     check_env(env, skip_render_check=True)
 
 
-def _actions_toward(start: np.ndarray, goal: np.ndarray, n: int) -> np.ndarray:
-    return np.linspace(start, goal, n).astype(np.float32)
-
-
-def test_seeded_scripted_episode_same_through_bridge(robot):
-    """A scripted push from a seeded start: same observations, rewards and success in-process and bridged."""
+def test_seeded_expert_episode_same_through_bridge(robot):
+    """The scripted PushT expert's seeded episode, replayed through the bridge, reaches the same states and
+    the same success as run in-process (first 16 actions by step, the rest as chunks of 8)."""
     direct = gym.make("JEPA/PushT-v0")
     try:
-        obs, _ = direct.reset(seed=7)
-        script = _actions_toward(obs["agent_pos"], np.array([256.0, 256.0]), 40)
-        ref = [direct.step(a) for a in script]
+        ref = collect_episode(direct, seed=0, expert=PushTExpert(seed=0))
+        direct.reset(seed=0)
+        for action in ref["actions"]:   # replaying the expert's actions in-process gives the final frame
+            final_direct = direct.step(action)[0]
     finally:
         direct.close()
-    bridge = robot.bridge(chunk_budget=5)
+    actions = ref["actions"]
+    assert ref["success"] and len(actions) > 24
+    bridge = robot.bridge()
     env = robot.client(bridge, task="PushT")
-    obs_b, _ = env.reset(seed=7)
-    got = [env.step(a) for a in script[:16]]
-    for c in range(2, 5):   # the rest as chunks of 8, the synchronous loop of Sec. 4.8
-        got.append(env.step_chunk(script[8 * c:8 * c + 8]))
-    for r, g in zip(ref[:16], got[:16]):
-        assert np.array_equal(r[0]["top_image"], g[0]["top_image"])
-        assert np.array_equal(r[0]["agent_pos"], g[0]["agent_pos"])
-        assert r[1] == pytest.approx(g[1])
-    for c, g in enumerate(got[16:], start=2):
-        r = ref[8 * c + 7]
-        assert np.array_equal(r[0]["top_image"], g[0]["top_image"])
-        assert g[1] == pytest.approx(sum(x[1] for x in ref[8 * c:8 * c + 8]))
-    final = got[-1]
-    assert final[4]["chunks_used"] == 5 and final[3]   # budget spent -> truncated
-    assert final[4]["is_success"] == ref[-1][4]["is_success"]
-    assert final[4]["outcome"] == ("success" if ref[-1][4]["is_success"] else "failure")
+    obs, _ = env.reset(seed=0)
+    assert np.array_equal(obs["top_image"], ref["obs"]["top_image"][0])
+    rewards = []
+    for t in range(16):
+        obs, reward, terminated, truncated, info = env.step(actions[t])
+        rewards.append(reward)
+        assert np.array_equal(obs["agent_pos"], ref["obs"]["agent_pos"][t + 1])
+        assert np.array_equal(obs["top_image"], ref["obs"]["top_image"][t + 1])
+    for c in range(16, len(actions), 8):
+        obs, reward, terminated, truncated, info = env.step_chunk(actions[c:c + 8])
+        rewards.append(reward)
+        if terminated or truncated:
+            break
+    assert terminated and not truncated and info["is_success"] and info["outcome"] == "success"
+    assert np.array_equal(obs["top_image"], final_direct["top_image"])
+    assert np.array_equal(obs["agent_pos"], final_direct["agent_pos"])
+    assert sum(rewards) == pytest.approx(float(ref["rewards"].sum()), rel=1e-6)
+    manifest, arrays = load_episode(info["episode_manifest"])
+    assert manifest["is_success"] and manifest["steps"] == len(actions)
+    np.testing.assert_array_equal(arrays["actions_executed"], actions.astype(np.float64))
 
 
 def test_out_of_bounds_refused_and_reported(robot):
@@ -299,3 +306,29 @@ def test_no_bridge_times_out_with_hint():
     from jepa_envs.real_robot.proxy import RealRobotEnv
     with pytest.raises(TimeoutError, match="jepa-robot-bridge serve"):
         RealRobotEnv(address="tcp://127.0.0.1:9", timeout_s=0.3)
+
+
+def test_killed_policy_process_loses_control(robot):
+    """A policy process killed with SIGKILL (no bye, no heartbeats) is dropped and the episode interrupted."""
+    bridge = robot.bridge(link_timeout_s=0.3)
+    code = ("import time\nfrom jepa_envs.real_robot.proxy import RealRobotEnv\n"
+            f"env = RealRobotEnv(address={bridge.control_endpoint!r}, client_name='doomed')\n"
+            "env.reset(seed=0)\nprint('ready', flush=True)\ntime.sleep(120)\n")
+    proc = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, text=True)
+    try:
+        assert proc.stdout.readline().strip() == "ready"
+        time.sleep(0.6)   # idle but alive: its heartbeats keep control
+        op = robot.operator(bridge)
+        assert op.status()["client"] == "doomed"
+        proc.kill()
+        proc.wait(timeout=10)
+        time.sleep(1.0)
+        status = op.status()
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    assert status["client"] is None
+    assert status["episode"]["outcome"] == "interrupted" and status["episode"]["reason"] == "link_lost"
+    env = robot.client(bridge)   # the robot can be taken over now
+    assert env.reset(seed=0)[0]["top_image"].shape == (84, 84, 3)
