@@ -1,0 +1,101 @@
+"""API keys with roles: robot (write its own data), operator (read, acknowledge), admin (everything)."""
+from __future__ import annotations
+
+import hashlib
+import secrets
+from dataclasses import dataclass
+
+from fastapi import HTTPException, Request
+from sqlalchemy import select
+from sqlalchemy.orm import Session
+
+from monitor_service.db import ApiKey, utcnow
+
+ROLE_RANK = {"robot": 0, "operator": 1, "admin": 2}
+
+
+@dataclass(frozen=True)
+class Principal:
+    """The authenticated caller of a request."""
+
+    key_id: int
+    name: str
+    role: str
+    robot: str | None
+
+
+def hash_key(key: str) -> str:
+    """Keys are stored as SHA-256 digests; the secret itself is shown only once."""
+    return hashlib.sha256(key.encode()).hexdigest()
+
+
+def new_key() -> str:
+    return "jm_" + secrets.token_urlsafe(32)
+
+
+def create_key(session: Session, name: str, role: str, robot: str | None = None, key: str | None = None) -> tuple[ApiKey, str]:
+    """Insert a key (random unless given) and return the row and the secret."""
+    if role not in ROLE_RANK:
+        raise ValueError(f"role {role!r} is unknown; use one of {sorted(ROLE_RANK)}")
+    if role == "robot" and not robot:
+        raise ValueError("a robot key needs the robot name it may write for (robot=...)")
+    if session.scalar(select(ApiKey).where(ApiKey.name == name)) is not None:
+        raise ValueError(f"a key named {name!r} exists already; pick another name or revoke it first")
+    secret = key or new_key()
+    row = ApiKey(name=name, key_hash=hash_key(secret), role=role, robot=robot if role == "robot" else None)
+    session.add(row)
+    session.flush()
+    return row, secret
+
+
+def ensure_admin_key(session: Session, key: str) -> None:
+    """Bootstrap: make sure ``key`` is a valid admin key (used with JEPA_MONITOR_ADMIN_KEY)."""
+    row = session.scalar(select(ApiKey).where(ApiKey.key_hash == hash_key(key)))
+    if row is None:
+        name = "bootstrap-admin"
+        suffix = 1
+        while session.scalar(select(ApiKey).where(ApiKey.name == name)) is not None:
+            suffix += 1
+            name = f"bootstrap-admin-{suffix}"
+        create_key(session, name, "admin", key=key)
+    elif row.role != "admin" or row.revoked_at is not None:
+        raise ValueError("JEPA_MONITOR_ADMIN_KEY matches a revoked or non-admin key; choose a fresh secret")
+
+
+def _presented_key(request: Request) -> str | None:
+    key = request.headers.get("x-api-key")
+    if key:
+        return key
+    auth = request.headers.get("authorization", "")
+    if auth.lower().startswith("bearer "):
+        return auth[7:].strip()
+    return None
+
+
+def require(role: str):
+    """FastAPI dependency factory: the caller must hold ``role`` or a higher one."""
+
+    def dependency(request: Request) -> Principal:
+        key = _presented_key(request)
+        if not key:
+            raise HTTPException(401, "no API key: send it in the X-API-Key header (or Authorization: Bearer)")
+        # A short session of its own: the handler's transaction (a write lock on SQLite) starts only after auth.
+        with request.app.state.read_sessionmaker() as session:
+            row = session.scalar(select(ApiKey).where(ApiKey.key_hash == hash_key(key)))
+            if row is not None:
+                session.expunge(row)
+        if row is None or row.revoked_at is not None:
+            raise HTTPException(401, "API key unknown or revoked: ask an admin for a key (jepa-monitor keys create)")
+        if ROLE_RANK[row.role] < ROLE_RANK[role]:
+            raise HTTPException(403, f"this endpoint needs the {role!r} role; your key {row.name!r} is {row.role!r}")
+        return Principal(row.id, row.name, row.role, row.robot)
+
+    return dependency
+
+
+def revoke(session: Session, key_id: int) -> ApiKey:
+    row = session.get(ApiKey, key_id)
+    if row is None:
+        raise LookupError(f"API key id {key_id} does not exist; list keys with GET /v1/keys")
+    row.revoked_at = row.revoked_at or utcnow()
+    return row

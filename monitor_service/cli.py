@@ -1,0 +1,222 @@
+"""``jepa-monitor``: serve, db, keys, tasks, calibrate, report, bench."""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import tempfile
+
+
+def _settings(args):
+    from monitor_service.settings import MonitorSettings
+
+    overrides = {}
+    if getattr(args, "database_url", None):
+        overrides["database_url"] = args.database_url
+    return MonitorSettings(**overrides)
+
+
+def _sessionmaker(args):
+    from monitor_service import db
+
+    settings = _settings(args)
+    engine = db.make_engine(settings.database_url)
+    db.upgrade(engine)
+    return settings, db.make_sessionmaker(engine)
+
+
+def cmd_serve(args) -> int:
+    import uvicorn
+
+    from monitor_service import db
+
+    if args.database_url:
+        os.environ["JEPA_MONITOR_DATABASE_URL"] = args.database_url
+    settings = _settings(args)
+    db.upgrade(db.make_engine(settings.database_url))  # once, before any worker starts
+    if args.workers > 1 and not os.environ.get("PROMETHEUS_MULTIPROC_DIR"):
+        os.environ["PROMETHEUS_MULTIPROC_DIR"] = tempfile.mkdtemp(prefix="jepa-monitor-prom-")
+    uvicorn.run(
+        "monitor_service.app:create_app", factory=True, host=args.host, port=args.port, workers=args.workers,
+        log_level=args.log_level, timeout_graceful_shutdown=5,
+    )
+    return 0
+
+
+def cmd_db(args) -> int:
+    from monitor_service import db
+
+    engine = db.make_engine(_settings(args).database_url)
+    if args.action == "upgrade":
+        db.upgrade(engine)
+    print(f"revision {db.current_revision(engine)} (head {db.head_revision()})")
+    return 0
+
+
+def cmd_keys(args) -> int:
+    from sqlalchemy import select
+
+    from monitor_service.auth import create_key, revoke
+    from monitor_service.db import ApiKey
+
+    _, make_session = _sessionmaker(args)
+    with make_session() as session:
+        if args.action == "create":
+            row, secret = create_key(session, args.name, args.role, args.robot)
+            session.commit()
+            print(json.dumps({"id": row.id, "name": row.name, "role": row.role, "robot": row.robot, "key": secret}))
+        elif args.action == "list":
+            for k in session.scalars(select(ApiKey).order_by(ApiKey.id)):
+                print(f"{k.id}\t{k.name}\t{k.role}\t{k.robot or '-'}\t{'revoked' if k.revoked_at else 'active'}")
+        else:
+            revoke(session, args.id)
+            session.commit()
+            print(f"revoked key {args.id}")
+    return 0
+
+
+def cmd_tasks(args) -> int:
+    from sqlalchemy import select
+
+    from monitor_service.db import Task
+
+    _, make_session = _sessionmaker(args)
+    with make_session() as session:
+        if args.action == "add":
+            for name in args.names:
+                if session.get(Task, name) is None:
+                    session.add(Task(name=name, latent_dim=args.latent_dim, description=""))
+            session.commit()
+        for t in session.scalars(select(Task).order_by(Task.name)):
+            print(f"{t.name}\tlatent_dim={t.latent_dim}")
+    return 0
+
+
+def cmd_calibrate(args) -> int:
+    from monitor_service.service import calibrate_task
+
+    settings, make_session = _sessionmaker(args)
+    row = calibrate_task(
+        make_session, settings, args.task, args.checkpoint, args.alpha, args.rule, args.n_bootstrap,
+        args.n_permutation, args.seed,
+    )
+    r = row.result
+    print(f"calibration #{row.id} task={row.task} checkpoint={row.checkpoint or '-'} "
+          f"(n_success={r['n_success']}, n_failure={r['n_failure']}, skipped={r['skipped_episodes']})")
+    print(f"  AUROC {r['auroc']:.3f} [95% CI {r['auroc_ci_low']:.3f}, {r['auroc_ci_high']:.3f}]  "
+          f"PR-AUC {r['average_precision']:.3f}  permutation p {r['permutation_p']:.4f}")
+    held = "n/a" if r["youden_bacc_held_out"] is None else f"{r['youden_bacc_held_out']:.3f}"
+    print(f"  Youden threshold {r['youden_threshold']:.4g}: balanced accuracy in-sample "
+          f"{r['youden_bacc_in_sample']:.3f}, held-out {held} ({r['held_out_method']})")
+    conf = "inf" if r["conformal_threshold"] is None else f"{r['conformal_threshold']:.4g}"
+    print(f"  conformal threshold at alpha={r['alpha']}: {conf} ({r['conformal_note']})")
+    print(f"  active threshold ({row.threshold_rule}): {'inf' if row.threshold is None else f'{row.threshold:.4g}'}")
+    return 0
+
+
+def cmd_report(args) -> int:
+    from monitor_service.service import report
+
+    _, make_session = _sessionmaker(args)
+    with make_session() as session:
+        rep = report(session)
+        rows = [
+            {"task": r.task, "checkpoint": r.checkpoint, "auroc": r.auroc, "ci": [r.result["auroc_ci_low"], r.result["auroc_ci_high"]],
+             "pr_auc": r.result["average_precision"], "p": r.result["permutation_p"], "threshold": r.threshold,
+             "rule": r.threshold_rule, "n_success": r.result["n_success"], "n_failure": r.result["n_failure"]}
+            for r in rep["tasks"]
+        ]
+    if args.json:
+        print(json.dumps({"tasks": rows, "uncalibrated_tasks": rep["uncalibrated_tasks"], "pooled": rep["pooled"]}, indent=2))
+        return 0
+    print(f"{'task':<20}{'ckpt':<12}{'AUROC':>7}  {'95% CI':<15}{'PR-AUC':>7}{'perm p':>9}{'threshold':>11}  n(s/f)")
+    for r in rows:
+        thr = "inf" if r["threshold"] is None else f"{r['threshold']:.4g}"
+        print(f"{r['task']:<20}{(r['checkpoint'] or '-'):<12}{r['auroc']:>7.3f}  [{r['ci'][0]:.3f}, {r['ci'][1]:.3f}] "
+              f"{r['pr_auc']:>7.3f}{r['p']:>9.4f}{thr:>11}  {r['n_success']}/{r['n_failure']}")
+    if rep["uncalibrated_tasks"]:
+        print("uncalibrated (no alerts):", ", ".join(rep["uncalibrated_tasks"]))
+    pooled = rep["pooled"]
+    if pooled["auroc"] is not None:
+        print(f"\npooled AUROC {pooled['auroc']:.3f} over {pooled['n_episodes']} episodes -- {pooled['warning']}")
+    return 0
+
+
+def cmd_bench(args) -> int:
+    from monitor_service.bench import run_bench
+
+    run_bench(n=args.n, batch=args.batch, dim=args.dim, max_seconds=args.max_seconds, concurrency=args.concurrency)
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="jepa-monitor", description=__doc__)
+    p.add_argument("--database-url", help="overrides JEPA_MONITOR_DATABASE_URL")
+    sub = p.add_subparsers(dest="command", required=True)
+
+    s = sub.add_parser("serve", help="run the HTTP service with uvicorn")
+    s.add_argument("--host", default="127.0.0.1")
+    s.add_argument("--port", type=int, default=8765)
+    s.add_argument("--workers", type=int, default=1)
+    s.add_argument("--log-level", default="info")
+    s.set_defaults(func=cmd_serve)
+
+    s = sub.add_parser("db", help="database schema migrations")
+    s.add_argument("action", choices=["upgrade", "current"])
+    s.set_defaults(func=cmd_db)
+
+    s = sub.add_parser("keys", help="API keys")
+    ks = s.add_subparsers(dest="action", required=True)
+    c = ks.add_parser("create")
+    c.add_argument("--name", required=True)
+    c.add_argument("--role", required=True, choices=["robot", "operator", "admin"])
+    c.add_argument("--robot", help="required for robot keys")
+    ks.add_parser("list")
+    r = ks.add_parser("revoke")
+    r.add_argument("id", type=int)
+    s.set_defaults(func=cmd_keys)
+
+    s = sub.add_parser("tasks", help="register or list tasks")
+    ts = s.add_subparsers(dest="action", required=True)
+    a = ts.add_parser("add")
+    a.add_argument("names", nargs="+")
+    a.add_argument("--latent-dim", type=int)
+    ts.add_parser("list")
+    s.set_defaults(func=cmd_tasks)
+
+    s = sub.add_parser("calibrate", help="calibrate one task from its stored held-out episodes")
+    s.add_argument("--task", required=True)
+    s.add_argument("--checkpoint")
+    s.add_argument("--alpha", type=float)
+    s.add_argument("--rule", choices=["conformal", "youden"])
+    s.add_argument("--n-bootstrap", type=int)
+    s.add_argument("--n-permutation", type=int)
+    s.add_argument("--seed", type=int)
+    s.set_defaults(func=cmd_calibrate)
+
+    s = sub.add_parser("report", help="per-task calibrations (pooled figure only as a warning)")
+    s.add_argument("--json", action="store_true")
+    s.set_defaults(func=cmd_report)
+
+    s = sub.add_parser("bench", help="ingestion throughput and latency against a real server on loopback")
+    s.add_argument("--n", type=int, default=4000, help="decisions per mode (upper bound)")
+    s.add_argument("--batch", type=int, default=64, help="decisions per batched request")
+    s.add_argument("--dim", type=int, default=256, help="latent dimension")
+    s.add_argument("--concurrency", type=int, default=2, help="parallel connections in the batched modes")
+    s.add_argument("--max-seconds", type=float, default=20.0, help="time bound per mode")
+    s.set_defaults(func=cmd_bench)
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        return args.func(args)
+    except (ValueError, LookupError) as exc:
+        print(f"jepa-monitor: error: {exc}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,81 @@
+"""The compact binary body: msgpack with float32 arrays as raw little-endian bytes (never pickle).
+
+An array travels as the map {"dtype": "<f4", "shape": [d], "data": <d*4 bytes>}; everything else is plain
+msgpack. JSON bodies carry arrays as lists of numbers and are decoded to the same Python values.
+"""
+from __future__ import annotations
+
+import json
+from typing import Any
+
+import msgpack
+import numpy as np
+
+MSGPACK_CONTENT_TYPE = "application/x-msgpack"
+JSON_CONTENT_TYPE = "application/json"
+
+
+class BodyError(ValueError):
+    """A request body that cannot be decoded; the message says what is wrong and how to fix it."""
+
+
+def encode_array(array: np.ndarray) -> dict[str, Any]:
+    """Wrap a 1-D float array as the binary array map (converted to little-endian float32)."""
+    a = np.ascontiguousarray(array, dtype="<f4")
+    return {"dtype": "<f4", "shape": list(a.shape), "data": a.tobytes()}
+
+
+def decode_array(obj: Any) -> np.ndarray:
+    """Turn a binary array map back into a float32 array, checking dtype and that the byte count fits the shape."""
+    if obj.get("dtype") != "<f4":
+        raise BodyError(f"array dtype {obj.get('dtype')!r} is not supported; send little-endian float32 '<f4'")
+    shape = obj.get("shape")
+    data = obj.get("data")
+    if not isinstance(shape, list) or not all(isinstance(d, int) and d >= 0 for d in shape):
+        raise BodyError(f"array shape {shape!r} must be a list of non-negative integers")
+    if not isinstance(data, (bytes, bytearray)):
+        raise BodyError("array 'data' must be raw bytes (msgpack bin)")
+    expected = 4 * int(np.prod(shape, dtype=np.int64))
+    if len(data) != expected:
+        raise BodyError(f"array data has {len(data)} bytes but shape {shape} of float32 needs {expected}")
+    return np.frombuffer(data, dtype="<f4").reshape(shape)
+
+
+def _hook(obj: dict) -> Any:
+    if "dtype" in obj and "data" in obj and "shape" in obj:
+        return decode_array(obj)
+    return obj
+
+
+def pack(payload: Any) -> bytes:
+    """Encode a payload for the binary content type, turning numpy arrays into array maps."""
+
+    def default(o: Any) -> Any:
+        if isinstance(o, np.ndarray):
+            return encode_array(o)
+        raise TypeError(f"cannot encode {type(o).__name__} in a monitor body")
+
+    return msgpack.packb(payload, default=default, use_bin_type=True)
+
+
+def unpack(body: bytes) -> Any:
+    """Decode a binary body; arrays come back as float32 numpy arrays."""
+    try:
+        return msgpack.unpackb(body, object_hook=_hook, raw=False, strict_map_key=True)
+    except BodyError:
+        raise
+    except Exception as exc:  # msgpack raises several unrelated types for corrupt input
+        raise BodyError(f"malformed msgpack body ({exc}); encode with monitor_service.encoding.pack") from exc
+
+
+def decode_body(body: bytes, content_type: str | None) -> Any:
+    """Decode a request body by its content type (JSON or msgpack)."""
+    ctype = (content_type or JSON_CONTENT_TYPE).split(";")[0].strip().lower()
+    if ctype == MSGPACK_CONTENT_TYPE:
+        return unpack(body)
+    if ctype in (JSON_CONTENT_TYPE, ""):
+        try:
+            return json.loads(body)
+        except ValueError as exc:
+            raise BodyError(f"malformed JSON body ({exc}); send a JSON object") from exc
+    raise BodyError(f"content type {ctype!r} is not supported; use {JSON_CONTENT_TYPE} or {MSGPACK_CONTENT_TYPE}")

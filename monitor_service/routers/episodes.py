@@ -1,0 +1,64 @@
+"""Episodes: live and finished, with their early and running scores and why they can or cannot alert."""
+from __future__ import annotations
+
+import datetime as dt
+
+from fastapi import APIRouter, Depends, HTTPException, Query
+from sqlalchemy import select
+from sqlalchemy.orm import Session
+
+from monitor_service.auth import Principal, require
+from monitor_service.db import Decision, Episode, utcnow
+from monitor_service.deps import get_read_session, get_settings
+from monitor_service.schemas import DecisionOut, EpisodeDetail, EpisodeOut
+from monitor_service.settings import MonitorSettings
+
+router = APIRouter(prefix="/v1/episodes", tags=["episodes"])
+
+
+def episode_out(e: Episode, live_s: float) -> dict:
+    live = e.success is None and (utcnow() - e.updated_at) < dt.timedelta(seconds=live_s)
+    return dict(
+        id=e.id, task=e.task, robot=e.robot, checkpoint=e.checkpoint, group=e.group, held_out=e.held_out,
+        success=e.success, early_score=e.early_score, running_score=e.running_score, n_decisions=e.n_decisions,
+        n_scored=e.n_scored, open_alert_id=e.open_alert_id, alert_note=e.alert_note, live=live,
+        started_at=e.started_at, updated_at=e.updated_at,
+    )
+
+
+@router.get("", response_model=list[EpisodeOut])
+def list_episodes(
+    task: str | None = None,
+    live: bool | None = Query(None, description="only live (true) or only ended/stale (false) episodes"),
+    limit: int = Query(100, ge=1, le=5000),
+    session: Session = Depends(get_read_session),
+    settings: MonitorSettings = Depends(get_settings),
+    _: Principal = Depends(require("operator")),
+) -> list[EpisodeOut]:
+    """Most recently active episodes first."""
+    q = select(Episode).order_by(Episode.updated_at.desc(), Episode.id)
+    if task:
+        q = q.where(Episode.task == task)
+    if live is not None:
+        cutoff = utcnow() - dt.timedelta(seconds=settings.live_episode_s)
+        cond = Episode.success.is_(None) & (Episode.updated_at >= cutoff)
+        q = q.where(cond if live else ~cond)
+    return [EpisodeOut(**episode_out(e, settings.live_episode_s)) for e in session.scalars(q.limit(limit))]
+
+
+@router.get("/{episode_id}", response_model=EpisodeDetail)
+def get_episode(
+    episode_id: str,
+    session: Session = Depends(get_read_session),
+    settings: MonitorSettings = Depends(get_settings),
+    _: Principal = Depends(require("operator")),
+) -> EpisodeDetail:
+    """One episode with every decision's NMSE (null until its realized target arrives)."""
+    e = session.get(Episode, episode_id)
+    if e is None:
+        raise HTTPException(404, f"episode {episode_id!r} is unknown; list episodes with GET /v1/episodes")
+    decisions = session.scalars(select(Decision).where(Decision.episode_id == e.id).order_by(Decision.step))
+    return EpisodeDetail(
+        **episode_out(e, settings.live_episode_s),
+        decisions=[DecisionOut(step=d.step, horizon=d.horizon, target_step=d.target_step, nmse=d.nmse) for d in decisions],
+    )

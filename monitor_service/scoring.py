@@ -1,0 +1,39 @@
+"""Per-decision and per-episode future-consistency scores (paper Sec. 3.3, 3.6, 4.10)."""
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+
+
+def nmse(z_hat: np.ndarray, z: np.ndarray) -> float:
+    """Target-normalised MSE d_NMSE(z_hat, z) = ||(z_hat - z) / max(rms(z), 1e-6)||^2 / d_z (Sec. 3.3).
+
+    Computed in float64 so the score does not depend on the float32 transport.
+    """
+    z_hat = np.asarray(z_hat, dtype=np.float64)
+    z = np.asarray(z, dtype=np.float64)
+    if z_hat.shape != z.shape or z.ndim != 1:
+        raise ValueError(f"nmse needs two 1-D latents of equal length, got {z_hat.shape} and {z.shape}")
+    rms = max(float(np.sqrt(np.mean(z * z))), 1e-6)
+    return float(np.sum(((z_hat - z) / rms) ** 2) / z.shape[0])
+
+
+def early_score(scores_by_step: Sequence[float | None], n_first: int = 5) -> float | None:
+    """Median NMSE of the episode's first ``n_first`` decisions (Sec. 4.10).
+
+    ``scores_by_step`` holds the decisions in decision-step order, ``None`` where the realized target is not
+    (yet) known. The episode counts only when all first ``n_first`` decisions have a valid target; otherwise
+    the result is ``None``.
+    """
+    first = list(scores_by_step[:n_first])
+    if len(first) < n_first or any(s is None for s in first):
+        return None
+    return float(np.median(np.asarray(first, dtype=np.float64)))
+
+
+def running_score(scored: Sequence[float], window: int = 5) -> float | None:
+    """Median of the most recent ``window`` scored decisions (the Sec. 3.6 sliding window); None before it fills."""
+    if len(scored) < window:
+        return None
+    return float(np.median(np.asarray(scored[-window:], dtype=np.float64)))

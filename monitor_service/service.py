@@ -1,0 +1,435 @@
+"""What the endpoints and the CLI do with the database: ingest, score, alert, calibrate, report.
+
+Ingestion applies a request's records in order inside the caller's transaction; any bad record raises
+:class:`IngestError` and the caller rolls back, so nothing already accepted is lost or changed.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from sqlalchemy import insert, select, update
+from sqlalchemy.orm import Session
+
+from monitor_service import scoring, stats
+from monitor_service.alerts import AlertState, step_alert
+from monitor_service.auth import Principal
+from monitor_service.db import Alert, CalibrationRow, Decision, Episode, Target, Task, WebhookDelivery, utcnow
+from monitor_service.schemas import DecisionIn, OutcomeIn, TargetIn
+from monitor_service.settings import MonitorSettings
+
+
+class IngestError(Exception):
+    """A record the service refuses; ``status`` is the HTTP status, the message names problem and fix."""
+
+    def __init__(self, status: int, message: str):
+        super().__init__(message)
+        self.status = status
+        self.message = message
+
+
+@dataclass
+class _Dec:
+    """A decision known to this request: loaded from the database (``id`` set) or new in it."""
+
+    episode: str
+    step: int
+    horizon: int
+    z_hat: bytes
+    nmse: float | None
+    id: int | None = None
+    changed: bool = False
+
+
+@dataclass
+class IngestContext:
+    """Per-request state: what the batch touches, preloaded in a few queries, and what to write back.
+
+    Records are checked and scored in memory, then written with bulk statements; side effects to publish after
+    commit (metrics samples, raised alert ids) are collected here.
+    """
+
+    session: Session
+    principal: Principal
+    settings: MonitorSettings
+    tasks: dict[str, Task] = field(default_factory=dict)
+    episodes: dict[str, Episode] = field(default_factory=dict)
+    decisions: dict[tuple[str, int], _Dec] = field(default_factory=dict)
+    aimed_at: dict[tuple[str, int], list[_Dec]] = field(default_factory=dict)
+    targets: dict[tuple[str, int], bytes] = field(default_factory=dict)
+    new_decisions: list[_Dec] = field(default_factory=list)
+    new_targets: list[dict] = field(default_factory=list)
+    dirty: dict[str, Episode] = field(default_factory=dict)
+    counts: dict[str, int] = field(default_factory=lambda: {"decision": 0, "target": 0, "outcome": 0})
+    # (kind, task, robot, value) tuples turned into Prometheus samples once the transaction committed
+    observations: list[tuple[str, str, str, float]] = field(default_factory=list)
+    alerts_raised: list[int] = field(default_factory=list)
+    calibrations: dict[tuple[str, str | None], CalibrationRow | None] = field(default_factory=dict)
+    scored: int = 0
+
+    def preload(self, records: list) -> None:
+        """Load the touched episodes, decisions and realized targets with one query each."""
+        s = self.session
+        ep_ids = {r.episode for r in records}
+        for ep in s.scalars(select(Episode).where(Episode.id.in_(ep_ids))):
+            self.episodes[ep.id] = ep
+        known = [e for e in ep_ids if e in self.episodes]
+        if not known:
+            return
+        steps = {r.step for r in records if r.kind == "decision"}
+        tsteps = {r.step + r.horizon for r in records if r.kind == "decision"} | {r.step for r in records if r.kind == "target"}
+        rows = s.execute(
+            select(Decision.id, Decision.episode_id, Decision.step, Decision.horizon, Decision.z_hat, Decision.nmse).where(
+                Decision.episode_id.in_(known), Decision.step.in_(steps) | Decision.target_step.in_(tsteps)
+            )
+        )
+        for r in rows:
+            self._remember(_Dec(r.episode_id, r.step, r.horizon, r.z_hat, r.nmse, r.id))
+        for r in s.execute(
+            select(Target.episode_id, Target.step, Target.z).where(Target.episode_id.in_(known), Target.step.in_(tsteps))
+        ):
+            self.targets[(r.episode_id, r.step)] = r.z
+
+    def _remember(self, d: _Dec) -> None:
+        self.decisions[(d.episode, d.step)] = d
+        self.aimed_at.setdefault((d.episode, d.step + d.horizon), []).append(d)
+
+    def write(self) -> None:
+        """Bulk-insert the new rows and the newly scored NMSE of stored decisions."""
+        s = self.session
+        if self.new_decisions:
+            s.execute(insert(Decision), [
+                {"episode_id": d.episode, "step": d.step, "horizon": d.horizon, "target_step": d.step + d.horizon,
+                 "z_hat": d.z_hat, "nmse": d.nmse, "created_at": utcnow()} for d in self.new_decisions
+            ])
+        if self.new_targets:
+            s.execute(insert(Target), self.new_targets)
+        updates = [{"id": d.id, "nmse": d.nmse} for d in self.decisions.values() if d.id is not None and d.changed]
+        if updates:
+            s.execute(update(Decision), updates)
+
+
+def _task(ctx: IngestContext, name: str) -> Task:
+    if name not in ctx.tasks:
+        task = ctx.session.get(Task, name)
+        if task is None:
+            raise IngestError(
+                404, f"task {name!r} is not registered; an admin registers it with PUT /v1/tasks/{name} "
+                f"or `jepa-monitor tasks add {name}`"
+            )
+        ctx.tasks[name] = task
+    return ctx.tasks[name]
+
+
+def _check_owner(ctx: IngestContext, ep: Episode) -> None:
+    p = ctx.principal
+    if p.role == "robot" and ep.robot != p.robot:
+        raise IngestError(403, f"episode {ep.id!r} belongs to robot {ep.robot!r}; your key writes only for {p.robot!r}")
+
+
+def _check_dim(task: Task, dim: int, what: str) -> None:
+    if task.latent_dim is None:
+        task.latent_dim = dim
+    elif task.latent_dim != dim:
+        raise IngestError(
+            422, f"{what} has {dim} dimensions but task {task.name!r} uses latents of {task.latent_dim}; "
+            "send the encoder's full latent"
+        )
+
+
+def _score(ctx: IngestContext, ep: Episode, d: _Dec, z: bytes) -> None:
+    d.nmse = scoring.nmse(np.frombuffer(d.z_hat, dtype="<f4"), np.frombuffer(z, dtype="<f4"))
+    d.changed = True
+    ctx.scored += 1
+    ctx.observations.append(("nmse", ep.task, ep.robot, d.nmse))
+
+
+def _ingest_decision(ctx: IngestContext, rec: DecisionIn) -> None:
+    task = _task(ctx, rec.task)
+    _check_dim(task, rec.z_hat.shape[0], "z_hat")
+    p = ctx.principal
+    robot = rec.robot or p.robot
+    if robot is None:
+        raise IngestError(422, "decision has no robot: set 'robot' in the record or use a robot key")
+    if p.role == "robot" and robot != p.robot:
+        raise IngestError(403, f"your key writes only for robot {p.robot!r}, not {robot!r}")
+    ep = ctx.episodes.get(rec.episode)
+    if ep is None:
+        ep = Episode(
+            id=rec.episode, task=task.name, robot=robot, checkpoint=rec.checkpoint, group=rec.group,
+            held_out=rec.held_out, n_decisions=0, n_scored=0, last_evaluated_step=-1, over_count=0,
+            under_count=0, alert_note="", started_at=utcnow(),
+        )
+        ctx.session.add(ep)
+        ctx.episodes[ep.id] = ep
+    else:
+        _check_owner(ctx, ep)
+        if ep.task != task.name or ep.robot != robot:
+            raise IngestError(
+                409, f"episode {ep.id!r} is task {ep.task!r} on robot {ep.robot!r}; episode ids must be unique"
+            )
+        if ep.success is not None:
+            raise IngestError(409, f"episode {ep.id!r} has ended (outcome recorded); start a new episode id")
+    z_hat = rec.z_hat.astype("<f4").tobytes()
+    existing = ctx.decisions.get((ep.id, rec.step))
+    if existing is not None:
+        if existing.z_hat == z_hat and existing.horizon == rec.horizon:
+            return  # the same record again: nothing to change, nothing double-counted
+        raise IngestError(409, f"episode {ep.id!r} already has a different decision at step {rec.step}")
+    d = _Dec(ep.id, rec.step, rec.horizon, z_hat, None)
+    target = ctx.targets.get((ep.id, rec.step + rec.horizon))
+    if target is not None:
+        _score(ctx, ep, d, target)
+    ctx._remember(d)
+    ctx.new_decisions.append(d)
+    ep.n_decisions += 1
+    ep.updated_at = utcnow()
+    ctx.dirty[ep.id] = ep
+    ctx.counts["decision"] += 1
+    ctx.observations.append(("decision", ep.task, ep.robot, 1.0))
+
+
+def _known_episode(ctx: IngestContext, episode_id: str, what: str) -> Episode:
+    ep = ctx.episodes.get(episode_id)
+    if ep is None:
+        raise IngestError(404, f"episode {episode_id!r} is unknown; send its first decision before its {what}")
+    _check_owner(ctx, ep)
+    return ep
+
+
+def _ingest_target(ctx: IngestContext, rec: TargetIn) -> None:
+    ep = _known_episode(ctx, rec.episode, "targets")
+    _check_dim(_task(ctx, ep.task), rec.z.shape[0], "z")
+    z = rec.z.astype("<f4").tobytes()
+    existing = ctx.targets.get((ep.id, rec.step))
+    if existing is not None:
+        if existing == z:
+            return
+        raise IngestError(409, f"episode {ep.id!r} already has a different realized latent at step {rec.step}")
+    ctx.targets[(ep.id, rec.step)] = z
+    ctx.new_targets.append({"episode_id": ep.id, "step": rec.step, "z": z, "created_at": utcnow()})
+    for d in ctx.aimed_at.get((ep.id, rec.step), []):
+        if d.nmse is None:
+            _score(ctx, ep, d, z)
+    ep.updated_at = utcnow()
+    ctx.dirty[ep.id] = ep
+    ctx.counts["target"] += 1
+    ctx.observations.append(("target", ep.task, ep.robot, 1.0))
+
+
+def _ingest_outcome(ctx: IngestContext, rec: OutcomeIn) -> None:
+    ep = _known_episode(ctx, rec.episode, "outcome")
+    if ep.success is not None:
+        if ep.success == rec.success:
+            return
+        raise IngestError(409, f"episode {ep.id!r} already has outcome success={ep.success}; outcomes are final")
+    ep.success = rec.success
+    if rec.held_out is not None:
+        ep.held_out = rec.held_out
+    if rec.group is not None:
+        ep.group = rec.group
+    ep.ended_at = ep.updated_at = utcnow()
+    ctx.dirty[ep.id] = ep
+    ctx.counts["outcome"] += 1
+    ctx.observations.append(("outcome", ep.task, ep.robot, 1.0))
+
+
+def active_calibration(session: Session, task: str, checkpoint: str | None) -> CalibrationRow | None:
+    """The checkpoint's own active calibration when there is one, else the task's."""
+    if checkpoint is not None:
+        row = session.scalar(
+            select(CalibrationRow).where(
+                CalibrationRow.task == task, CalibrationRow.checkpoint == checkpoint, CalibrationRow.active.is_(True)
+            )
+        )
+        if row is not None:
+            return row
+    return session.scalar(
+        select(CalibrationRow).where(
+            CalibrationRow.task == task, CalibrationRow.checkpoint.is_(None), CalibrationRow.active.is_(True)
+        )
+    )
+
+
+def refresh_episode(ctx: IngestContext, ep: Episode, rows: list[tuple[int, float | None]]) -> None:
+    """Recompute the early and running scores and step the alert state over newly scored decisions.
+
+    ``rows`` are the episode's (decision step, NMSE or None) in step order.
+    """
+    s, settings = ctx.session, ctx.settings
+    ep.early_score = scoring.early_score([v for _, v in rows], settings.early_decisions)
+    scored = [(step, v) for step, v in rows if v is not None]
+    ep.n_scored = len(scored)
+    ep.running_score = scoring.running_score([v for _, v in scored], settings.running_window)
+    if (ep.task, ep.checkpoint) not in ctx.calibrations:
+        ctx.calibrations[(ep.task, ep.checkpoint)] = active_calibration(s, ep.task, ep.checkpoint)
+    cal = ctx.calibrations[(ep.task, ep.checkpoint)]
+    if cal is None:
+        ep.alert_note = (
+            f"no alerts: task {ep.task!r} has no active calibration; record held-out labelled episodes and run "
+            f"`jepa-monitor calibrate --task {ep.task}` (or POST /v1/calibrations)"
+        )
+        return
+    if cal.threshold is None:
+        ep.alert_note = (
+            f"no alerts: calibration #{cal.id} of task {ep.task!r} has an infinite threshold "
+            f"({cal.result.get('conformal_note', '')})"
+        )
+        return
+    ep.alert_note = (
+        f"alerting when the running median of {settings.running_window} NMSE exceeds {cal.threshold:.6g} "
+        f"({cal.threshold_rule}, calibration #{cal.id})"
+    )
+    state = AlertState(ep.over_count, ep.under_count, ep.open_alert_id is not None)
+    values = [v for _, v in scored]
+    for i, (step, _) in enumerate(scored):
+        if step <= ep.last_evaluated_step or i + 1 < settings.running_window:
+            continue
+        window_score = float(np.median(values[i + 1 - settings.running_window : i + 1]))
+        state, event = step_alert(state, window_score, cal.threshold, settings.alert_debounce, settings.alert_clear_ratio)
+        ep.last_evaluated_step = step
+        if event == "raise":
+            alert = Alert(
+                episode_id=ep.id, task=ep.task, robot=ep.robot, step=step, score=window_score,
+                threshold=cal.threshold, calibration_id=cal.id, state="open", note="",
+            )
+            s.add(alert)
+            s.flush()
+            ep.open_alert_id = alert.id
+            for url in settings.webhook_urls:
+                s.add(WebhookDelivery(alert_id=alert.id, url=url, status="pending", attempts=0, last_error=""))
+            ctx.alerts_raised.append(alert.id)
+            ctx.observations.append(("alert", ep.task, ep.robot, 1.0))
+        elif event == "clear":
+            alert = s.get(Alert, ep.open_alert_id)
+            alert.state, alert.cleared_at = "cleared", utcnow()
+            ep.open_alert_id = None
+    ep.over_count, ep.under_count = state.over, state.under
+
+
+def ingest(ctx: IngestContext, records: list[DecisionIn | TargetIn | OutcomeIn]) -> None:
+    """Apply records in order, then refresh every touched episode. Raises IngestError naming the bad record."""
+    handlers = {"decision": _ingest_decision, "target": _ingest_target, "outcome": _ingest_outcome}
+    with ctx.session.no_autoflush:
+        ctx.preload(records)
+        for i, rec in enumerate(records):
+            try:
+                handlers[rec.kind](ctx, rec)
+            except IngestError as exc:
+                if len(records) > 1:
+                    raise IngestError(exc.status, f"records[{i}] ({rec.kind}): {exc.message}") from None
+                raise
+    ctx.session.flush()  # new episodes first: the decisions and targets refer to them
+    ctx.write()
+    if not ctx.dirty:
+        return
+    history: dict[str, list[tuple[int, float | None]]] = {e: [] for e in ctx.dirty}
+    for r in ctx.session.execute(
+        select(Decision.episode_id, Decision.step, Decision.nmse)
+        .where(Decision.episode_id.in_(list(ctx.dirty)))
+        .order_by(Decision.episode_id, Decision.step)
+    ):
+        history[r.episode_id].append((r.step, r.nmse))
+    for ep in ctx.dirty.values():
+        refresh_episode(ctx, ep, history[ep.id])
+
+
+def publish_metrics(ctx: IngestContext) -> None:
+    """Turn the committed request's observations into Prometheus samples."""
+    from monitor_service import metrics
+
+    counters = {"decision": metrics.DECISIONS, "target": metrics.TARGETS, "outcome": metrics.OUTCOMES, "alert": metrics.ALERTS}
+    for kind, task, robot, value in ctx.observations:
+        if kind == "nmse":
+            metrics.NMSE.labels(task, robot).observe(value)
+        else:
+            counters[kind].labels(task, robot).inc(value)
+
+
+def calibration_data(session: Session, task: str, checkpoint: str | None) -> tuple[np.ndarray, np.ndarray, list, int]:
+    """Early scores, failure labels and groups of a task's held-out labelled episodes, plus how many were skipped."""
+    q = select(Episode).where(Episode.task == task, Episode.held_out.is_(True), Episode.success.is_not(None))
+    if checkpoint is not None:
+        q = q.where(Episode.checkpoint == checkpoint)
+    eps = session.scalars(q.order_by(Episode.id)).all()
+    usable = [e for e in eps if e.early_score is not None]
+    scores = np.array([e.early_score for e in usable], dtype=np.float64)
+    labels = np.array([0 if e.success else 1 for e in usable], dtype=np.int64)
+    groups = [e.group for e in usable]
+    return scores, labels, groups, len(eps) - len(usable)
+
+
+def calibrate_task(
+    make_session, settings: MonitorSettings, task: str, checkpoint: str | None = None, alpha: float | None = None,
+    threshold_rule: str | None = None, n_bootstrap: int | None = None, n_permutation: int | None = None,
+    seed: int | None = None,
+) -> CalibrationRow:
+    """Calibrate one task (optionally one checkpoint) from its held-out episodes and make it the active one.
+
+    Raises LookupError for an unknown task and ValueError when the data cannot support a calibration.
+    """
+    alpha = settings.alpha if alpha is None else alpha
+    rule = threshold_rule or settings.threshold_rule
+    with make_session() as session:
+        if session.get(Task, task) is None:
+            raise LookupError(f"task {task!r} is not registered; register it with PUT /v1/tasks/{task}")
+        scores, labels, groups, skipped = calibration_data(session, task, checkpoint)
+        session.rollback()  # release the database while the resampling runs
+    if scores.size == 0:
+        raise ValueError(
+            f"task {task!r} has no held-out episode with an outcome and {settings.early_decisions} scored decisions; "
+            "record held-out labelled rollouts first"
+        )
+    groups_arr = None if any(g is None for g in groups) else np.array(groups, dtype=object)
+    result = stats.calibrate(
+        scores, labels, groups_arr, alpha,
+        settings.n_bootstrap if n_bootstrap is None else n_bootstrap,
+        settings.n_permutation if n_permutation is None else n_permutation,
+        settings.stats_seed if seed is None else seed,
+    ).to_dict()
+    result["skipped_episodes"] = skipped
+    result["skipped_reason"] = f"held-out episodes whose first {settings.early_decisions} decisions lack a valid target"
+    result["n_bootstrap"] = settings.n_bootstrap if n_bootstrap is None else n_bootstrap
+    result["n_permutation"] = settings.n_permutation if n_permutation is None else n_permutation
+    threshold = result["conformal_threshold"] if rule == "conformal" else result["youden_threshold"]
+    with make_session() as session:
+        cond = CalibrationRow.checkpoint.is_(None) if checkpoint is None else CalibrationRow.checkpoint == checkpoint
+        session.execute(update(CalibrationRow).where(CalibrationRow.task == task, cond).values(active=False))
+        row = CalibrationRow(
+            task=task, checkpoint=checkpoint, active=True, threshold_rule=rule, threshold=threshold,
+            auroc=result["auroc"], result=result,
+        )
+        session.add(row)
+        session.commit()
+        return row
+
+
+POOLED_WARNING = (
+    "WARNING: pooled across tasks. Raw NMSE scales differ per task, so pooled scores can rank failures at "
+    "chance even when every task's own calibration ranks them well (Simpson-type effect, paper Sec. 4.10). "
+    "Never threshold on this figure; use the per-task calibrations."
+)
+
+
+def report(session: Session) -> dict:
+    """Per-task active calibrations, the uncalibrated tasks, and the pooled AUROC shown only as a warning."""
+    rows = session.scalars(
+        select(CalibrationRow).where(CalibrationRow.active.is_(True)).order_by(CalibrationRow.task, CalibrationRow.id)
+    ).all()
+    calibrated = {r.task for r in rows}
+    tasks = session.scalars(select(Task.name).order_by(Task.name)).all()
+    all_scores, all_labels = [], []
+    for t in tasks:
+        s, y, _, _ = calibration_data(session, t, None)
+        all_scores.append(s)
+        all_labels.append(y)
+    scores = np.concatenate(all_scores) if all_scores else np.zeros(0)
+    labels = np.concatenate(all_labels) if all_labels else np.zeros(0, dtype=np.int64)
+    pooled = None
+    if labels.size and 0 < labels.sum() < labels.size:
+        pooled = stats.auroc(scores, labels)
+    return {
+        "tasks": rows,
+        "uncalibrated_tasks": [t for t in tasks if t not in calibrated],
+        "pooled": {"warning": POOLED_WARNING, "auroc": pooled, "n_episodes": int(labels.size)},
+    }

@@ -1,0 +1,44 @@
+"""Service configuration, read from the environment with the ``JEPA_MONITOR_`` prefix."""
+from __future__ import annotations
+
+from typing import Literal
+
+from pydantic import Field, field_validator
+from pydantic_settings import BaseSettings, SettingsConfigDict
+
+
+class MonitorSettings(BaseSettings):
+    """Every knob of the monitor; defaults equal the paper's protocol (Sec. 4.10) where it has one."""
+
+    model_config = SettingsConfigDict(env_prefix="JEPA_MONITOR_", extra="forbid")
+
+    database_url: str = Field("sqlite:///jepa_monitor.db", description="SQLAlchemy URL; SQLite (WAL) or PostgreSQL")
+    admin_key: str | None = Field(None, description="bootstrap admin API key, upserted at start-up")
+    max_body_bytes: int = Field(8 * 1024 * 1024, gt=0, description="larger request bodies get 413")
+    # Paper Sec. 4.10: the early score is the median NMSE of the first five decisions.
+    early_decisions: int = Field(5, ge=1)
+    # The running score is the median of the most recent `running_window` scored decisions (Sec. 3.6 sliding window).
+    running_window: int = Field(5, ge=1)
+    alpha: float = Field(0.1, gt=0.0, lt=1.0, description="target false-alarm rate of the conformal threshold")
+    threshold_rule: Literal["conformal", "youden"] = "conformal"
+    n_bootstrap: int = Field(10_000, ge=100)
+    n_permutation: int = Field(10_000, ge=100)
+    stats_seed: int = 0
+    alert_debounce: int = Field(2, ge=1, description="consecutive evaluations over threshold before raising")
+    alert_clear_ratio: float = Field(0.8, gt=0.0, le=1.0, description="hysteresis: clear below ratio * threshold")
+    webhook_urls: list[str] = Field(default_factory=list)
+    webhook_max_attempts: int = Field(5, ge=1)
+    webhook_backoff_s: float = Field(0.5, ge=0.0)
+    webhook_timeout_s: float = Field(5.0, gt=0.0)
+    live_episode_s: float = Field(300.0, gt=0.0, description="an episode without outcome is live this long")
+    sse_poll_s: float = Field(0.5, gt=0.0)
+    run_migrations: bool = True
+
+    @field_validator("database_url")
+    @classmethod
+    def _known_backend(cls, url: str) -> str:
+        if not (url.startswith("sqlite") or url.startswith("postgresql")):
+            raise ValueError(
+                f"database_url {url!r} is neither SQLite nor PostgreSQL; use sqlite:///path.db or postgresql://user@host/db"
+            )
+        return url

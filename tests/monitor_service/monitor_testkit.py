@@ -1,0 +1,55 @@
+"""Shared helpers of the monitor tests: settings in a temp dir, keys, and synthetic episodes."""
+from __future__ import annotations
+
+import numpy as np
+
+from monitor_service.settings import MonitorSettings
+
+ADMIN = "test-admin-key"
+DIM = 16
+
+
+def make_settings(tmp_path, **overrides) -> MonitorSettings:
+    values = dict(database_url=f"sqlite:///{tmp_path / 'monitor.db'}", admin_key=ADMIN, n_bootstrap=500, n_permutation=500)
+    values.update(overrides)
+    return MonitorSettings(**values)
+
+
+def new_key(client, name, role, robot=None) -> dict:
+    r = client.post("/v1/keys", json={"name": name, "role": role, "robot": robot}, headers={"X-API-Key": ADMIN})
+    assert r.status_code == 201, r.text
+    return {"X-API-Key": r.json()["key"]}
+
+
+def episode_records(episode, task, rng, noise, n_steps=8, horizon=1, dim=DIM, held_out=True, success=None, group=None):
+    """Records of one episode in send order: decision t, then the realized latent of step t + horizon.
+
+    The prediction error relative to the target's RMS is ``noise``, so the per-decision NMSE is about noise^2.
+    Returns (records, list of (z_hat, z) per decision for reference scoring).
+    """
+    recs, pairs = [], []
+    for t in range(n_steps):
+        z = rng.normal(size=dim) * rng.uniform(0.5, 2.0)
+        z_hat = z + noise * np.sqrt(np.mean(z * z)) * rng.normal(size=dim)
+        dec = {"kind": "decision", "task": task, "episode": episode, "step": t, "horizon": horizon,
+               "z_hat": z_hat.astype(np.float32).tolist(), "held_out": held_out}
+        if group is not None:
+            dec["group"] = group
+        recs.append(dec)
+        recs.append({"kind": "target", "episode": episode, "step": t + horizon, "z": z.astype(np.float32).tolist()})
+        pairs.append((np.float32(z_hat), np.float32(z)))
+    if success is not None:
+        recs.append({"kind": "outcome", "episode": episode, "success": success})
+    return recs, pairs
+
+
+def register_task(client, name, dim=DIM):
+    r = client.put(f"/v1/tasks/{name}", json={"latent_dim": dim}, headers={"X-API-Key": ADMIN})
+    assert r.status_code == 200, r.text
+
+
+def post_batch(client, headers, records, key=None):
+    h = dict(headers)
+    if key:
+        h["Idempotency-Key"] = key
+    return client.post("/v1/batch", json={"records": records}, headers=h)
