@@ -1,6 +1,8 @@
 """The bridge and proxy against the simulated robot: conventions, equivalence with in-process, every safety rule."""
 from __future__ import annotations
 
+import importlib.util
+import os
 import subprocess
 import sys
 import threading
@@ -332,3 +334,21 @@ def test_killed_policy_process_loses_control(robot):
     assert status["episode"]["outcome"] == "interrupted" and status["episode"]["reason"] == "link_lost"
     env = robot.client(bridge)   # the robot can be taken over now
     assert env.reset(seed=0)[0]["top_image"].shape == (84, 84, 3)
+
+
+@pytest.mark.robosuite
+@pytest.mark.skipif(importlib.util.find_spec("robosuite") is None, reason="robosuite is not installed")
+def test_robosuite_task_through_bridge_checks_rotations(robot, monkeypatch):
+    monkeypatch.setenv("MUJOCO_GL", os.environ.get("MUJOCO_GL", "osmesa"))
+    bridge = robot.bridge(task="Square")
+    env = robot.client(bridge, task="Square")
+    assert env.action_space.shape == (10,) and env.task_spec.cameras == ("agentview", "robot0_eye_in_hand")
+    obs, _ = env.reset(seed=0)
+    assert obs["agentview_image"].shape == (84, 84, 3) and obs["robot0_eef_quat"].dtype == np.float32
+    action = np.r_[obs["robot0_eef_pos"], 1.0, 0.0, 0.0, 0.0, -1.0, 0.0, -1.0]
+    degenerate = action.copy()
+    degenerate[6:9] = degenerate[3:6]   # both 6-D rotation columns parallel
+    with pytest.raises(ActionRefused, match="degenerate"):
+        env.step(degenerate)
+    obs2, _, _, _, info = env.step(action)
+    assert info["executed"] == 1 and info["safety"] == []
