@@ -338,17 +338,28 @@ def test_killed_policy_process_loses_control(robot):
 
 @pytest.mark.robosuite
 @pytest.mark.skipif(importlib.util.find_spec("robosuite") is None, reason="robosuite is not installed")
-def test_robosuite_task_through_bridge_checks_rotations(robot, monkeypatch):
+def test_robosuite_task_through_bridge_checks_rotations_and_joints(robot, monkeypatch):
+    """Square through the bridge: degenerate rotations refused; measured joints outside the configured
+    limits (Panda joint 3 rests near -2.62 rad, the limit here is -2.5) hold the robot and end the episode."""
     monkeypatch.setenv("MUJOCO_GL", os.environ.get("MUJOCO_GL", "osmesa"))
-    bridge = robot.bridge(task="Square")
+    bridge = robot.bridge(task="Square", joint_low=[-3.0, -2.0, -3.0, -2.5, -3.0, -1.0, -3.0],
+                          joint_high=[3.0, 2.0, 3.0, 0.0, 3.0, 4.0, 3.0], max_step_delta=0.05)
     env = robot.client(bridge, task="Square")
     assert env.action_space.shape == (10,) and env.task_spec.cameras == ("agentview", "robot0_eye_in_hand")
     obs, _ = env.reset(seed=0)
     assert obs["agentview_image"].shape == (84, 84, 3) and obs["robot0_eef_quat"].dtype == np.float32
-    action = np.r_[obs["robot0_eef_pos"], 1.0, 0.0, 0.0, 0.0, -1.0, 0.0, -1.0]
-    degenerate = action.copy()
+    hold = bridge.backend.current_action()
+    assert hold.shape == (10,)
+    far = hold.copy()
+    far[0] += 0.2
+    _, _, _, _, info = env.step(far)   # jump reference after reset is the measured pose
+    assert info["executed"] == 0 and "jump" in info["safety"][0]["violations"][0]
+    degenerate = hold.copy()
     degenerate[6:9] = degenerate[3:6]   # both 6-D rotation columns parallel
     with pytest.raises(ActionRefused, match="degenerate"):
         env.step(degenerate)
-    obs2, _, _, _, info = env.step(action)
+    _, _, terminated, truncated, info = env.step(hold)
     assert info["executed"] == 1 and info["safety"] == []
+    assert truncated and not terminated and info["interrupted"] == "joint_limit"
+    status = robot.operator(bridge).status()
+    assert "joints [3]" in [e for e in status["events"] if e["kind"] == "joint_limit"][0]["message"]

@@ -85,6 +85,20 @@ class SimBackend(RobotBackend):
         self._obs = obs = self._with_replicas(dict(obs))
         return StepResult(obs, float(reward), bool(terminated), bool(truncated), dict(info))
 
+    def current_action(self) -> np.ndarray | None:
+        """robosuite tasks: the absolute action that keeps every arm where it is (open gripper)."""
+        base = self.env.unwrapped
+        if getattr(base, "action_mode", None) == "abs" and hasattr(base, "hold_action"):
+            return np.asarray(base.hold_action(), np.float64)
+        return None
+
+    def joint_positions(self) -> np.ndarray | None:
+        """robosuite tasks: the simulated arm joint angles, so joint limits are checked as on hardware."""
+        robots = getattr(getattr(self.env.unwrapped, "backend", None), "robots", None)
+        if not robots:
+            return None
+        return np.concatenate([np.asarray(r._joint_positions, np.float64) for r in robots])
+
     def hold(self) -> None:
         """Nothing moves in a simulator between steps, so holding is not stepping."""
 
