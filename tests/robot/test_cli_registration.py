@@ -6,6 +6,7 @@ import subprocess
 import sys
 
 import gymnasium as gym
+import numpy as np
 import pytest
 
 from jepa_envs.real_robot.cli import main
@@ -74,3 +75,17 @@ def test_bench_prints_numbers(capsys, tmp_path):
         assert 0 < result[where]["step"]["p50_ms"] <= result[where]["step"]["p99_ms"]
     # 20 steps make 3 decision chunks, then 4 chunks in a new episode; each episode's first is left out
     assert result["bridge_frame_to_chunk"]["count"] == (3 - 1) + (4 - 1)
+
+
+def test_serve_prompt_confirms_through_operator_api(robot, monkeypatch):
+    """The stdin prompt of `serve` answers a budget-spent episode through the operator socket."""
+    from jepa_envs.real_robot.cli import _prompt_operator
+
+    answers = iter(["maybe", "y"])   # an unclear answer is asked again
+    monkeypatch.setattr("builtins.input", lambda prompt: next(answers))
+    bridge = robot.bridge(chunk_budget=1, success_source="operator")
+    bridge.on_confirmation_needed = _prompt_operator(bridge.operator_endpoint)
+    env = robot.client(bridge)
+    obs, _ = env.reset(seed=0)
+    _, _, terminated, truncated, info = env.step_chunk(np.tile(obs["agent_pos"], (8, 1)))
+    assert terminated and not truncated and info["is_success"] and info["outcome"] == "success"
