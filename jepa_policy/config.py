@@ -44,7 +44,7 @@ class ModelConfig:
     layers: int = 8
     heads: int = 6
     ffn_mult: int = 4                        # FFN width = ffn_mult * width
-    time_emb_dim: int = 192                  # sinusoidal features per interval endpoint (u and v)
+    time_emb_dim: int | None = None          # sinusoidal features per endpoint u, v; None -> width // 2
     encoder_width: int = 64                  # ResNet-18 stem width: 64 is the real ResNet-18
     dropout: float = 0.1
     # --- two-step objective (Sec. 3.3-3.4) ---
@@ -58,8 +58,8 @@ class ModelConfig:
     sigreg_weight: float = 0.09
     sigreg_slices: int = 256
     # --- dual-branch controls (Sec. 4.2) ---
-    dual_future_layers: int = 8
-    dual_future_width: int = 192
+    dual_future_layers: int | None = None    # None -> layers (8): dual_cross pairs layer i of both stacks
+    dual_future_width: int | None = None     # None -> width // 2 (192); see docs/model.md
     # --- Diffusion Policy arm (Sec. 4.2, 4.4) ---
     diffusion_train_steps: int = 100
     diffusion_infer_steps: int = 100
@@ -72,6 +72,11 @@ class ModelConfig:
         # Accept lists from JSON/YAML so from_dict round-trips.
         object.__setattr__(self, "cameras", tuple(self.cameras))
         object.__setattr__(self, "lowdim", tuple((str(k), int(d)) for k, d in self.lowdim))
+        # Derived defaults that reproduce the paper's counts at width 384 and scale with small CPU configs.
+        for name, value in (("time_emb_dim", self.width // 2), ("dual_future_width", self.width // 2),
+                            ("dual_future_layers", self.layers)):
+            if getattr(self, name) is None:
+                object.__setattr__(self, name, value)
         self.validate()
 
     # ----- derived shapes -----

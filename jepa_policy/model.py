@@ -523,6 +523,9 @@ class PolicyModel(BasePolicyModel):
         u = torch.cat([self._time(0.0, b, a), self._time(tau, b, a)])
         v = torch.cat([self._time(tau, b, a), self._time(1.0, b, a)])
         a_hat, z_hat = self.step(obs_tokens.repeat(2, 1, 1), a_in, z_in, u, v)
+        # Losses in float32 even under bf16 autocast: the NMSE divides by the target's RMS.
+        a_hat = a_hat.float()
+        z_hat, z = (None, None) if z_hat is None else (z_hat.float(), z.float())
         loss, parts = two_step_loss(
             a_hat[:b], a_hat[b:], a, tau,
             z_hat0=None if z_hat is None else z_hat[:b], z_hat1=None if z_hat is None else z_hat[b:], z=z,
