@@ -37,6 +37,13 @@ def cmd_serve(args) -> int:
     db.upgrade(db.make_engine(settings.database_url))  # once, before any worker starts
     if args.workers > 1 and not os.environ.get("PROMETHEUS_MULTIPROC_DIR"):
         os.environ["PROMETHEUS_MULTIPROC_DIR"] = tempfile.mkdtemp(prefix="jepa-monitor-prom-")
+    if os.environ.get("PROMETHEUS_MULTIPROC_DIR"):
+        # Workers write their samples here; stale files of an earlier run would be summed in, so start empty.
+        prom_dir = os.environ["PROMETHEUS_MULTIPROC_DIR"]
+        os.makedirs(prom_dir, exist_ok=True)
+        for name in os.listdir(prom_dir):
+            if name.endswith(".db"):
+                os.remove(os.path.join(prom_dir, name))
     uvicorn.run(
         "monitor_service.app:create_app", factory=True, host=args.host, port=args.port, workers=args.workers,
         log_level=args.log_level, timeout_graceful_shutdown=5,

@@ -1,0 +1,166 @@
+"""Against a real uvicorn server in a subprocess: kill -9 restart, link outage, concurrent writers, workers."""
+import asyncio
+import concurrent.futures
+import re
+
+import httpx
+import numpy as np
+import pytest
+from monitor_testkit import ADMIN, DIM, episode_records
+
+from monitor_service.client import AsyncMonitorClient, MonitorClient
+from monitor_service.server import free_port, start_server
+
+A = {"X-API-Key": ADMIN}
+
+
+def _setup(url):
+    http = httpx.Client(base_url=url, timeout=30)
+    assert http.put("/v1/tasks/Square", json={"latent_dim": DIM}, headers=A).status_code == 200
+    robot = {"X-API-Key": http.post("/v1/keys", json={"name": "arm1", "role": "robot", "robot": "arm1"}, headers=A).json()["key"]}
+    op = {"X-API-Key": http.post("/v1/keys", json={"name": "op", "role": "operator"}, headers=A).json()["key"]}
+    return http, robot, op
+
+
+@pytest.fixture
+def db_url(tmp_path):
+    return f"sqlite:///{tmp_path / 'monitor.db'}"
+
+
+def test_kill_9_loses_nothing_acknowledged(db_url, tmp_path):
+    port = free_port()
+    server = start_server(db_url, admin_key=ADMIN, port=port, log_path=tmp_path / "s.log")
+    try:
+        http, robot, op = _setup(server.url)
+        rng = np.random.default_rng(0)
+        acked = []
+        for i in range(20):
+            recs, _ = episode_records(f"e{i}", "Square", rng, 0.4, n_steps=6, success=i % 2 == 0)
+            r = http.post("/v1/batch", json={"records": recs}, headers={**robot, "Idempotency-Key": f"b{i}"})
+            assert r.status_code == 200
+            acked.append(f"e{i}")
+        server.kill()  # SIGKILL right after the last 2xx
+        server = start_server(db_url, admin_key=ADMIN, port=port, log_path=tmp_path / "s.log")
+        eps = {e["id"]: e for e in http.get("/v1/episodes?limit=1000", headers=op).json()}
+        assert set(eps) == set(acked)
+        assert all(e["n_decisions"] == 6 and e["n_scored"] == 6 and e["early_score"] is not None for e in eps.values())
+        assert [eps[f"e{i}"]["success"] for i in range(20)] == [i % 2 == 0 for i in range(20)]
+        # A retry after the restart is still recognised by its persisted Idempotency-Key.
+        recs, _ = episode_records("e19", "Square", np.random.default_rng(99), 0.4, n_steps=6)
+        r = http.post("/v1/batch", json={"records": recs}, headers={**robot, "Idempotency-Key": "b19"})
+        assert r.status_code == 409  # same key, different body
+        http.close()
+    finally:
+        server.stop()
+
+
+def test_client_survives_outage_and_delivers_in_order(db_url, tmp_path):
+    port = free_port()
+    server = start_server(db_url, admin_key=ADMIN, port=port, log_path=tmp_path / "s.log")
+    try:
+        http, robot, op = _setup(server.url)
+        rng = np.random.default_rng(1)
+        client = MonitorClient(server.url, robot["X-API-Key"], batch_size=8, max_backoff=0.2)
+        try:
+            z = rng.normal(size=(40, DIM))
+            for t in range(20):
+                assert client.decision("Square", "out", t, 1, z[t] * 1.1)
+                assert client.target("out", t + 1, z[t])
+            assert client.flush(30)
+            server.kill()
+            for t in range(20, 40):  # the link is down: calls return at once and records wait in the buffer
+                assert client.decision("Square", "out", t, 1, z[t] * 1.1)
+                assert client.target("out", t + 1, z[t])
+            assert client.outcome("out", False)
+            assert client.pending > 0
+            server = start_server(db_url, admin_key=ADMIN, port=port, log_path=tmp_path / "s.log")
+            assert client.flush(60), f"{client.pending} records still buffered"
+        finally:
+            client.close()
+        assert client.stats.rejected == [] and client.stats.dropped == 0 and client.stats.sent == 81
+        ep = http.get("/v1/episodes/out", headers=op).json()
+        assert [d["step"] for d in ep["decisions"]] == list(range(40))
+        assert ep["n_scored"] == 40 and ep["success"] is False
+        assert all(d["nmse"] == pytest.approx(0.01, rel=1e-4) for d in ep["decisions"])
+        http.close()
+    finally:
+        server.stop()
+
+
+def test_client_buffer_is_bounded_and_rejections_are_reported(db_url, tmp_path):
+    with start_server(db_url, admin_key=ADMIN, log_path=tmp_path / "s.log") as server:
+        http, robot, _ = _setup(server.url)
+        with MonitorClient(server.url, robot["X-API-Key"], batch_size=4) as client:
+            assert client.decision("Square", "b", 0, 1, np.ones(DIM))
+            assert client.target("ghost", 1, np.ones(DIM))  # unknown episode: refused by the server
+            assert client.decision("Square", "b", 1, 1, np.ones(DIM))
+            assert client.flush(30)
+            with pytest.raises(ValueError, match="NaN"):
+                client.decision("Square", "b", 2, 1, np.full(DIM, np.nan))
+        assert client.stats.sent == 3 and len(client.stats.rejected) == 1
+        assert client.stats.rejected[0][1] == 404 and "ghost" in client.stats.rejected[0][2]
+        dead = MonitorClient(f"http://127.0.0.1:{free_port()}", "k", max_buffer=3, max_backoff=0.05)
+        results = [dead.decision("Square", "x", t, 1, np.ones(DIM)) for t in range(5)]
+        assert results == [True, True, True, False, False] and dead.stats.dropped == 2
+        assert dead.close(timeout=0.2) is False
+        http.close()
+
+
+def test_async_client(db_url, tmp_path):
+    with start_server(db_url, admin_key=ADMIN, log_path=tmp_path / "s.log") as server:
+        http, robot, op = _setup(server.url)
+
+        async def loop():
+            async with AsyncMonitorClient(server.url, robot["X-API-Key"], batch_size=5) as client:
+                for t in range(12):
+                    client.decision("Square", "async", t, 2, np.full(DIM, 1.0 + t))
+                    await asyncio.sleep(0)
+                for t in range(2, 14):
+                    client.target("async", t, np.full(DIM, float(t - 1)))
+                client.outcome("async", True)
+                assert await client.flush(30)
+            return client.stats
+
+        stats = asyncio.run(loop())
+        assert stats.sent == 25 and stats.rejected == []
+        ep = http.get("/v1/episodes/async", headers=op).json()
+        assert ep["n_scored"] == 12 and ep["success"] is True
+        # z_hat = 1 + t vs z = t + 1: exact prediction, NMSE 0
+        assert [d["nmse"] for d in ep["decisions"]] == [0.0] * 12
+        http.close()
+
+
+def test_concurrent_writers_two_workers_and_metrics_aggregate(db_url, tmp_path):
+    with start_server(db_url, admin_key=ADMIN, workers=2, log_path=tmp_path / "s.log",
+                      env={"PROMETHEUS_MULTIPROC_DIR": str(tmp_path / "prom")}) as server:
+        http, robot, op = _setup(server.url)
+
+        def writer(w):
+            rng = np.random.default_rng(w)
+            with httpx.Client(base_url=server.url, timeout=60) as h:
+                for i in range(6):
+                    recs, _ = episode_records(f"w{w}-e{i}", "Square", rng, 0.4, n_steps=5)
+                    key = {"Idempotency-Key": f"w{w}-{i}"}
+                    r = h.post("/v1/batch", json={"records": recs}, headers={**robot, **key})
+                    assert r.status_code == 200, r.text
+                    # An immediate retry of the same request (e.g. after a timeout) changes nothing.
+                    r2 = h.post("/v1/batch", json={"records": recs}, headers={**robot, **key})
+                    assert r2.status_code == 200 and r2.headers.get("Idempotent-Replayed") == "true"
+                    # And the same episode written twice concurrently by two writers is not double counted.
+                    shared, _ = episode_records("shared", "Square", np.random.default_rng(1000 + i), 0.4, n_steps=1)
+                    shared[0]["step"] = i
+                    shared[1]["step"] = i + 1
+                    h.post("/v1/batch", json={"records": shared[:1]}, headers=robot)
+
+        with concurrent.futures.ThreadPoolExecutor(4) as pool:
+            list(pool.map(writer, range(4)))
+        eps = http.get("/v1/episodes?limit=1000", headers=op).json()
+        assert len(eps) == 25
+        assert all(e["n_decisions"] == 5 and e["n_scored"] == 5 for e in eps if e["id"] != "shared")
+        assert next(e for e in eps if e["id"] == "shared")["n_decisions"] == 6
+        # Scrape several times: whichever worker answers, counters cover both workers' requests.
+        for _ in range(4):
+            text = http.get("/metrics", headers=op).text
+            total = float(re.search(r'jepa_monitor_decisions_total\{robot="arm1",task="Square"\} ([0-9.e+]+)', text).group(1))
+            assert total == 4 * 6 * 5 + 6
+        http.close()
