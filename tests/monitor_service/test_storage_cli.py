@@ -1,0 +1,81 @@
+"""Migrations, the encoding, and the offline CLI (calibrate, report, keys, tasks, db)."""
+import json
+
+import numpy as np
+import pytest
+from alembic.autogenerate import compare_metadata
+from alembic.runtime.migration import MigrationContext
+from fastapi.testclient import TestClient
+from monitor_testkit import ADMIN, episode_records, make_settings, new_key, post_batch, register_task
+from sqlalchemy import text
+
+from monitor_service import db
+from monitor_service.app import create_app
+from monitor_service.cli import main
+from monitor_service.encoding import BodyError, decode_body, pack, unpack
+
+
+def test_migrations_reach_head_idempotently_and_match_models(tmp_path):
+    engine = db.make_engine(f"sqlite:///{tmp_path / 'm.db'}")
+    assert db.current_revision(engine) is None
+    db.upgrade(engine)
+    db.upgrade(engine)
+    assert db.current_revision(engine) == db.head_revision() == "0001"
+    with engine.connect() as conn:
+        assert compare_metadata(MigrationContext.configure(conn), db.Base.metadata) == []
+        assert conn.execute(text("PRAGMA journal_mode")).scalar() == "wal"
+
+
+def test_encoding_round_trip_and_errors():
+    z = np.random.default_rng(0).normal(size=7).astype(np.float32)
+    out = unpack(pack({"a": z, "b": [1, "x"]}))
+    assert out["a"].dtype == np.float32 and np.array_equal(out["a"], z) and out["b"] == [1, "x"]
+    assert pack({"z": z})[-28:] == z.astype("<f4").tobytes()  # raw little-endian bytes, no pickle
+    with pytest.raises(BodyError, match="float32"):
+        unpack(pack({"z": {"dtype": "<f8", "shape": [1], "data": b"\0" * 8}}))
+    with pytest.raises(TypeError, match="cannot encode"):
+        pack({"z": object()})
+    with pytest.raises(BodyError, match="malformed JSON"):
+        decode_body(b"{", "application/json")
+
+
+def test_cli_offline_calibrate_report_keys_tasks(tmp_path, capsys):
+    settings = make_settings(tmp_path)
+    url = ["--database-url", settings.database_url]
+    assert main(url + ["db", "upgrade"]) == 0
+    assert "revision 0001" in capsys.readouterr().out
+    assert main(url + ["tasks", "add", "Square", "Coffee", "--latent-dim", "16"]) == 0
+    assert main(url + ["keys", "create", "--name", "arm9", "--role", "robot", "--robot", "arm9"]) == 0
+    key = json.loads(capsys.readouterr().out.strip().splitlines()[-1])["key"]
+    with TestClient(create_app(settings)) as c:
+        robot = {"X-API-Key": key}
+        rng = np.random.default_rng(5)
+        for i in range(30):
+            fail = i % 3 == 0
+            post_batch(c, robot, episode_records(f"e{i}", "Square", rng, 0.6 if fail else 0.3, n_steps=5, success=not fail)[0])
+    assert main(url + ["calibrate", "--task", "Square", "--n-bootstrap", "300", "--n-permutation", "300"]) == 0
+    out = capsys.readouterr().out
+    assert "AUROC" in out and "n_success=20, n_failure=10" in out and "conformal threshold at alpha=0.1" in out
+    assert main(url + ["report"]) == 0
+    out = capsys.readouterr().out
+    assert "Square" in out and "uncalibrated (no alerts): Coffee" in out and "WARNING" in out
+    assert main(url + ["report", "--json"]) == 0
+    rep = json.loads(capsys.readouterr().out)
+    assert rep["tasks"][0]["task"] == "Square" and rep["tasks"][0]["n_failure"] == 10
+    assert main(url + ["calibrate", "--task", "Nope"]) == 2
+    assert "not registered" in capsys.readouterr().err
+    assert main(url + ["keys", "revoke", "1"]) == 0
+    assert main(url + ["keys", "list"]) == 0
+    assert "revoked" in capsys.readouterr().out
+
+
+def test_admin_key_bootstrap_refuses_a_revoked_secret(tmp_path):
+    settings = make_settings(tmp_path)
+    with TestClient(create_app(settings)) as c:
+        register_task(c, "Square")
+        new_key(c, "op", "operator")
+        keys = c.get("/v1/keys", headers={"X-API-Key": ADMIN}).json()
+        admin_id = next(k["id"] for k in keys if k["role"] == "admin")
+        assert c.delete(f"/v1/keys/{admin_id}", headers={"X-API-Key": ADMIN}).status_code == 200
+    with pytest.raises(ValueError, match="revoked or non-admin"):
+        create_app(settings)
