@@ -1,0 +1,67 @@
+"""The dashboard in headless Debian Chromium against a real uvicorn server: data shown, acknowledge clicked."""
+import os
+
+import httpx
+import numpy as np
+import pytest
+from monitor_testkit import ADMIN, DIM, episode_records
+
+from monitor_service.db import Alert, make_engine, make_sessionmaker
+from monitor_service.server import start_server
+
+CHROMIUM = "/usr/bin/chromium"
+ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
+        "--disable-background-networking", "--disable-component-update", "--disable-sync"]
+
+pytestmark = [
+    pytest.mark.browser,
+    pytest.mark.skipif(not os.path.exists(CHROMIUM), reason="Debian chromium is not installed at /usr/bin/chromium"),
+]
+
+
+def test_dashboard_shows_risk_roc_and_acknowledges(tmp_path):
+    sync_api = pytest.importorskip("playwright.sync_api", reason="the playwright package is not installed")
+    db_url = f"sqlite:///{tmp_path / 'monitor.db'}"
+    with start_server(db_url, admin_key=ADMIN, log_path=tmp_path / "s.log") as server:
+        A = {"X-API-Key": ADMIN}
+        http = httpx.Client(base_url=server.url, timeout=60)
+        http.put("/v1/tasks/Square", json={"latent_dim": DIM}, headers=A).raise_for_status()
+        robot = {"X-API-Key": http.post("/v1/keys", json={"name": "r", "role": "robot", "robot": "arm1"}, headers=A).json()["key"]}
+        op_key = http.post("/v1/keys", json={"name": "alice", "role": "operator"}, headers=A).json()["key"]
+        rng = np.random.default_rng(0)
+        for i in range(30):
+            fail = i % 3 == 0
+            recs, _ = episode_records(f"cal{i}", "Square", rng, 0.6 if fail else 0.3, n_steps=5, success=not fail)
+            http.post("/v1/batch", json={"records": recs}, headers=robot).raise_for_status()
+        http.post("/v1/calibrations", json={"task": "Square", "n_bootstrap": 200, "n_permutation": 200}, headers=A).raise_for_status()
+        recs, _ = episode_records("live-bad", "Square", rng, 2.0, n_steps=8, held_out=False)
+        alert_id = http.post("/v1/batch", json={"records": recs}, headers=robot).json()["alerts_raised"][0]
+
+        with sync_api.sync_playwright() as p:
+            browser = p.chromium.launch(executable_path=CHROMIUM, args=ARGS)
+            try:
+                page = browser.new_page()
+                requests = []
+                page.on("request", lambda req: requests.append(req.url))
+                page.goto(server.url + "/dashboard")
+                page.fill("#api-key", op_key)
+                page.click("#connect")
+                page.wait_for_selector("#tasks tr[data-task='Square']")
+                page.wait_for_selector("svg.roc[data-task='Square'] polyline")
+                assert page.locator("svg.histogram[data-task='Square'] rect").count() > 0
+                assert "live-bad" in page.inner_text("#episodes")
+                assert "WARNING" in page.inner_text("#pooled")
+                row = page.locator(f"#alerts tr[data-alert='{alert_id}']")
+                assert row.count() == 1 and "open" in row.inner_text()
+                row.locator("button.ack").click()
+                page.wait_for_selector(f"#alerts tr[data-alert='{alert_id}'] >> text=alice")
+                assert all(u.startswith(server.url) for u in requests), "the page must not fetch anything external"
+            finally:
+                browser.close()
+        engine = make_engine(db_url)
+        with make_sessionmaker(engine)() as s:
+            alert = s.get(Alert, alert_id)
+            assert alert.acknowledged_by == "alice" and alert.acknowledged_at is not None
+            assert alert.note == "acknowledged from dashboard"
+        engine.dispose()
+        http.close()
