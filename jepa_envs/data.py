@@ -372,6 +372,9 @@ class _Reader:
         if cache is not None:
             cache.parent.mkdir(parents=True, exist_ok=True)
             tmp_dir = Path(tempfile.mkdtemp(prefix=cache.name + ".", dir=cache.parent))
+            umask = os.umask(0)
+            os.umask(umask)
+            os.chmod(tmp_dir, 0o777 & ~umask)  # mkdtemp makes 0700; a shared cache should be readable
 
         def alloc(name, shape, dtype):
             if tmp_dir is None:
@@ -403,6 +406,7 @@ class _Reader:
                 except OSError:  # another process filled the same cache first: use theirs
                     shutil.rmtree(tmp_dir, ignore_errors=True)
                 tmp_dir = None
+                _remove_stale_entries(cache)
                 return _load_cache(cache, self.path, from_cache=False)
             return DemoDataset(obs=obs, actions=actions, episode_ends=ends, spec=spec, env_args=self.env_args,
                                path=str(self.path), demo_names=list(self.demos))
@@ -418,13 +422,22 @@ def default_cache_dir() -> Path:
 
 
 def _cache_path(path: Path, task, image_size, cache_dir) -> Path | None:
+    """``<root>/<stem>-<hash of path, task, image size>-<hash of size, mtime>``: one entry per file version."""
     if cache_dir is False:
         return None
     st = path.stat()
-    key = json.dumps([CACHE_VERSION, str(path), st.st_size, st.st_mtime_ns, task, image_size])
-    digest = hashlib.sha1(key.encode()).hexdigest()[:20]
+    what = hashlib.sha1(json.dumps([CACHE_VERSION, str(path), task, image_size]).encode()).hexdigest()[:12]
+    version = hashlib.sha1(json.dumps([st.st_size, st.st_mtime_ns]).encode()).hexdigest()[:12]
     root = Path(cache_dir) if cache_dir is not None else default_cache_dir()
-    return root / f"{path.stem}-{digest}"
+    return root / f"{path.stem}-{what}-{version}"
+
+
+def _remove_stale_entries(cache: Path) -> None:
+    """Drop cached copies of older versions of the same file (same path, task and image size)."""
+    prefix = cache.name.rsplit("-", 1)[0] + "-"
+    for old in cache.parent.glob(prefix + "*"):
+        if old != cache and old.is_dir() and (old / "meta.json").is_file():
+            shutil.rmtree(old, ignore_errors=True)
 
 
 def _load_cache(cache: Path, path: Path, from_cache: bool = True) -> DemoDataset:

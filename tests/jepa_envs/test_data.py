@@ -80,6 +80,9 @@ def test_cache_hit_is_used_and_invalidated_by_a_new_file(tmp_path):
     third = load_dataset(path, cache_dir=cache)
     assert not third.from_cache
     assert not np.array_equal(third.actions, first.actions)
+    assert len(list(cache.iterdir())) == 1  # the stale copy of the old file version is gone
+    load_dataset(path, image_size=8, cache_dir=cache)
+    assert len(list(cache.iterdir())) == 2  # another image size is another entry
 
 
 def _write_libero(path, actions, control_delta, size=24, n=6):
