@@ -1,0 +1,78 @@
+"""The deployment files (docker cannot run here): they parse, and they point at what the service really serves."""
+import json
+import re
+from pathlib import Path
+
+import numpy as np
+import yaml
+from fastapi.testclient import TestClient
+from monitor_testkit import ADMIN, episode_records, make_settings, new_key, post_batch, register_task
+
+from monitor_service.app import create_app
+from monitor_service.cli import build_parser
+from monitor_service.routers import health
+
+DEPLOY = Path(__file__).resolve().parents[2] / "deploy" / "monitor"
+
+
+def _load(name):
+    return yaml.safe_load((DEPLOY / name).read_text())
+
+
+def _served_metric_names(tmp_path) -> set[str]:
+    with TestClient(create_app(make_settings(tmp_path, webhook_urls=[]))) as c:
+        register_task(c, "Square")
+        robot = new_key(c, "r", "robot", "arm1")
+        rng = np.random.default_rng(0)
+        for i in range(12):
+            post_batch(c, robot, episode_records(f"e{i}", "Square", rng, 0.6 if i % 3 == 0 else 0.3, n_steps=5, success=i % 3 != 0)[0])
+        c.post("/v1/calibrations", json={"task": "Square", "alpha": 0.2}, headers={"X-API-Key": ADMIN}).raise_for_status()
+        text = c.get("/metrics", headers={"X-API-Key": ADMIN}).text
+    names = {line.split("{")[0].split(" ")[0] for line in text.splitlines() if line and not line.startswith("#")}
+    # Families without samples yet (no alert raised in this run) are still declared by their TYPE line.
+    for family in re.findall(r"^# TYPE (\S+) (\S+)$", text, re.M):
+        name, kind = family[0].removesuffix("_total"), family[1]
+        suffixes = {"counter": ["_total"], "histogram": ["_bucket", "_sum", "_count"]}.get(kind, [""])
+        names |= {name + s for s in suffixes}
+    return names
+
+
+def test_compose_prometheus_and_service_agree():
+    compose = _load("docker-compose.yml")
+    assert {"db", "monitor", "prometheus", "grafana"} <= set(compose["services"])
+    monitor = compose["services"]["monitor"]
+    assert monitor["build"]["dockerfile"] == "deploy/monitor/Dockerfile"
+    assert (DEPLOY / monitor["build"]["context"]).resolve() == DEPLOY.parents[1].resolve()  # the repository root
+    assert monitor["environment"]["JEPA_MONITOR_DATABASE_URL"].startswith("postgresql")
+    published = {p.split(":")[1] for p in monitor["ports"]}
+    cmd = re.search(r'CMD \[(.*)\]', (DEPLOY / "Dockerfile").read_text()).group(1)
+    argv = json.loads(f"[{cmd}]")
+    args = build_parser().parse_args(argv[1:])
+    assert argv[0] == "jepa-monitor" and args.command == "serve" and str(args.port) in published
+    prom = _load("prometheus.yml")
+    job = next(j for j in prom["scrape_configs"] if j["job_name"] == "jepa-monitor")
+    assert job["metrics_path"] == "/metrics"
+    assert job["static_configs"][0]["targets"] == [f"monitor:{args.port}"]
+    assert job["authorization"]["credentials_file"] in " ".join(compose["services"]["prometheus"]["volumes"])
+    rules_mount = compose["services"]["prometheus"]["volumes"]
+    assert any(v.startswith("./alert_rules.yml:") and v.split(":")[1] in prom["rule_files"] for v in rules_mount)
+    for volume in rules_mount + compose["services"]["grafana"]["volumes"]:
+        source = volume.split(":")[0]
+        if source.startswith("./") and "secrets/" not in source:
+            assert (DEPLOY / source).exists(), source
+    assert any(r.path == prom_path for r in health.router.routes for prom_path in [job["metrics_path"]])
+
+
+def test_grafana_and_alert_rules_use_only_served_metrics(tmp_path):
+    served = _served_metric_names(tmp_path)
+    dash = json.loads((DEPLOY / "grafana/dashboards/jepa-monitor.json").read_text())
+    exprs = [t["expr"] for p in dash["panels"] for t in p["targets"]]
+    exprs += [r["expr"] for g in _load("alert_rules.yml")["groups"] for r in g["rules"]]
+    used = {m for e in exprs for m in re.findall(r"\b(jepa_monitor_[a-z_]+)", e)}
+    assert used, "no monitor metric referenced"
+    missing = used - served
+    assert not missing, f"dashboards/rules reference metrics the service does not expose: {missing}"
+    assert len({p["id"] for p in dash["panels"]}) == len(dash["panels"])
+    ds = _load("grafana/provisioning/datasources/prometheus.yml")["datasources"][0]
+    assert all(p["datasource"]["uid"] == ds["uid"] for p in dash["panels"])
+    assert _load("grafana/provisioning/dashboards/dashboards.yml")["providers"][0]["options"]["path"] == "/var/lib/grafana/dashboards"
