@@ -205,7 +205,12 @@ def main(argv: list[str] | None = None) -> int:
     if args.command == "serve":
         logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING,
                             format="%(asctime)s %(levelname)s %(name)s: %(message)s")
-        return serve(args)
+        from jepa_envs.real_robot.backends.base import BackendUnavailable
+        try:
+            return serve(args)
+        except BackendUnavailable as exc:
+            print(f"error: {exc}", file=sys.stderr)
+            return 2
     if args.command == "bench":
         from jepa_envs.real_robot.bench import run_bench
         return run_bench(args)
