@@ -41,12 +41,41 @@ def adaptive_lambda_z(weighted_act: Tensor, future: Tensor, rho: float, lo: floa
     return (rho * weighted_act.detach() / (future.detach() + RATIO_EPS)).clamp(lo, hi)
 
 
-def two_step_loss(
+def two_step_terms(
     a_hat0: Tensor, a_hat1: Tensor, a: Tensor, tau: float, *,
     z_hat0: Tensor | None = None, z_hat1: Tensor | None = None, z: Tensor | None = None,
     lambda_a: float = 1.0, lambda_z_mode: str = "adaptive", lambda_z: float = 0.01,
     rho: float = 0.10, lambda_z_min: float = 1e-6, lambda_z_max: float = 0.1,
-) -> tuple[Tensor, dict[str, Tensor]]:
+) -> tuple[Tensor, Tensor | None, dict[str, Tensor]]:
+    """The two weighted terms of the two-step objective, lambda_a L_act and lambda_z L_future (None without
+    future predictions), and their detached parts. ``two_step_loss`` documents the formulas."""
+    act0 = interval_mse(a_hat0, a, tau)
+    act1 = interval_mse(a_hat1, a, 1.0 - tau)
+    loss_act = act0 + act1
+    parts: dict[str, Tensor] = {"loss_act_step0": act0.detach(), "loss_act_step1": act1.detach(),
+                                "loss_act": loss_act.detach()}
+    act_term = lambda_a * loss_act
+    if z_hat0 is None and z_hat1 is None:
+        parts["lambda_z"] = torch.zeros((), dtype=loss_act.dtype, device=loss_act.device)
+        return act_term, None, parts
+    if z_hat0 is None or z_hat1 is None or z is None:
+        raise ValueError("two_step_loss: give z_hat0, z_hat1 and z together (or none for action-only MIP)")
+    fut0 = nmse(z_hat0, z) / tau ** 2
+    fut1 = nmse(z_hat1, z) / (1.0 - tau) ** 2
+    loss_future = fut0 + fut1
+    if lambda_z_mode == "adaptive":
+        lz = adaptive_lambda_z(act_term, loss_future, rho, lambda_z_min, lambda_z_max)
+    elif lambda_z_mode == "fixed":
+        lz = torch.as_tensor(float(lambda_z), dtype=loss_future.dtype, device=loss_future.device)
+    else:
+        raise ValueError(f"two_step_loss: lambda_z_mode={lambda_z_mode!r}; use 'adaptive' or 'fixed'")
+    parts.update(loss_future_step0=fut0.detach(), loss_future_step1=fut1.detach(),
+                 loss_future=loss_future.detach(), lambda_z=lz.detach())
+    return act_term, lz * loss_future, parts
+
+
+def two_step_loss(a_hat0: Tensor, a_hat1: Tensor, a: Tensor, tau: float,
+                  **kwargs) -> tuple[Tensor, dict[str, Tensor]]:
     """The MIP-style two-step objective with the paired future term (Sec. 3.4, Eq. mip_loss).
 
     Step 1 (inputs zero, (u,v)=(0,tau)): lambda_a <((a_hat0 - a)/tau)^2> + lambda_z/tau^2 NMSE(z_hat0, z).
@@ -54,32 +83,11 @@ def two_step_loss(
     In adaptive mode one lambda_z, shared by both steps, comes from the sums of the unweighted,
     interval-scaled components of both steps. ``z`` must already be stop-gradiented by the caller.
     Without future predictions (MIP) the future term is absent (lambda_z = 0).
-    Returns the total loss and its parts (tensors; the ``loss_*`` parts are detached).
+    Keyword arguments: z_hat0, z_hat1, z, lambda_a, lambda_z_mode, lambda_z, rho, lambda_z_min, lambda_z_max.
+    Returns the total loss and its detached parts.
     """
-    act0 = interval_mse(a_hat0, a, tau)
-    act1 = interval_mse(a_hat1, a, 1.0 - tau)
-    loss_act = act0 + act1
-    parts: dict[str, Tensor] = {"loss_act_step0": act0.detach(), "loss_act_step1": act1.detach()}
-    total = lambda_a * loss_act
-    if z_hat0 is not None or z_hat1 is not None:
-        if z_hat0 is None or z_hat1 is None or z is None:
-            raise ValueError("two_step_loss: give z_hat0, z_hat1 and z together (or none for action-only MIP)")
-        fut0 = nmse(z_hat0, z) / tau ** 2
-        fut1 = nmse(z_hat1, z) / (1.0 - tau) ** 2
-        loss_future = fut0 + fut1
-        if lambda_z_mode == "adaptive":
-            lz = adaptive_lambda_z(lambda_a * loss_act, loss_future, rho, lambda_z_min, lambda_z_max)
-        elif lambda_z_mode == "fixed":
-            lz = torch.as_tensor(float(lambda_z), dtype=loss_future.dtype, device=loss_future.device)
-        else:
-            raise ValueError(f"two_step_loss: lambda_z_mode={lambda_z_mode!r}; use 'adaptive' or 'fixed'")
-        total = total + lz * loss_future
-        parts.update(loss_future_step0=fut0.detach(), loss_future_step1=fut1.detach(),
-                     loss_future=loss_future.detach(), lambda_z=lz.detach())
-    else:
-        parts["lambda_z"] = torch.zeros((), dtype=total.dtype, device=total.device)
-    parts["loss_act"] = loss_act.detach()
-    return total, parts
+    act_term, future_term, parts = two_step_terms(a_hat0, a_hat1, a, tau, **kwargs)
+    return (act_term if future_term is None else act_term + future_term), parts
 
 
 def sigreg(x: Tensor, num_slices: int = 256, num_points: int = 17, t_max: float = 5.0,

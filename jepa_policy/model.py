@@ -27,7 +27,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from jepa_policy.config import ModelConfig
-from jepa_policy.losses import sigreg, two_step_loss
+from jepa_policy.losses import sigreg, two_step_terms
 from jepa_policy.normalizer import Normalizer
 
 # ----------------------------------------------------------------------------------------------------------
@@ -498,6 +498,16 @@ class PolicyModel(BasePolicyModel):
     # ----- training (Sec. 3.3-3.4) -----
     def compute_loss(self, batch: Mapping, generator: torch.Generator | None = None) -> tuple[Tensor, dict]:
         """Two-step loss of one minibatch: (scalar loss, {name: float}); see the module docstring for shapes."""
+        terms, parts = self.loss_terms(batch, generator)
+        loss = sum(terms.values())
+        parts["loss"] = loss.detach()
+        names = list(parts)
+        values = torch.stack([parts[n].float() for n in names]).tolist()   # one device sync
+        return loss, dict(zip(names, values))
+
+    def loss_terms(self, batch: Mapping, generator: torch.Generator | None = None) -> tuple[dict, dict]:
+        """The weighted loss terms with their graphs ({"act", "future", "sigreg"} as present) and the detached
+        parts. ``compute_loss`` sums the terms; ``gradient_share`` differentiates them one at a time."""
         cfg = self.cfg
         for key in ("obs", "action") + (("future_obs",) if cfg.has_future_token else ()):
             if key not in batch:
@@ -526,19 +536,42 @@ class PolicyModel(BasePolicyModel):
         # Losses in float32 even under bf16 autocast: the NMSE divides by the target's RMS.
         a_hat = a_hat.float()
         z_hat, z = (None, None) if z_hat is None else (z_hat.float(), z.float())
-        loss, parts = two_step_loss(
+        act_term, future_term, parts = two_step_terms(
             a_hat[:b], a_hat[b:], a, tau,
             z_hat0=None if z_hat is None else z_hat[:b], z_hat1=None if z_hat is None else z_hat[b:], z=z,
             lambda_a=cfg.effective_lambda_a, lambda_z_mode=cfg.lambda_z_mode, lambda_z=cfg.lambda_z,
             rho=cfg.rho, lambda_z_min=cfg.lambda_z_min, lambda_z_max=cfg.lambda_z_max)
+        terms = {"act": act_term}
+        if future_term is not None:
+            terms["future"] = future_term
         if cfg.arm == "sigreg":
             reg = sigreg(c.flatten(0, 1).float(), num_slices=cfg.sigreg_slices, generator=generator)
-            loss = loss + cfg.sigreg_weight * reg
+            terms["sigreg"] = cfg.sigreg_weight * reg
             parts["loss_sigreg"] = reg.detach()
-        parts["loss"] = loss.detach()
-        names = list(parts)
-        values = torch.stack([parts[n].float() for n in names]).tolist()   # one device sync
-        return loss, dict(zip(names, values))
+        return terms, parts
+
+    # ----- where the future objective acts (Sec. 4.5) -----
+    def action_readout_parameters(self) -> list[nn.Parameter]:
+        """The parameters that produce the action readout: the stack the action tokens run through, their
+        embedding, positions and head (the shared trunk for single-stack arms, the action stack for dual)."""
+        owners = ("action_stack" if self.cfg.is_dual else "trunk", "action_embed", "action_pos", "action_head")
+        return [p for n, p in self.named_parameters() if n.split(".", 1)[0] in owners]
+
+    def gradient_share(self, batch: Mapping, generator: torch.Generator | None = None) -> float:
+        """Sec. 4.5: ||grad of lambda_z L_future|| / ||grad of lambda_a L_act|| on ``action_readout_parameters``
+        (exactly 0 for dual_independent and backcut; 0 for arms without a future term)."""
+        terms, _ = self.loss_terms(batch, generator)
+        if "future" not in terms:
+            return 0.0
+        params = self.action_readout_parameters()
+
+        def norm(term: Tensor, retain: bool) -> Tensor:
+            grads = torch.autograd.grad(term, params, retain_graph=retain, allow_unused=True)
+            squares = [g.float().pow(2).sum() for g in grads if g is not None]
+            return torch.stack(squares).sum().sqrt() if squares else torch.zeros((), device=term.device)
+
+        future = norm(terms["future"], retain=True)
+        return float(future / norm(terms["act"], retain=False).clamp_min(1e-30))
 
     # ----- inference (Sec. 3.4, last equation) -----
     @torch.no_grad()

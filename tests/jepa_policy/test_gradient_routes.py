@@ -1,6 +1,7 @@
 """Where the future objective can reach (Sec. 3.3, 4.5): stop-gradient target, back-cut, fwd-cut, dual stacks."""
 from __future__ import annotations
 
+import pytest
 import torch
 from _model_helpers import make_batch, tiny_model
 
@@ -69,3 +70,23 @@ def test_dual_independent_future_loss_puts_zero_gradient_on_the_action_stack():
     assert total_norm(grads, ("future_stack",)) > 0
     assert total_norm(grads, ("memory", "encoder")) > 0               # the shared conditioning path still learns
     assert total_norm(future_loss_grads("dual_cross"), ("action_stack",)) > 0   # the cross block links them
+
+
+def test_gradient_share_on_the_action_readout():
+    shares = {}
+    for arm in ("jepa", "backcut", "dual_independent", "dual_cross", "mip"):
+        model = tiny_model(arm).train()
+        shares[arm] = model.gradient_share(make_batch(model.cfg), generator=torch.Generator().manual_seed(0))
+    assert shares["dual_independent"] == 0.0 and shares["backcut"] == 0.0 and shares["mip"] == 0.0
+    assert shares["jepa"] > 0 and shares["dual_cross"] > 0
+
+
+def test_loss_terms_sum_to_the_loss():
+    model = tiny_model("sigreg").train()
+    batch = make_batch(model.cfg)
+    terms, parts = model.loss_terms(batch, generator=torch.Generator().manual_seed(2))
+    loss, info = model.compute_loss(batch, generator=torch.Generator().manual_seed(2))
+    assert set(terms) == {"act", "future", "sigreg"}
+    assert info["loss"] == loss.item()
+    assert sum(t.item() for t in terms.values()) == pytest.approx(loss.item(), rel=1e-6)
+    assert terms["future"].item() == pytest.approx(info["lambda_z"] * info["loss_future"], rel=1e-6)
