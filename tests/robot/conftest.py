@@ -21,8 +21,10 @@ class Robot:
         self._closers: list = []
 
     def bridge(self, task: str = "PushT", chunk_budget: int | None = None, realtime: bool = False,
-               success_source: str = "sim", image_size: int | None = None, **safety) -> RobotBridge:
-        backend = SimBackend(task, image_size=image_size, realtime=realtime, success_source=success_source)
+               success_source: str = "sim", image_size: int | None = None, camera_replicas: int = 1,
+               **safety) -> RobotBridge:
+        backend = SimBackend(task, image_size=image_size, realtime=realtime, success_source=success_source,
+                             camera_replicas=camera_replicas)
         config = BridgeConfig("tcp://127.0.0.1:*", "tcp://127.0.0.1:*", str(self.tmp_path / "episodes"),
                               chunk_budget)
         bridge = RobotBridge(backend, SafetyConfig(**{**RELAXED, **safety}), config).start()

@@ -363,3 +363,26 @@ def test_robosuite_task_through_bridge_checks_rotations_and_joints(robot, monkey
     assert truncated and not terminated and info["interrupted"] == "joint_limit"
     status = robot.operator(bridge).status()
     assert "joints [3]" in [e for e in status["events"] if e["kind"] == "joint_limit"][0]["message"]
+
+
+def test_three_camera_payload_at_128_passes_check_env(robot):
+    """The bench configuration: each PushT frame served as three 128x128 streams, labelled replicas."""
+    bridge = robot.bridge(image_size=128, camera_replicas=3)
+    env = robot.client(bridge)
+    assert env.task_spec.image_keys == ("top_image", "top_replica1_image", "top_replica2_image")
+    obs, _ = env.reset(seed=2)
+    assert all(obs[k].shape == (128, 128, 3) for k in env.task_spec.image_keys)
+    assert np.array_equal(obs["top_image"], obs["top_replica2_image"])
+    check_env(env, skip_render_check=True)
+
+
+def test_estop_while_waiting_for_confirmation_ends_the_episode(robot):
+    bridge = robot.bridge(chunk_budget=1, success_source="operator")
+    env = robot.client(bridge)
+    obs, _ = env.reset(seed=0)
+    op = robot.operator(bridge)
+    timer = threading.Timer(0.3, op.estop)
+    timer.start()
+    _, _, terminated, truncated, info = env.step_chunk(np.tile(obs["agent_pos"], (8, 1)))
+    timer.join()
+    assert truncated and not terminated and not info["is_success"] and info["interrupted"] == "estop"
