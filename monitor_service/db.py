@@ -10,6 +10,7 @@ from sqlalchemy import (
     DateTime,
     Float,
     ForeignKey,
+    Index,
     Integer,
     LargeBinary,
     String,
@@ -77,7 +78,11 @@ class Episode(Base):
 
 class Decision(Base):
     __tablename__ = "decisions"
-    __table_args__ = (UniqueConstraint("episode_id", "step", name="uq_decision_episode_step"),)
+    __table_args__ = (
+        UniqueConstraint("episode_id", "step", name="uq_decision_episode_step"),
+        # a realized latent looks up the decisions aimed at its step
+        Index("ix_decisions_episode_target", "episode_id", "target_step"),
+    )
     id: Mapped[int] = mapped_column(Integer, primary_key=True)
     episode_id: Mapped[str] = mapped_column(ForeignKey("episodes.id"), index=True)
     step: Mapped[int] = mapped_column(Integer)

@@ -65,6 +65,7 @@ class IngestContext:
     observations: list[tuple[str, str, str, float]] = field(default_factory=list)
     alerts_raised: list[int] = field(default_factory=list)
     calibrations: dict[tuple[str, str | None], CalibrationRow | None] = field(default_factory=dict)
+    newly_scored: dict[str, int] = field(default_factory=dict)
     scored: int = 0
 
     def preload(self, records: list) -> None:
@@ -78,13 +79,12 @@ class IngestContext:
             return
         steps = {r.step for r in records if r.kind == "decision"}
         tsteps = {r.step + r.horizon for r in records if r.kind == "decision"} | {r.step for r in records if r.kind == "target"}
-        rows = s.execute(
-            select(Decision.id, Decision.episode_id, Decision.step, Decision.horizon, Decision.z_hat, Decision.nmse).where(
-                Decision.episode_id.in_(known), Decision.step.in_(steps) | Decision.target_step.in_(tsteps)
-            )
-        )
-        for r in rows:
-            self._remember(_Dec(r.episode_id, r.step, r.horizon, r.z_hat, r.nmse, r.id))
+        cols = Decision.id, Decision.episode_id, Decision.step, Decision.horizon, Decision.z_hat, Decision.nmse
+        # Two indexed lookups: decisions at the batch's steps, and decisions aimed at its target steps.
+        for cond in (Decision.step.in_(steps), Decision.target_step.in_(tsteps)):
+            for r in s.execute(select(*cols).where(Decision.episode_id.in_(known), cond)):
+                if (r.episode_id, r.step) not in self.decisions:
+                    self._remember(_Dec(r.episode_id, r.step, r.horizon, r.z_hat, r.nmse, r.id))
         for r in s.execute(
             select(Target.episode_id, Target.step, Target.z).where(Target.episode_id.in_(known), Target.step.in_(tsteps))
         ):
@@ -141,6 +141,7 @@ def _score(ctx: IngestContext, ep: Episode, d: _Dec, z: bytes) -> None:
     d.nmse = scoring.nmse(np.frombuffer(d.z_hat, dtype="<f4"), np.frombuffer(z, dtype="<f4"))
     d.changed = True
     ctx.scored += 1
+    ctx.newly_scored[ep.id] = ctx.newly_scored.get(ep.id, 0) + 1
     ctx.observations.append(("nmse", ep.task, ep.robot, d.nmse))
 
 
@@ -251,30 +252,56 @@ def active_calibration(session: Session, task: str, checkpoint: str | None) -> C
     )
 
 
-def refresh_episode(ctx: IngestContext, ep: Episode, rows: list[tuple[int, float | None]]) -> None:
-    """Recompute the early and running scores and step the alert state over newly scored decisions.
+def _history(s: Session, ep: Episode, settings: MonitorSettings) -> tuple[list, list]:
+    """What a refresh needs, in bounded queries: the first decisions (until the early score is fixed) and the
+    scored decisions after the last evaluated step, preceded by the window of scored ones before it."""
+    first = []
+    if ep.early_score is None:
+        first = s.execute(
+            select(Decision.step, Decision.nmse).where(Decision.episode_id == ep.id)
+            .order_by(Decision.step).limit(settings.early_decisions)
+        ).all()
+    scored = Decision.episode_id == ep.id, Decision.nmse.is_not(None)
+    before = s.execute(
+        select(Decision.step, Decision.nmse).where(*scored, Decision.step <= ep.last_evaluated_step)
+        .order_by(Decision.step.desc()).limit(settings.running_window)
+    ).all()[::-1]
+    after = s.execute(
+        select(Decision.step, Decision.nmse).where(*scored, Decision.step > ep.last_evaluated_step).order_by(Decision.step)
+    ).all()
+    return [(r.step, r.nmse) for r in first], [(r.step, r.nmse) for r in before + after]
 
-    ``rows`` are the episode's (decision step, NMSE or None) in step order.
+
+def refresh_episode(ctx: IngestContext, ep: Episode) -> None:
+    """Update the early and running scores and step the alert state over the newly scored decisions.
+
+    Every scored decision is considered once, in step order (``last_evaluated_step``); a task without a usable
+    calibration consumes them without evaluation and the episode's ``alert_note`` says why.
     """
     s, settings = ctx.session, ctx.settings
-    ep.early_score = scoring.early_score([v for _, v in rows], settings.early_decisions)
-    scored = [(step, v) for step, v in rows if v is not None]
-    ep.n_scored = len(scored)
-    ep.running_score = scoring.running_score([v for _, v in scored], settings.running_window)
+    first, scored = _history(s, ep, settings)
+    if ep.early_score is None:
+        ep.early_score = scoring.early_score([v for _, v in first], settings.early_decisions)
+    ep.n_scored += ctx.newly_scored.get(ep.id, 0)
+    running = scoring.running_score([v for _, v in scored], settings.running_window)
+    if running is not None:
+        ep.running_score = running
     if (ep.task, ep.checkpoint) not in ctx.calibrations:
         ctx.calibrations[(ep.task, ep.checkpoint)] = active_calibration(s, ep.task, ep.checkpoint)
     cal = ctx.calibrations[(ep.task, ep.checkpoint)]
-    if cal is None:
-        ep.alert_note = (
-            f"no alerts: task {ep.task!r} has no active calibration; record held-out labelled episodes and run "
-            f"`jepa-monitor calibrate --task {ep.task}` (or POST /v1/calibrations)"
-        )
-        return
-    if cal.threshold is None:
-        ep.alert_note = (
-            f"no alerts: calibration #{cal.id} of task {ep.task!r} has an infinite threshold "
-            f"({cal.result.get('conformal_note', '')})"
-        )
+    if cal is None or cal.threshold is None:
+        if cal is None:
+            ep.alert_note = (
+                f"no alerts: task {ep.task!r} has no active calibration; record held-out labelled episodes and run "
+                f"`jepa-monitor calibrate --task {ep.task}` (or POST /v1/calibrations)"
+            )
+        else:
+            ep.alert_note = (
+                f"no alerts: calibration #{cal.id} of task {ep.task!r} has an infinite threshold "
+                f"({cal.result.get('conformal_note', '')})"
+            )
+        if scored:
+            ep.last_evaluated_step = max(ep.last_evaluated_step, scored[-1][0])
         return
     ep.alert_note = (
         f"alerting when the running median of {settings.running_window} NMSE exceeds {cal.threshold:.6g} "
@@ -283,11 +310,13 @@ def refresh_episode(ctx: IngestContext, ep: Episode, rows: list[tuple[int, float
     state = AlertState(ep.over_count, ep.under_count, ep.open_alert_id is not None)
     values = [v for _, v in scored]
     for i, (step, _) in enumerate(scored):
-        if step <= ep.last_evaluated_step or i + 1 < settings.running_window:
+        if step <= ep.last_evaluated_step:
+            continue
+        ep.last_evaluated_step = step
+        if i + 1 < settings.running_window:
             continue
         window_score = float(np.median(values[i + 1 - settings.running_window : i + 1]))
         state, event = step_alert(state, window_score, cal.threshold, settings.alert_debounce, settings.alert_clear_ratio)
-        ep.last_evaluated_step = step
         if event == "raise":
             alert = Alert(
                 episode_id=ep.id, task=ep.task, robot=ep.robot, step=step, score=window_score,
@@ -321,17 +350,8 @@ def ingest(ctx: IngestContext, records: list[DecisionIn | TargetIn | OutcomeIn])
                 raise
     ctx.session.flush()  # new episodes first: the decisions and targets refer to them
     ctx.write()
-    if not ctx.dirty:
-        return
-    history: dict[str, list[tuple[int, float | None]]] = {e: [] for e in ctx.dirty}
-    for r in ctx.session.execute(
-        select(Decision.episode_id, Decision.step, Decision.nmse)
-        .where(Decision.episode_id.in_(list(ctx.dirty)))
-        .order_by(Decision.episode_id, Decision.step)
-    ):
-        history[r.episode_id].append((r.step, r.nmse))
     for ep in ctx.dirty.values():
-        refresh_episode(ctx, ep, history[ep.id])
+        refresh_episode(ctx, ep)
 
 
 def publish_metrics(ctx: IngestContext) -> None:

@@ -64,6 +64,7 @@ def upgrade() -> None:
         sa.Column("created_at", sa.DateTime, nullable=False),
         sa.UniqueConstraint("episode_id", "step", name="uq_decision_episode_step"),
     )
+    op.create_index("ix_decisions_episode_target", "decisions", ["episode_id", "target_step"])
     op.create_table(
         "targets",
         sa.Column("id", sa.Integer, primary_key=True),
