@@ -26,10 +26,13 @@ _TASK_KWARGS: dict[str, dict[str, Any]] = {
 
 
 def robomimic_env_args(source_task: str, cameras: tuple[str, ...], image_size: int,
-                       control_delta: bool = True) -> dict:
-    """env_args as robomimic stores them in ``data.attrs["env_args"]`` of its image datasets."""
-    if source_task not in _TASK_KWARGS:
-        raise KeyError(f"no robomimic settings for {source_task!r}; known: {sorted(_TASK_KWARGS)}")
+                       control_delta: bool = True, task_kwargs: dict | None = None) -> dict:
+    """env_args as robomimic stores them in ``data.attrs["env_args"]`` of its image datasets (MimicGen's
+    datasets use the same settings); ``task_kwargs`` (robots, ...) default to robomimic's for the task."""
+    if task_kwargs is None:
+        if source_task not in _TASK_KWARGS:
+            raise KeyError(f"no robomimic settings for {source_task!r}; known: {sorted(_TASK_KWARGS)}")
+        task_kwargs = _TASK_KWARGS[source_task]
     env_kwargs = {
         "has_renderer": False,
         "has_offscreen_renderer": True,
@@ -43,7 +46,7 @@ def robomimic_env_args(source_task: str, cameras: tuple[str, ...], image_size: i
         "camera_widths": image_size,
         "camera_names": list(cameras),
         "reward_shaping": False,
-        **copy.deepcopy(_TASK_KWARGS[source_task]),
+        **copy.deepcopy(task_kwargs),
     }
     return {"env_name": source_task, "type": ROBOSUITE_ENV_TYPE, "env_kwargs": env_kwargs}
 
@@ -127,7 +130,7 @@ class RobomimicEnv(RobosuiteTaskEnv):
             raise ValueError(f"{type(self).__name__} serves {self.SUITES} tasks; {spec.name} is a {spec.suite} task")
         spec = spec.with_image_size(image_size or spec.image_size)
         if env_args is None:
-            env_args = robomimic_env_args(spec.source_task, spec.cameras, spec.image_size)
+            env_args = self.default_env_args(spec)
         elif env_args.get("env_name") != spec.source_task:
             raise ValueError(f"env_args are for {env_args.get('env_name')!r} but task {spec.name} runs "
                              f"{spec.source_task!r}")
@@ -136,6 +139,11 @@ class RobomimicEnv(RobosuiteTaskEnv):
             self.env_args, control_delta=check_action_mode(action_mode) == "delta",
             cameras=spec.cameras, image_size=spec.image_size, hard_reset=hard_reset)
         super().__init__(spec, backend, render_mode=render_mode, action_mode=action_mode)
+
+    @classmethod
+    def default_env_args(cls, spec: TaskSpec) -> dict:
+        """The settings of the task's public image datasets."""
+        return robomimic_env_args(spec.source_task, spec.cameras, spec.image_size)
 
     @classmethod
     def from_env_args(cls, env_args: dict, **kwargs) -> "RobomimicEnv":
