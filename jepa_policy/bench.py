@@ -97,7 +97,7 @@ def bench_latency(task: str = "ToolHang", arms=("mip", "jepa", "diffusion"), war
         with torch.inference_mode():
             passes = count_passes(model, lambda: model.predict(obs, want_future=want))
         rows[label] = {"arm": arm, "want_future": want, "params_m": sum(p.numel() for p in model.parameters()) / 1e6,
-                       "passes": passes, "times_ms": []}
+                       "passes": passes, "network_passes": max(passes.values()), "times_ms": []}
     with torch.inference_mode():
         for i in range(warmup + iters):
             for label, _arm, model, want in variants:
@@ -167,7 +167,7 @@ def bench_train(task: str = "ToolHang", preset: str = "paper", arm: str = "jepa"
     model = build_policy_model(ModelConfig.for_task(spec, arm=arm, **cfg.model)).to(dev)
     model.set_normalizer_stats(_random_stats(spec))
     model.train()
-    optimizer = torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
+    optimizer = torch.optim.AdamW(model.param_groups(cfg.weight_decay), lr=cfg.lr, betas=(cfg.beta1, cfg.beta2))
     ema = AveragedModel(model, multi_avg_fn=get_ema_multi_avg_fn(cfg.ema_decay), use_buffers=True)
     gen = torch.Generator().manual_seed(seed)
     data = {"obs": _synthetic_obs(spec, batch, spec.obs_steps, dev, gen),

@@ -54,12 +54,26 @@ def reporting_protocols(curve: list[dict]) -> dict:
     }
 
 
-def _make_env_fn(env_id: str, image_size: int, max_steps: int | None):
+def env_kwargs_for(spec, env_args: dict | None) -> dict:
+    """Constructor kwargs that rebuild the environment the demonstrations were recorded in.
+
+    PushT stores its own constructor options under ``env_kwargs``; the robosuite backends take the dataset's
+    ``env_args`` whole. The image size is always the policy's.
+    """
+    kwargs = {}
+    if env_args:
+        if spec.suite == "embedded":
+            kwargs.update(env_args.get("env_kwargs", {}))
+        elif spec.suite in ("robomimic", "mimicgen"):
+            kwargs["env_args"] = env_args
+    kwargs["image_size"] = spec.image_size
+    return kwargs
+
+
+def _make_env_fn(env_id: str, kwargs: dict, max_steps: int | None):
     def make():
-        kwargs = {"image_size": image_size}
-        if max_steps:
-            kwargs["max_episode_steps"] = max_steps
-        return gym.make(env_id, **kwargs)
+        extra = {"max_episode_steps": max_steps} if max_steps else {}
+        return gym.make(env_id, **kwargs, **extra)
     return make
 
 
@@ -75,7 +89,8 @@ def evaluate(policy, episodes: int, seed: int, num_envs: int = 4, max_steps: int
         raise ValueError(f"need episodes >= 1 and num_envs >= 1, got {episodes}, {num_envs}")
     spec = policy.spec
     num_envs = min(num_envs, episodes)
-    envs = gym.vector.SyncVectorEnv([_make_env_fn(spec.env_id, spec.image_size, max_steps)] * num_envs)
+    kwargs = env_kwargs_for(spec, getattr(policy, "env_args", None))
+    envs = gym.vector.SyncVectorEnv([_make_env_fn(spec.env_id, kwargs, max_steps)] * num_envs)
     records = []
     try:
         for first in range(0, episodes, num_envs):

@@ -41,6 +41,8 @@ class Policy:
         self.device = torch.device(device)
         self.model = model.to(self.device).eval()
         self.spec = spec
+        self.env_args: dict | None = None   # the dataset's env_args, so evaluation rebuilds the same env
+        self.checkpoint_step: int | None = None
         self.obs_steps, self.n_action_steps, self.k = spec.obs_steps, spec.n_action_steps, spec.future_k
         if not 1 <= self.n_action_steps <= spec.horizon:
             raise ValueError(f"n_action_steps={self.n_action_steps} must be in [1, horizon={spec.horizon}]")
@@ -63,6 +65,7 @@ class Policy:
         spec = get_task_spec(ckpt["task"]).with_image_size(ckpt["image_size"])
         policy = cls(model, spec, device)
         policy.checkpoint_step = int(ckpt["step"])
+        policy.env_args = ckpt.get("env_args")
         return policy
 
     # ------------------------------------------------------------------ state

@@ -170,17 +170,6 @@ def seed_everything(seed: int) -> None:
     torch.manual_seed(seed)
 
 
-class LossModule(torch.nn.Module):
-    """Puts ``compute_loss`` behind ``forward`` so DistributedDataParallel sees (and syncs) the call."""
-
-    def __init__(self, model: torch.nn.Module):
-        super().__init__()
-        self.model = model
-
-    def forward(self, batch):
-        return self.model.compute_loss(batch)
-
-
 def _to_device(batch, device):
     if isinstance(batch, dict):
         return {k: _to_device(v, device) for k, v in batch.items()}
@@ -210,7 +199,7 @@ def build_policy_model(model_cfg):
 
 
 def save_checkpoint(path: Path, *, model, ema, optimizer, scheduler, step: int, cfg: TrainConfig, model_cfg,
-                    spec, stats: dict, curve: list, sampler_position: dict) -> None:
+                    spec, stats: dict, curve: list, sampler_position: dict, env_args: dict | None = None) -> None:
     """Everything a run needs to continue bit-exactly, and everything ``Policy.from_checkpoint`` needs to act."""
     path.parent.mkdir(parents=True, exist_ok=True)
     payload = {
@@ -221,6 +210,7 @@ def save_checkpoint(path: Path, *, model, ema, optimizer, scheduler, step: int, 
         "task": spec.name,
         "image_size": spec.image_size,
         "normalizer_stats": stats,
+        "env_args": env_args,
         "model": model.state_dict(),
         "ema": ema.state_dict(),
         "optimizer": optimizer.state_dict(),
@@ -282,8 +272,7 @@ def train(cfg: TrainConfig, demos=None) -> dict:
     model = build_policy_model(model_cfg).to(device)
     model.set_normalizer_stats(stats)
     ema = AveragedModel(model, multi_avg_fn=get_ema_multi_avg_fn(cfg.ema_decay), use_buffers=True)
-    optimizer = torch.optim.AdamW(model.parameters(), lr=cfg.lr, betas=(cfg.beta1, cfg.beta2),
-                                  weight_decay=cfg.weight_decay)
+    optimizer = torch.optim.AdamW(model.param_groups(cfg.weight_decay), lr=cfg.lr, betas=(cfg.beta1, cfg.beta2))
     scheduler = cosine_with_warmup(optimizer, cfg.warmup_steps, cfg.steps)
     step, curve = 0, []
     if cfg.resume:
@@ -295,10 +284,10 @@ def train(cfg: TrainConfig, demos=None) -> dict:
         set_rng_state(ckpt["rng"])
         step, curve = int(ckpt["step"]), list(ckpt["eval_curve"])
 
-    net = LossModule(model)
+    net = model  # model.forward(batch) is compute_loss(batch), so DDP wraps it directly
     if world > 1:
         net = torch.nn.parallel.DistributedDataParallel(
-            net, device_ids=[device.index] if device.type == "cuda" else None)
+            model, device_ids=[device.index] if device.type == "cuda" else None)
     sampler = ResumableBatchSampler(len(windows), cfg.batch_size, cfg.seed, rank, world)
     sampler.start_at(step)
     loader = make_loader(windows, sampler, cfg.num_workers, pin_memory=device.type == "cuda")
@@ -319,7 +308,7 @@ def train(cfg: TrainConfig, demos=None) -> dict:
         if is_main:
             save_checkpoint(ckpt_path, model=model, ema=ema, optimizer=optimizer, scheduler=scheduler, step=step,
                             cfg=cfg, model_cfg=model_cfg, spec=spec, stats=stats, curve=curve,
-                            sampler_position=sampler_position(step))
+                            sampler_position=sampler_position(step), env_args=getattr(demos, "env_args", None))
 
     def sampler_position(s):
         epoch, taken = divmod(s, sampler.batches_per_epoch())
@@ -330,6 +319,7 @@ def train(cfg: TrainConfig, demos=None) -> dict:
             from jepa_policy.evaluate import evaluate
             from jepa_policy.policy import Policy
             policy = Policy(ema.module, spec, device=device)
+            policy.env_args = getattr(demos, "env_args", None)
             report = evaluate(policy, episodes=cfg.eval_episodes, seed=cfg.eval_seed, num_envs=cfg.eval_envs)
             curve.append({"step": step, "success_rate": report["success_rate"],
                           "mean_nmse": report["mean_nmse"]})

@@ -1,0 +1,111 @@
+"""Training loop: configs, schedule, overfitting a tiny real dataset, exact resume, logs."""
+import dataclasses
+import json
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from jepa_envs.data import load_dataset
+from jepa_envs.spec import all_task_specs
+from jepa_policy.train import TrainConfig, cosine_with_warmup, load_checkpoint, load_config, train
+
+
+@pytest.fixture(autouse=True, scope="module")
+def one_thread():
+    """One intra-op thread: on a shared 2-core machine more threads oversubscribe the cores and run slower."""
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)
+
+
+@pytest.fixture(scope="module")
+def demos(pusht_demo_file):
+    return load_dataset(pusht_demo_file, task="PushT", image_size=32)
+
+
+def test_every_task_has_validated_presets():
+    sim = [s for s in all_task_specs() if s.suite in ("embedded", "robomimic", "libero", "mimicgen")]
+    assert len(sim) == 10  # PushT + the paper's nine simulated tasks
+    for spec in sim:
+        paper = load_config(spec.name, "paper")
+        assert (paper.steps, paper.batch_size, paper.lr, paper.ema_decay) == (300_000, 256, 1e-4, 0.995)
+        assert paper.eval_every == 10_000 and paper.eval_episodes == 40
+        load_config(spec.name, "cpu")
+    quick = load_config("PushT", "quick", steps=7)
+    assert quick.steps == 7 and quick.model["width"] == 32
+
+
+def test_config_errors_name_the_problem():
+    with pytest.raises(ValueError, match="unknown training option"):
+        TrainConfig.from_dict({"stepz": 3})
+    with pytest.raises(TypeError, match="'steps' must be int"):
+        TrainConfig.from_dict({"steps": "many"})
+    with pytest.raises(KeyError, match="no preset 'huge'"):
+        load_config("PushT", "huge")
+    with pytest.raises(ValueError, match="unknown override"):
+        load_config("PushT", "quick", model={"widht": 8})
+    with pytest.raises(ValueError, match="grad_accum"):
+        load_config("PushT", "quick", grad_accum=3)
+
+
+def test_cosine_schedule_with_warmup_follows_its_formula():
+    p = torch.nn.Parameter(torch.zeros(1))
+    opt = torch.optim.AdamW([p], lr=1e-3)
+    sched = cosine_with_warmup(opt, warmup_steps=4, total_steps=20)
+    lrs = []
+    for _ in range(20):
+        lrs.append(sched.get_last_lr()[0])
+        opt.step()
+        sched.step()
+    expected = [1e-3 * (0.25 + 0.75 * s / 4) for s in range(4)]
+    expected += [1e-3 * 0.5 * (1 + math.cos(math.pi * (s - 4) / 16)) for s in range(4, 20)]
+    np.testing.assert_allclose(lrs, expected, rtol=1e-6)
+
+
+def test_tiny_model_overfits_tiny_pusht_dataset(demos, tmp_path):
+    n = 16  # the first 16 steps of one expert demo
+    small = dataclasses.replace(demos, obs={k: v[:n] for k, v in demos.obs.items()}, actions=demos.actions[:n],
+                                episode_ends=np.array([n]))
+    cfg = load_config("PushT", "quick", out_dir=str(tmp_path), steps=300, log_every=1, warmup_steps=10,
+                      model={"width": 64, "layers": 2, "heads": 2})
+    hist = train(cfg, small)["history"]
+    first = {k: np.mean([h[k] for h in hist[:5]]) for k in ("loss", "loss_act_step0", "loss_future")}
+    last = {k: np.mean([h[k] for h in hist[-20:]]) for k in ("loss", "loss_act_step0", "loss_future")}
+    assert last["loss"] < first["loss"] / 20
+    assert last["loss_future"] < first["loss_future"] / 100
+    assert last["loss_act_step0"] < first["loss_act_step0"] / 2
+
+
+def test_resume_reproduces_the_uninterrupted_run_exactly(demos, tmp_path):
+    opts = dict(steps=8, log_every=1, warmup_steps=2, batch_size=8, model={"dropout": 0.1})
+    full = train(load_config("PushT", "quick", out_dir=str(tmp_path / "full"), **opts), demos)
+    part = load_config("PushT", "quick", out_dir=str(tmp_path / "part"), stop_at=3, **opts)
+    first = train(part, demos)
+    assert first["step"] == 3
+    ckpt3 = load_checkpoint(first["checkpoint"])
+    assert ckpt3["step"] == 3 and ckpt3["sampler"]["batches_taken"] + ckpt3["sampler"]["epoch"] >= 1
+    resumed = train(dataclasses.replace(part, stop_at=0, resume=first["checkpoint"]), demos)
+    assert resumed["step"] == 8
+    a, b = load_checkpoint(full["checkpoint"]), load_checkpoint(resumed["checkpoint"])
+    for part_name in ("model", "ema"):
+        assert a[part_name].keys() == b[part_name].keys()
+        for key in a[part_name]:
+            assert torch.equal(a[part_name][key], b[part_name][key]), (part_name, key)
+    assert [h["loss"] for h in full["history"][3:]] == [h["loss"] for h in resumed["history"]]
+    # EMA weights are a real average: they differ from the raw weights after training
+    assert not torch.equal(a["model"]["action_head.weight"], a["ema"]["module.action_head.weight"])
+    # logs: JSONL rows for every step of both runs, TensorBoard events, the config beside them
+    rows = [json.loads(line) for line in (tmp_path / "part" / "log.jsonl").read_text().splitlines()]
+    assert [r["step"] for r in rows] == list(range(1, 9))
+    assert list((tmp_path / "part" / "tensorboard").glob("events.out.tfevents.*"))
+    assert json.loads((tmp_path / "part" / "train_config.json").read_text())["stop_at"] == 0
+
+
+def test_train_rejects_dataset_of_another_task(demos, tmp_path):
+    with pytest.raises(ValueError, match="dataset is for task 'PushT'"):
+        train(load_config("Square", "cpu", out_dir=str(tmp_path), steps=1, warmup_steps=0), demos)
+    with pytest.raises(ValueError, match="make-demos"):
+        train(load_config("PushT", "quick", out_dir=str(tmp_path), steps=1, warmup_steps=0))
