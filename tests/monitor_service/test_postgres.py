@@ -1,0 +1,89 @@
+"""The same service on a real PostgreSQL (Debian's postgresql binaries in a temp dir), when they exist."""
+import concurrent.futures
+import os
+import shutil
+import subprocess
+import tempfile
+from pathlib import Path
+
+import httpx
+import numpy as np
+import pytest
+from alembic.autogenerate import compare_metadata
+from alembic.runtime.migration import MigrationContext
+from monitor_testkit import ADMIN, DIM, episode_records
+
+from monitor_service import db
+from monitor_service.server import free_port, start_server
+
+PG_BIN = "/usr/lib/postgresql/15/bin"
+pytestmark = pytest.mark.skipif(
+    not os.path.exists(f"{PG_BIN}/initdb"), reason="PostgreSQL server binaries are not installed (apt-get install postgresql)"
+)
+
+
+@pytest.fixture(scope="module")
+def pg_url():
+    pytest.importorskip("psycopg2", reason="psycopg2-binary is not installed")
+    # Directly under /tmp: pytest's own temp root is private to root, which the postgres user cannot enter.
+    root = Path(tempfile.mkdtemp(prefix="jepa-monitor-pg-"))
+    # PostgreSQL refuses to run as root: run it as the postgres system user then.
+    prefix = ["runuser", "-u", "postgres", "--"] if os.geteuid() == 0 else []
+    if prefix:
+        shutil.chown(root, "postgres")
+    port = free_port()
+    data, log = root / "data", root / "log"
+    subprocess.run(prefix + [f"{PG_BIN}/initdb", "-D", str(data), "-A", "trust", "-U", "postgres"], check=True, capture_output=True)
+    opts = f"-p {port} -k {root} -c listen_addresses=127.0.0.1 -c fsync=off"
+    subprocess.run(prefix + [f"{PG_BIN}/pg_ctl", "-D", str(data), "-o", opts, "-l", str(log), "-w", "start"], check=True, capture_output=True)
+    try:
+        yield f"postgresql+psycopg2://postgres@127.0.0.1:{port}/postgres"
+    finally:
+        subprocess.run(prefix + [f"{PG_BIN}/pg_ctl", "-D", str(data), "-m", "immediate", "-w", "stop"], capture_output=True)
+        shutil.rmtree(root, ignore_errors=True)
+
+
+def test_migrations_on_postgres(pg_url):
+    engine = db.make_engine(pg_url)
+    db.upgrade(engine)
+    db.upgrade(engine)
+    assert db.current_revision(engine) == db.head_revision()
+    with engine.connect() as conn:
+        assert compare_metadata(MigrationContext.configure(conn), db.Base.metadata) == []
+    engine.dispose()
+
+
+def test_service_on_postgres_concurrent_idempotent_calibrated_and_restarted(pg_url, tmp_path):
+    A = {"X-API-Key": ADMIN}
+    port = free_port()
+    server = start_server(pg_url, admin_key=ADMIN, port=port, workers=2, log_path=tmp_path / "s.log",
+                          env={"PROMETHEUS_MULTIPROC_DIR": str(tmp_path / "prom")})
+    try:
+        http = httpx.Client(base_url=server.url, timeout=60)
+        http.put("/v1/tasks/PgTask", json={"latent_dim": DIM}, headers=A).raise_for_status()
+        robot = {"X-API-Key": http.post("/v1/keys", json={"name": "pg-arm", "role": "robot", "robot": "pg-arm"}, headers=A).json()["key"]}
+
+        def writer(w):
+            rng = np.random.default_rng(w)
+            with httpx.Client(base_url=server.url, timeout=60) as h:
+                for i in range(8):
+                    fail = (w + i) % 3 == 0
+                    recs, _ = episode_records(f"pg{w}-{i}", "PgTask", rng, 0.6 if fail else 0.3, n_steps=5, success=not fail)
+                    key = {"Idempotency-Key": f"pg{w}-{i}"}
+                    for _ in range(2):  # every request sent twice, as a client retrying after a timeout would
+                        r = h.post("/v1/batch", json={"records": recs}, headers={**robot, **key})
+                        assert r.status_code == 200, r.text
+
+        with concurrent.futures.ThreadPoolExecutor(4) as pool:
+            list(pool.map(writer, range(4)))
+        cal = http.post("/v1/calibrations", json={"task": "PgTask", "alpha": 0.2}, headers=A)
+        assert cal.status_code == 201, cal.text
+        assert cal.json()["result"]["n_success"] + cal.json()["result"]["n_failure"] == 32
+        server.kill()
+        server = start_server(pg_url, admin_key=ADMIN, port=port, log_path=tmp_path / "s.log")
+        eps = http.get("/v1/episodes?task=PgTask&limit=100", headers=A).json()
+        assert len(eps) == 32 and all(e["n_decisions"] == 5 and e["n_scored"] == 5 for e in eps)
+        assert http.get("/v1/report", headers=A).json()["tasks"][0]["task"] == "PgTask"
+        http.close()
+    finally:
+        server.stop()
