@@ -28,3 +28,80 @@ def test_reporting_protocols_of_table_6():
     assert p["evaluations"] == 7
     with pytest.raises(ValueError, match="eval_every"):
         reporting_protocols([])
+
+
+@pytest.fixture(scope="module")
+def checkpoint(pusht_demo_file, tmp_path_factory):
+    import torch
+
+    from jepa_envs.data import load_dataset
+    from jepa_policy.train import load_config, train
+
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)  # shared 2-core machine: one thread runs faster than two oversubscribed ones
+    demos = load_dataset(pusht_demo_file, task="PushT", image_size=32)
+    out = tmp_path_factory.mktemp("eval_run")
+    result = train(load_config("PushT", "quick", out_dir=str(out), steps=20), demos)
+    yield result["checkpoint"]
+    torch.set_num_threads(threads)
+
+
+def test_rollouts_give_consistent_per_decision_nmse_records(checkpoint, tmp_path):
+    import json
+
+    from jepa_policy.evaluate import evaluate
+    from jepa_policy.policy import Policy
+
+    policy = Policy.from_checkpoint(checkpoint)
+    events = []
+    report = evaluate(policy, episodes=3, seed=7, num_envs=2, max_steps=30, keep_latents=True,
+                      on_decision=events.append, video_dir=tmp_path / "video", out=tmp_path / "records.jsonl")
+    records = report["records"]
+    assert [r["seed"] for r in records] == [7, 8, 9] and [r["episode"] for r in records] == [0, 1, 2]
+    assert report["success_rate"] == np.mean([r["success"] for r in records])
+    for r in records:
+        steps = [d["step"] for d in r["decisions"]]
+        assert steps == list(range(0, r["length"], 8))
+        for d in r["decisions"]:
+            assert d["target_step"] == d["step"] + 4
+            if d["target_step"] <= r["length"]:
+                z_hat, z = np.array(d["z_hat"]), np.array(d["z_real"])
+                assert z.shape == (policy.model.future_dim,)
+                assert d["nmse"] == pytest.approx(float(nmse(z_hat, z)), rel=1e-9)
+                assert d["nmse"] > 0
+            else:
+                assert d["nmse"] is None
+    valid = [d["nmse"] for r in records for d in r["decisions"] if d["nmse"] is not None]
+    assert report["mean_nmse"] == pytest.approx(np.mean(valid))
+    # the hook saw every prediction and every realized target, with the same numbers as the records
+    realized = [e for e in events if e.kind == "realized"]
+    assert len([e for e in events if e.kind == "prediction"]) == sum(len(r["decisions"]) for r in records)
+    assert sorted(e.nmse for e in realized) == sorted(valid)
+    lines = (tmp_path / "records.jsonl").read_text().splitlines()
+    assert [json.loads(line)["seed"] for line in lines] == [7, 8, 9]
+    assert len(list((tmp_path / "video").glob("*.gif"))) == 3
+    # seeded: the same seeds give the same rollouts, whatever the number of parallel envs
+    again = evaluate(policy, episodes=3, seed=7, num_envs=3, max_steps=30)["records"]
+    assert [(r["success"], r["length"]) for r in again] == [(r["success"], r["length"]) for r in records]
+    for r_again, r in zip(again, records):
+        np.testing.assert_allclose([d["nmse"] or 0.0 for d in r_again["decisions"]],
+                                   [d["nmse"] or 0.0 for d in r["decisions"]], rtol=1e-5)
+
+
+def test_realized_latents_match_a_fresh_encoding_of_the_env_frame(checkpoint):
+    import gymnasium as gym
+
+    from jepa_policy.evaluate import env_kwargs_for, evaluate
+    from jepa_policy.policy import Policy
+
+    policy = Policy.from_checkpoint(checkpoint)
+    report = evaluate(policy, episodes=1, seed=11, num_envs=1, max_steps=12, keep_latents=True)
+    decision = report["records"][0]["decisions"][0]
+    # replay the same episode by hand and encode frame t+k = 4 ourselves
+    env = gym.make(policy.spec.env_id, **env_kwargs_for(policy.spec, policy.env_args))
+    obs, _ = env.reset(seed=11)
+    policy.reset()
+    for _ in range(decision["target_step"]):
+        obs, *_ = env.step(policy.act(obs))
+    env.close()
+    np.testing.assert_allclose(decision["z_real"], policy.encode_future(obs), rtol=1e-5, atol=1e-6)
