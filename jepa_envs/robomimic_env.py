@@ -99,7 +99,23 @@ def make_backend_from_env_args(env_args: dict, *, control_delta: bool, use_camer
     kwargs["controller_configs"] = {**ctrl, "control_delta": bool(control_delta)}
     kwargs.pop("render_gpu_device_id", None)  # EGL device choice; meaningless under OSMesa
     kwargs.update(overrides)
+    _register_source_tasks(env_args["env_name"])
     return robosuite.make(env_args["env_name"], **kwargs)
+
+
+def _register_source_tasks(env_name: str) -> None:
+    """MimicGen's task classes join robosuite's registry only when ``mimicgen`` is imported."""
+    from robosuite.environments.base import REGISTERED_ENVS
+
+    if env_name in REGISTERED_ENVS:
+        return
+    try:
+        import mimicgen  # noqa: F401
+    except ImportError:
+        pass
+    if env_name not in REGISTERED_ENVS:
+        raise ValueError(f"robosuite has no env {env_name!r}. MimicGen tasks (*_D0, *_D1, ...) need the MimicGen "
+                         "source package (see docs/envs_simulation.md); other names must be robosuite 1.4 envs")
 
 
 def _task_for_env_name(env_name: str, suites: tuple[str, ...]) -> TaskSpec:

@@ -99,8 +99,8 @@ def upright(image: np.ndarray) -> np.ndarray:
 class RobosuiteTaskEnv(JEPAEnv):
     """Our interface around a built robosuite env (``self.backend``).
 
-    Subclasses build the backend and pass it in; ``success_fn`` returns the task's success (default:
-    ``backend._check_success()``); ``get_obs_fn`` returns robosuite's observation dict after reset.
+    Subclasses build the backend and pass it in, and may override ``_backend_reset`` (returns robosuite's
+    observation dict); ``success_fn`` returns the task's success (default ``backend._check_success()``).
     """
 
     def __init__(

@@ -15,7 +15,8 @@ pytest.importorskip("robosuite", reason="robosuite is part of the [sim] extra")
 
 import jepa_envs  # noqa: E402,F401  registers the ids
 from jepa_envs import abs_actions, rotations  # noqa: E402
-from jepa_envs.robomimic_env import RobomimicEnv, env_args_from_hdf5, robomimic_env_args  # noqa: E402
+from jepa_envs.robomimic_env import (  # noqa: E402
+    RobomimicEnv, env_args_from_hdf5, make_backend_from_env_args, robomimic_env_args)
 
 SIZE = 32
 
@@ -213,6 +214,10 @@ def test_bad_env_args_are_refused_with_a_reason(square_args_file):
         RobomimicEnv("Square", action_mode="joint")
     with pytest.raises(KeyError, match="env_args"):
         env_args_from_hdf5(_empty_h5(square_args_file.parent / "empty.hdf5"))
+    with pytest.raises(KeyError, match="NoSuchEnv"):
+        RobomimicEnv.from_env_args({**args, "env_name": "NoSuchEnv"})
+    with pytest.raises(ValueError, match="robosuite has no env 'NoSuchEnv'"):
+        make_backend_from_env_args({**args, "env_name": "NoSuchEnv"}, control_delta=True)
 
 
 def _empty_h5(path):
