@@ -8,7 +8,7 @@ from dataclasses import dataclass
 
 import httpx
 from sqlalchemy import select, update
-from sqlalchemy.orm import Session, sessionmaker
+from sqlalchemy.orm import sessionmaker
 
 from monitor_service.db import Alert, WebhookDelivery, utcnow
 from monitor_service.metrics import WEBHOOK_FAILURES

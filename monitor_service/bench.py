@@ -8,6 +8,7 @@ MonitorClient's per-call cost in the control loop while its sender drains to the
 from __future__ import annotations
 
 import json
+import os
 import tempfile
 import threading
 import time
@@ -39,6 +40,15 @@ def _records(rng: np.random.Generator, dim: int, start: int, count: int, prefix:
 
 def _jsonable(recs: list[dict]) -> list[dict]:
     return [{k: (v.tolist() if isinstance(v, np.ndarray) else v) for k, v in r.items()} for r in recs]
+
+
+def _cpu_seconds(pid: int) -> float | None:
+    """User + system CPU time of a process (Linux /proc); None elsewhere."""
+    try:
+        fields = open(f"/proc/{pid}/stat").read().rsplit(")", 1)[1].split()
+    except OSError:
+        return None
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
 
 def _summary(name: str, n_decisions: int, seconds: float, latencies: list[float]) -> dict:
@@ -130,7 +140,9 @@ def _client_cost(url: str, key: str, groups: list[list[dict]], max_seconds: floa
             "p99_us": float(np.percentile(lat_us, 99)), "end_to_end_decisions_per_s": len(per_call) / total}
 
 
-def run_bench(n: int = 4000, batch: int = 64, dim: int = 256, max_seconds: float = 20.0, concurrency: int = 2) -> list[dict]:
+def run_bench(
+    n: int = 4000, batches: tuple[int, ...] = (16, 64), dim: int = 256, max_seconds: float = 20.0, concurrency: int = 2
+) -> list[dict]:
     """Start a fresh server on a temporary SQLite file, run every mode, print and return the numbers."""
     admin = "bench-admin-" + uuid.uuid4().hex
     with tempfile.TemporaryDirectory(prefix="jepa-monitor-bench-") as tmp:
@@ -143,10 +155,20 @@ def run_bench(n: int = 4000, batch: int = 64, dim: int = 256, max_seconds: float
             rng = np.random.default_rng(0)
             print(f"jepa-monitor bench: latent dim {dim}, SQLite (WAL) at {db_url}, server {server.url}, 1 worker", flush=True)
             single_n = min(n, 1000)
-            rows = [
-                _sequential(server.url, key, _records(rng, dim, 0, single_n, "json"), False, max_seconds, "json, 1 decision/request"),
-                _sequential(server.url, key, _records(rng, dim, 0, single_n, "bin"), True, max_seconds, "binary, 1 decision/request"),
-                _batched(server.url, key, _records(rng, dim, 0, n, "batch"), batch, concurrency, max_seconds),
-                _client_cost(server.url, key, _records(rng, dim, 0, n, "client"), max_seconds),
+            modes = [
+                lambda: _sequential(server.url, key, _records(rng, dim, 0, single_n, "json"), False, max_seconds, "json, 1 decision/request"),
+                lambda: _sequential(server.url, key, _records(rng, dim, 0, single_n, "bin"), True, max_seconds, "binary, 1 decision/request"),
+                *[lambda b=b: _batched(server.url, key, _records(rng, dim, 0, n, f"batch{b}"), b, concurrency, max_seconds) for b in batches],
+                lambda: _client_cost(server.url, key, _records(rng, dim, 0, n, "client"), max_seconds),
             ]
+            rows = []
+            for mode in modes:
+                cpu0 = _cpu_seconds(server.process.pid)
+                row = mode()
+                cpu1 = _cpu_seconds(server.process.pid)
+                if cpu0 is not None and cpu1 is not None:
+                    # CPU the server spent per decision: unlike wall latency, not inflated by other load on the host.
+                    row["server_cpu_ms_per_decision"] = round((cpu1 - cpu0) * 1000 / row["decisions"], 3)
+                    print(f"{'':<28}server CPU {row['server_cpu_ms_per_decision']:.3f} ms per decision", flush=True)
+                rows.append(row)
     return rows

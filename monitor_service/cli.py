@@ -153,7 +153,11 @@ def cmd_report(args) -> int:
 def cmd_bench(args) -> int:
     from monitor_service.bench import run_bench
 
-    run_bench(n=args.n, batch=args.batch, dim=args.dim, max_seconds=args.max_seconds, concurrency=args.concurrency)
+    try:
+        batches = tuple(int(b) for b in args.batch.split(","))
+    except ValueError:
+        raise ValueError(f"--batch {args.batch!r} must be comma-separated integers, e.g. 16,64") from None
+    run_bench(n=args.n, batches=batches, dim=args.dim, max_seconds=args.max_seconds, concurrency=args.concurrency)
     return 0
 
 
@@ -208,7 +212,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     s = sub.add_parser("bench", help="ingestion throughput and latency against a real server on loopback")
     s.add_argument("--n", type=int, default=4000, help="decisions per mode (upper bound)")
-    s.add_argument("--batch", type=int, default=64, help="decisions per batched request")
+    s.add_argument("--batch", default="16,64", help="decisions per batched request, comma-separated sizes")
     s.add_argument("--dim", type=int, default=256, help="latent dimension")
     s.add_argument("--concurrency", type=int, default=2, help="parallel connections in the batched modes")
     s.add_argument("--max-seconds", type=float, default=20.0, help="time bound per mode")

@@ -2,7 +2,6 @@
 from __future__ import annotations
 
 import datetime as dt
-import math
 from typing import Annotated, Any, Literal
 
 import numpy as np
@@ -216,9 +215,3 @@ class Health(BaseModel):
     status: str
     detail: str = ""
 
-
-def finite_or_none(x: float | None) -> float | None:
-    """JSON-safe float: infinities and NaN become None."""
-    if x is None or not math.isfinite(x):
-        return None
-    return float(x)

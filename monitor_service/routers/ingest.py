@@ -18,9 +18,6 @@ from monitor_service.service import IngestContext, IngestError, ingest, publish_
 
 router = APIRouter(prefix="/v1", tags=["ingest"])
 
-_BODY_DOC = {"content": {"application/json": {}, "application/x-msgpack": {}}, "required": True}
-
-
 def validation_message(exc: ValidationError) -> str:
     """One line per problem, each naming the field path, e.g. 'records.3.decision.z_hat: latent has NaN ...'."""
     parts = []
@@ -115,6 +112,7 @@ for path, model, summary in (
 ):
     router.add_api_route(
         path, _endpoint(TypeAdapter(model), summary), methods=["POST"], response_model=IngestResult, summary=summary,
-        openapi_extra={"requestBody": {**_BODY_DOC, "content": {"application/json": {"schema": model.model_json_schema()},
-                                                               "application/x-msgpack": {}}}},
+        # The body is read by hand (JSON or msgpack), so document it explicitly.
+        openapi_extra={"requestBody": {"required": True, "content": {
+            "application/json": {"schema": model.model_json_schema()}, "application/x-msgpack": {}}}},
     )

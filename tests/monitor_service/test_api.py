@@ -29,6 +29,8 @@ def test_health_and_readiness(client):
     assert client.get("/healthz").json()["status"] == "ok"
     r = client.get("/readyz")
     assert r.status_code == 200 and r.json()["detail"] == "schema 0001"
+    paths = client.get("/openapi.json").json()["paths"]
+    assert "application/x-msgpack" in paths["/v1/batch"]["post"]["requestBody"]["content"]
 
 
 def test_decision_scoring_matches_paper_nmse_and_early_score(client, robot, operator):

@@ -164,3 +164,14 @@ def test_concurrent_writers_two_workers_and_metrics_aggregate(db_url, tmp_path):
             total = float(re.search(r'jepa_monitor_decisions_total\{robot="arm1",task="Square"\} ([0-9.e+]+)', text).group(1))
             assert total == 4 * 6 * 5 + 6
         http.close()
+
+
+def test_bench_runs_end_to_end_and_reports_every_mode(capsys):
+    from monitor_service.bench import run_bench
+
+    rows = run_bench(n=40, batches=(8,), dim=16, max_seconds=5, concurrency=2)
+    assert [r["mode"] for r in rows] == ["json, 1 decision/request", "binary, 1 decision/request", "binary batch=8 x2", "client"]
+    assert rows[2]["decisions"] == 40 and rows[3]["decisions"] == 40
+    assert all(r["decisions"] > 0 for r in rows)
+    out = capsys.readouterr().out
+    assert "decisions/s" in out and "client per decision" in out
