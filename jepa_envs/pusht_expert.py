@@ -76,29 +76,20 @@ class PushTExpert:
         """Targets of the best of several rounds of simulated candidate pushes."""
         current = pose_cost(sim.block_pose)
         best_targets, best_score = None, math.inf
-        for _ in range(3):  # widen the search when no candidate improves on the current pose
-            for _ in range(self.config.num_candidates):
-                targets = self._candidate(sim, current)
-                score, used = self._simulate(sim, targets, success_threshold)
-                if score < best_score:
-                    best_targets, best_score = targets[:used], score
-            if best_score < current - 1.0:
-                break
-        return best_targets
-
-    def _simulate(self, sim: PushTSim, targets: list[np.ndarray], threshold: float) -> tuple[float, int]:
-        """Cost after running ``targets`` on a copy of ``sim`` (-1 and the steps used when it succeeds)."""
-        trial = sim.clone()
+        trial, start = sim.clone(), sim.snapshot()  # one copy of the space, rewound for every candidate
         try:
-            for i, target in enumerate(targets):
-                trial.step(target)
-                pose = trial.block_pose
-                # the exact coverage is only worth computing near the goal
-                if pose_cost(pose) < 30.0 and coverage(pose) >= threshold:
-                    return -1.0 + i * 1e-3, i + 1  # earlier success is better
-            return pose_cost(trial.block_pose), len(targets)
+            for _ in range(3):  # widen the search when no candidate improves on the current pose
+                for _ in range(self.config.num_candidates):
+                    targets = self._candidate(sim, current)
+                    trial.restore(start)
+                    score, used = _simulate(trial, targets, success_threshold)
+                    if score < best_score:
+                        best_targets, best_score = targets[:used], score
+                if best_score < current - 1.0:
+                    break
         finally:
             trial.free()
+        return best_targets
 
     def _candidate(self, sim: PushTSim, current_cost: float) -> list[np.ndarray]:
         cfg, rng = self.config, self.rng
@@ -122,6 +113,17 @@ class PushTExpert:
         targets += [targets[-1]] * cfg.hold_steps
         lo, hi = AGENT_RADIUS + 6.0, WORLD_SIZE - AGENT_RADIUS - 6.0
         return [np.clip(p, lo, hi) for p in targets]
+
+
+def _simulate(trial: PushTSim, targets: list[np.ndarray], threshold: float) -> tuple[float, int]:
+    """Cost after running ``targets`` on ``trial`` (-1 and the steps used when it succeeds)."""
+    for i, target in enumerate(targets):
+        trial.step(target)
+        pose = trial.block_pose
+        # the exact coverage is only worth computing near the goal
+        if pose_cost(pose) < 30.0 and coverage(pose) >= threshold:
+            return -1.0 + i * 1e-3, i + 1  # earlier success is better
+    return pose_cost(trial.block_pose), len(targets)
 
 
 def _segment_clear(a: np.ndarray, b: np.ndarray, pose, clearance: float) -> bool:
