@@ -1,4 +1,4 @@
-"""``jepa-policy``: train, eval, describe, bench latency, bench train, protocols."""
+"""``jepa-policy``: train, eval, describe, bench latency, bench train, audit, protocols."""
 from __future__ import annotations
 
 import argparse
@@ -105,6 +105,17 @@ def cmd_protocols(args) -> int:
     return 0
 
 
+def cmd_audit(args) -> int:
+    from jepa_envs.data import load_dataset
+    from jepa_policy.audit import audit_checkpoint
+    from jepa_policy.policy import Policy
+
+    policy = Policy.from_checkpoint(args.checkpoint, device=args.device)
+    demos = load_dataset(args.dataset, task=policy.spec.name, image_size=policy.spec.image_size)
+    print(json.dumps(audit_checkpoint(policy, demos, samples=args.samples, seed=args.seed)))
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="jepa-policy", description=__doc__)
     sub = parser.add_subparsers(dest="command", required=True)
@@ -153,6 +164,14 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--device", default="auto")
     p.add_argument("--json", action="store_true")
     p.set_defaults(func=cmd_bench_train)
+
+    p = sub.add_parser("audit", help="collapse audit (Sec. 4.9): effective rank, top share, TE32 of latents")
+    p.add_argument("--checkpoint", required=True)
+    p.add_argument("--dataset", required=True)
+    p.add_argument("--samples", type=int, default=4096)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--device", default="cpu")
+    p.set_defaults(func=cmd_audit)
 
     p = sub.add_parser("protocols", help="Table 6 reporting protocols from eval_curve.json or a checkpoint")
     p.add_argument("curve")

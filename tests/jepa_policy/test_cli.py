@@ -60,6 +60,10 @@ def test_train_eval_protocols_from_the_command_line(pusht_demo_file, tmp_path, c
     report = json.loads(capsys.readouterr().out)
     assert report["episodes"] == 2 and 0.0 <= report["success_rate"] <= 1.0
     assert len((tmp_path / "eval.jsonl").read_text().splitlines()) == 2
+    assert main(["audit", "--checkpoint", str(ckpt), "--dataset", str(pusht_demo_file), "--samples", "64"]) == 0
+    audit = json.loads(capsys.readouterr().out)
+    assert audit["samples"] == 64 and audit["encoder"]["dim"] == audit["predictor"]["dim"] == 8 * 8
+    assert 1.0 <= audit["encoder"]["effective_rank"] <= 64 and 0.0 <= audit["encoder"]["te32"] <= 1.0
     for source in (out / "eval_curve.json", ckpt):
         assert main(["protocols", str(source)]) == 0
         protocols = json.loads(capsys.readouterr().out)
