@@ -72,7 +72,9 @@ class IngestContext:
         """Load the touched episodes, decisions and realized targets with one query each."""
         s = self.session
         ep_ids = {r.episode for r in records}
-        for ep in s.scalars(select(Episode).where(Episode.id.in_(ep_ids))):
+        # FOR UPDATE (PostgreSQL): concurrent requests on one episode queue here instead of losing each other's
+        # counter and alert-state updates. SQLite ignores it; BEGIN IMMEDIATE already serialises writers there.
+        for ep in s.scalars(select(Episode).where(Episode.id.in_(ep_ids)).order_by(Episode.id).with_for_update()):
             self.episodes[ep.id] = ep
         known = [e for e in ep_ids if e in self.episodes]
         if not known:
@@ -127,7 +129,9 @@ def _check_owner(ctx: IngestContext, ep: Episode) -> None:
         raise IngestError(403, f"episode {ep.id!r} belongs to robot {ep.robot!r}; your key writes only for {p.robot!r}")
 
 
-def _check_dim(task: Task, dim: int, what: str) -> None:
+def _check_dim(ctx: IngestContext, task: Task, dim: int, what: str) -> None:
+    if task.latent_dim is None:
+        ctx.session.refresh(task, with_for_update=True)  # two first decisions must not fix two different sizes
     if task.latent_dim is None:
         task.latent_dim = dim
     elif task.latent_dim != dim:
@@ -147,7 +151,7 @@ def _score(ctx: IngestContext, ep: Episode, d: _Dec, z: bytes) -> None:
 
 def _ingest_decision(ctx: IngestContext, rec: DecisionIn) -> None:
     task = _task(ctx, rec.task)
-    _check_dim(task, rec.z_hat.shape[0], "z_hat")
+    _check_dim(ctx, task, rec.z_hat.shape[0], "z_hat")
     p = ctx.principal
     robot = rec.robot or p.robot
     if robot is None:
@@ -200,7 +204,7 @@ def _known_episode(ctx: IngestContext, episode_id: str, what: str) -> Episode:
 
 def _ingest_target(ctx: IngestContext, rec: TargetIn) -> None:
     ep = _known_episode(ctx, rec.episode, "targets")
-    _check_dim(_task(ctx, ep.task), rec.z.shape[0], "z")
+    _check_dim(ctx, _task(ctx, ep.task), rec.z.shape[0], "z")
     z = rec.z.astype("<f4").tobytes()
     existing = ctx.targets.get((ep.id, rec.step))
     if existing is not None:

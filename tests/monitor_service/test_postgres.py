@@ -73,6 +73,11 @@ def test_service_on_postgres_concurrent_idempotent_calibrated_and_restarted(pg_u
                     for _ in range(2):  # every request sent twice, as a client retrying after a timeout would
                         r = h.post("/v1/batch", json={"records": recs}, headers={**robot, **key})
                         assert r.status_code == 200, r.text
+                    # All writers also append to one shared episode at once: no update may be lost.
+                    shared = {"kind": "decision", "task": "PgTask", "episode": "pg-shared", "step": w * 8 + i,
+                              "horizon": 1, "z_hat": rng.normal(size=DIM).tolist(), "held_out": False}
+                    r = h.post("/v1/batch", json={"records": [shared]}, headers=robot)
+                    assert r.status_code == 200, r.text
 
         with concurrent.futures.ThreadPoolExecutor(4) as pool:
             list(pool.map(writer, range(4)))
@@ -81,8 +86,9 @@ def test_service_on_postgres_concurrent_idempotent_calibrated_and_restarted(pg_u
         assert cal.json()["result"]["n_success"] + cal.json()["result"]["n_failure"] == 32
         server.kill()
         server = start_server(pg_url, admin_key=ADMIN, port=port, log_path=tmp_path / "s.log")
-        eps = http.get("/v1/episodes?task=PgTask&limit=100", headers=A).json()
-        assert len(eps) == 32 and all(e["n_decisions"] == 5 and e["n_scored"] == 5 for e in eps)
+        eps = {e["id"]: e for e in http.get("/v1/episodes?task=PgTask&limit=100", headers=A).json()}
+        assert eps.pop("pg-shared")["n_decisions"] == 32
+        assert len(eps) == 32 and all(e["n_decisions"] == 5 and e["n_scored"] == 5 for e in eps.values())
         assert http.get("/v1/report", headers=A).json()["tasks"][0]["task"] == "PgTask"
         http.close()
     finally:
