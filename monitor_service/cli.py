@@ -57,6 +57,9 @@ def cmd_db(args) -> int:
     engine = db.make_engine(_settings(args).database_url)
     if args.action == "upgrade":
         db.upgrade(engine)
+    elif args.action == "prune":
+        n = db.prune_idempotency_keys(engine, args.older_than_days)
+        print(f"removed {n} idempotency keys older than {args.older_than_days} days")
     print(f"revision {db.current_revision(engine)} (head {db.head_revision()})")
     return 0
 
@@ -173,8 +176,9 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--log-level", default="info")
     s.set_defaults(func=cmd_serve)
 
-    s = sub.add_parser("db", help="database schema migrations")
-    s.add_argument("action", choices=["upgrade", "current"])
+    s = sub.add_parser("db", help="schema migrations (upgrade, current) and housekeeping (prune)")
+    s.add_argument("action", choices=["upgrade", "current", "prune"])
+    s.add_argument("--older-than-days", type=float, default=7.0, help="prune: idempotency keys older than this")
     s.set_defaults(func=cmd_db)
 
     s = sub.add_parser("keys", help="API keys")

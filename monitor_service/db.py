@@ -221,3 +221,14 @@ def head_revision() -> str:
     cfg = Config()
     cfg.set_main_option("script_location", str(MIGRATIONS_DIR))
     return ScriptDirectory.from_config(cfg).get_current_head()
+
+
+def prune_idempotency_keys(engine: Engine, older_than_days: float) -> int:
+    """Delete stored Idempotency-Keys older than ``older_than_days``; a retry after that is treated as new."""
+    if older_than_days < 0:
+        raise ValueError(f"older_than_days must be >= 0, got {older_than_days}")
+    from sqlalchemy import delete
+
+    cutoff = utcnow() - dt.timedelta(days=older_than_days)
+    with engine.begin() as conn:
+        return conn.execute(delete(IdempotencyKey).where(IdempotencyKey.created_at < cutoff)).rowcount

@@ -52,7 +52,7 @@ def test_cli_offline_calibrate_report_keys_tasks(tmp_path, capsys):
         rng = np.random.default_rng(5)
         for i in range(30):
             fail = i % 3 == 0
-            post_batch(c, robot, episode_records(f"e{i}", "Square", rng, 0.6 if fail else 0.3, n_steps=5, success=not fail)[0])
+            post_batch(c, robot, episode_records(f"e{i}", "Square", rng, 0.6 if fail else 0.3, n_steps=5, success=not fail)[0], key=f"k{i}")
     assert main(url + ["calibrate", "--task", "Square", "--n-bootstrap", "300", "--n-permutation", "300"]) == 0
     out = capsys.readouterr().out
     assert "AUROC" in out and "n_success=20, n_failure=10" in out and "conformal threshold at alpha=0.1" in out
@@ -64,6 +64,10 @@ def test_cli_offline_calibrate_report_keys_tasks(tmp_path, capsys):
     assert rep["tasks"][0]["task"] == "Square" and rep["tasks"][0]["n_failure"] == 10
     assert main(url + ["calibrate", "--task", "Nope"]) == 2
     assert "not registered" in capsys.readouterr().err
+    assert main(url + ["db", "prune", "--older-than-days", "1"]) == 0
+    assert "removed 0 idempotency keys" in capsys.readouterr().out
+    assert main(url + ["db", "prune", "--older-than-days", "0"]) == 0
+    assert "removed 30 idempotency keys" in capsys.readouterr().out
     assert main(url + ["keys", "revoke", "1"]) == 0
     assert main(url + ["keys", "list"]) == 0
     assert "revoked" in capsys.readouterr().out
