@@ -312,3 +312,19 @@ def test_diffusion_loss_is_epsilon_mse_and_sampling_is_seeded():
     lo, hi = -3.0, 3.0                                      # clip_sample keeps samples inside the data range
     assert a1.min() >= lo - 1e-5 and a1.max() <= hi + 1e-5
     assert isinstance(model, torch.nn.Module) and not isinstance(model, PolicyModel)
+
+
+def test_two_step_objective_is_learnable_on_a_fixed_batch():
+    model = tiny_model("jepa").train()
+    batch = make_batch(model.cfg, batch=4)
+    optimizer = torch.optim.AdamW(model.param_groups(0.0), lr=3e-3)
+    history = []
+    for i in range(12):
+        loss, info = model.compute_loss(batch, generator=torch.Generator().manual_seed(i))
+        optimizer.zero_grad()
+        loss.backward()
+        optimizer.step()
+        history.append(info)
+    assert history[-1]["loss"] < 0.5 * history[0]["loss"]
+    assert history[-1]["loss_act_step1"] < 0.5 * history[0]["loss_act_step1"]   # the refinement pass learns
+    assert history[-1]["loss_future_step1"] < history[0]["loss_future_step1"]
