@@ -86,3 +86,19 @@ def start_server(
     server.kill()
     tail = log_path.read_text(errors="replace")[-3000:]
     raise RuntimeError(f"monitor server did not become ready on port {port}; log {log_path}:\n{tail}")
+
+
+def provision(url: str, admin_key: str, tasks: dict[str, int | None], robot: str, key_name: str | None = None) -> str:
+    """Register ``tasks`` (name -> latent dimension or None) and create a robot key; returns the key's secret.
+
+    The one call a rollout driver needs between :func:`start_server` and :class:`MonitorClient`.
+    """
+    with httpx.Client(base_url=url, headers={"X-API-Key": admin_key}, timeout=30) as http:
+        for name, dim in tasks.items():
+            r = http.put(f"/v1/tasks/{name}", json={"latent_dim": dim})
+            if r.status_code != 200:
+                raise RuntimeError(f"registering task {name!r} failed: {r.status_code} {r.text}")
+        r = http.post("/v1/keys", json={"name": key_name or f"{robot}-key", "role": "robot", "robot": robot})
+        if r.status_code != 201:
+            raise RuntimeError(f"creating the robot key for {robot!r} failed: {r.status_code} {r.text}")
+        return r.json()["key"]

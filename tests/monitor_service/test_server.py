@@ -9,7 +9,7 @@ import pytest
 from monitor_testkit import ADMIN, DIM, episode_records
 
 from monitor_service.client import AsyncMonitorClient, MonitorClient
-from monitor_service.server import free_port, start_server
+from monitor_service.server import free_port, provision, start_server
 
 A = {"X-API-Key": ADMIN}
 
@@ -108,7 +108,11 @@ def test_client_buffer_is_bounded_and_rejections_are_reported(db_url, tmp_path):
 
 def test_async_client(db_url, tmp_path):
     with start_server(db_url, admin_key=ADMIN, log_path=tmp_path / "s.log") as server:
-        http, robot, op = _setup(server.url)
+        robot = {"X-API-Key": provision(server.url, ADMIN, {"Square": DIM}, robot="arm1")}
+        http = httpx.Client(base_url=server.url, timeout=30)
+        op = A
+        with pytest.raises(RuntimeError, match="already uses latent_dim 16"):
+            provision(server.url, ADMIN, {"Square": DIM + 1}, robot="arm2")
 
         async def loop():
             async with AsyncMonitorClient(server.url, robot["X-API-Key"], batch_size=5) as client:
