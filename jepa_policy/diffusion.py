@@ -149,9 +149,10 @@ class DiffusionPolicyModel(BasePolicyModel):
         cond = self._condition(obs, False, None)
         b = cond.shape[0]
         sample = self._noise((b, self.cfg.horizon, self.cfg.action_dim), generator, cond)
-        self.scheduler.set_timesteps(steps, device=cond.device)
+        # Timesteps stay on the CPU for the scheduler's table look-ups (as in DP); the network gets a device copy.
+        self.scheduler.set_timesteps(steps)
         for t in self.scheduler.timesteps:
-            eps = self.step(sample, t.expand(b), cond)
+            eps = self.step(sample, t.to(cond.device).expand(b), cond)
             sample = self.scheduler.step(eps, t, sample, generator=generator).prev_sample
         return self.normalizer.unnormalize("action", sample.float()), None
 
