@@ -50,6 +50,7 @@ class ExpertConfig:
     standoff: float = 10.0            # gap between agent and block before a push
     max_push_angle_deg: float = 35.0  # push direction deviates at most this much from the contact normal
     hold_steps: int = 2               # targets repeated at the end of a push so the agent catches up
+    step_cost: float = 0.5            # world units of pose cost a candidate pays per control step it takes
 
 
 class PushTExpert:
@@ -75,17 +76,19 @@ class PushTExpert:
     def plan(self, sim: PushTSim, success_threshold: float) -> list[np.ndarray]:
         """Targets of the best of several rounds of simulated candidate pushes."""
         current = pose_cost(sim.block_pose)
-        best_targets, best_score = None, math.inf
+        best_targets, best_score, best_cost = None, math.inf, math.inf
         trial, start = sim.clone(), sim.snapshot()  # one copy of the space, rewound for every candidate
         try:
             for _ in range(3):  # widen the search when no candidate improves on the current pose
                 for _ in range(self.config.num_candidates):
                     targets = self._candidate(sim, current)
                     trial.restore(start)
-                    score, used = _simulate(trial, targets, success_threshold)
+                    cost, used = _simulate(trial, targets, success_threshold)
+                    # a small price per step prefers near contacts: shorter, more consistent demonstrations
+                    score = cost + self.config.step_cost * used
                     if score < best_score:
-                        best_targets, best_score = targets[:used], score
-                if best_score < current - 1.0:
+                        best_targets, best_score, best_cost = targets[:used], score, cost
+                if best_cost < current - 1.0:
                     break
         finally:
             trial.free()
@@ -122,7 +125,7 @@ def _simulate(trial: PushTSim, targets: list[np.ndarray], threshold: float) -> t
         pose = trial.block_pose
         # the exact coverage is only worth computing near the goal
         if pose_cost(pose) < 30.0 and coverage(pose) >= threshold:
-            return -1.0 + i * 1e-3, i + 1  # earlier success is better
+            return -100.0, i + 1  # success beats any unfinished push, whatever their lengths
     return pose_cost(trial.block_pose), len(targets)
 
 
