@@ -106,6 +106,7 @@ def create_app(settings: MonitorSettings | None = None) -> FastAPI:
     app.state.engine = engine
     app.state.sessionmaker = make_session
     app.state.read_sessionmaker = db.make_sessionmaker(engine, read_only=True)
+    app.state.known_dims = {}  # task -> latent size, filled as ingestion meets tasks
     # SQLite has one writer; queueing writers of this process on a lock hands over at once, where SQLite's own
     # busy handler would sleep and poll (long tails). Other worker processes still queue on busy_timeout.
     app.state.write_lock = threading.Lock() if engine.dialect.name == "sqlite" else contextlib.nullcontext()

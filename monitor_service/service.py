@@ -52,6 +52,8 @@ class IngestContext:
     session: Session
     principal: Principal
     settings: MonitorSettings
+    # Latent sizes of tasks, shared by the app across requests (a committed latent_dim never changes).
+    known_dims: dict[str, int] = field(default_factory=dict)
     tasks: dict[str, Task] = field(default_factory=dict)
     episodes: dict[str, Episode] = field(default_factory=dict)
     decisions: dict[tuple[str, int], _Dec] = field(default_factory=dict)
@@ -111,34 +113,34 @@ class IngestContext:
             s.execute(update(Decision), updates)
 
 
-def _task(ctx: IngestContext, name: str) -> Task:
-    if name not in ctx.tasks:
-        task = ctx.session.get(Task, name)
+def _check_dim(ctx: IngestContext, name: str, dim: int, what: str) -> None:
+    """The task must be registered and ``dim`` must be its latent size (fixed by its first latent if unset)."""
+    known = ctx.known_dims.get(name)
+    if known is None:
+        task = ctx.tasks.get(name) or ctx.session.get(Task, name)
         if task is None:
             raise IngestError(
                 404, f"task {name!r} is not registered; an admin registers it with PUT /v1/tasks/{name} "
                 f"or `jepa-monitor tasks add {name}`"
             )
         ctx.tasks[name] = task
-    return ctx.tasks[name]
+        if task.latent_dim is None:
+            ctx.session.refresh(task, with_for_update=True)  # two first latents must not fix two different sizes
+            if task.latent_dim is None:
+                task.latent_dim = dim
+        else:
+            ctx.known_dims[name] = task.latent_dim  # committed and never changes again: safe to share
+        known = task.latent_dim
+    if known != dim:
+        raise IngestError(
+            422, f"{what} has {dim} dimensions but task {name!r} uses latents of {known}; send the encoder's full latent"
+        )
 
 
 def _check_owner(ctx: IngestContext, ep: Episode) -> None:
     p = ctx.principal
     if p.role == "robot" and ep.robot != p.robot:
         raise IngestError(403, f"episode {ep.id!r} belongs to robot {ep.robot!r}; your key writes only for {p.robot!r}")
-
-
-def _check_dim(ctx: IngestContext, task: Task, dim: int, what: str) -> None:
-    if task.latent_dim is None:
-        ctx.session.refresh(task, with_for_update=True)  # two first decisions must not fix two different sizes
-    if task.latent_dim is None:
-        task.latent_dim = dim
-    elif task.latent_dim != dim:
-        raise IngestError(
-            422, f"{what} has {dim} dimensions but task {task.name!r} uses latents of {task.latent_dim}; "
-            "send the encoder's full latent"
-        )
 
 
 def _score(ctx: IngestContext, ep: Episode, d: _Dec, z: bytes) -> None:
@@ -150,8 +152,7 @@ def _score(ctx: IngestContext, ep: Episode, d: _Dec, z: bytes) -> None:
 
 
 def _ingest_decision(ctx: IngestContext, rec: DecisionIn) -> None:
-    task = _task(ctx, rec.task)
-    _check_dim(ctx, task, rec.z_hat.shape[0], "z_hat")
+    _check_dim(ctx, rec.task, rec.z_hat.shape[0], "z_hat")
     p = ctx.principal
     robot = rec.robot or p.robot
     if robot is None:
@@ -161,7 +162,7 @@ def _ingest_decision(ctx: IngestContext, rec: DecisionIn) -> None:
     ep = ctx.episodes.get(rec.episode)
     if ep is None:
         ep = Episode(
-            id=rec.episode, task=task.name, robot=robot, checkpoint=rec.checkpoint, group=rec.group,
+            id=rec.episode, task=rec.task, robot=robot, checkpoint=rec.checkpoint, group=rec.group,
             held_out=rec.held_out, n_decisions=0, n_scored=0, last_evaluated_step=-1, over_count=0,
             under_count=0, alert_note="", started_at=utcnow(),
         )
@@ -169,7 +170,7 @@ def _ingest_decision(ctx: IngestContext, rec: DecisionIn) -> None:
         ctx.episodes[ep.id] = ep
     else:
         _check_owner(ctx, ep)
-        if ep.task != task.name or ep.robot != robot:
+        if ep.task != rec.task or ep.robot != robot:
             raise IngestError(
                 409, f"episode {ep.id!r} is task {ep.task!r} on robot {ep.robot!r}; episode ids must be unique"
             )
@@ -204,7 +205,7 @@ def _known_episode(ctx: IngestContext, episode_id: str, what: str) -> Episode:
 
 def _ingest_target(ctx: IngestContext, rec: TargetIn) -> None:
     ep = _known_episode(ctx, rec.episode, "targets")
-    _check_dim(ctx, _task(ctx, ep.task), rec.z.shape[0], "z")
+    _check_dim(ctx, ep.task, rec.z.shape[0], "z")
     z = rec.z.astype("<f4").tobytes()
     existing = ctx.targets.get((ep.id, rec.step))
     if existing is not None:

@@ -68,7 +68,7 @@ def _apply(app, records, principal: Principal, key: str | None, body_hash: str, 
                 if prior.request_hash != body_hash:
                     return _error(409, f"Idempotency-Key {key!r} was used for a different body; use a new key"), None
                 return JSONResponse(prior.response, prior.status_code, headers={"Idempotent-Replayed": "true"}), None
-        ctx = IngestContext(session, principal, app.state.settings)
+        ctx = IngestContext(session, principal, app.state.settings, app.state.known_dims)
         try:
             ingest(ctx, records)
         except IngestError as exc:
