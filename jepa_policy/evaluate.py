@@ -105,6 +105,7 @@ def evaluate(policy, episodes: int, seed: int, num_envs: int = 4, max_steps: int
         "seed": seed,
         "success_rate": float(np.mean([r["success"] for r in records])),
         "mean_length": float(np.mean([r["length"] for r in records])),
+        "mean_max_reward": float(np.mean([r["max_reward"] for r in records])),  # PushT: best coverage
         "mean_nmse": float(np.mean(valid)) if valid else None,
         "records": records,
     }
@@ -121,6 +122,7 @@ def _run_round(envs, policy, ids, seed, video_dir, on_decision, keep_latents) ->
     seeds = [seed + i for i in ids] + [seed + ids[-1] + 1 + j for j in range(n - len(ids))]  # spare envs run too
     live = np.array([j < len(ids) for j in range(n)])
     success, length = np.zeros(n, bool), np.zeros(n, int)
+    max_reward = np.full(n, -np.inf)
     decisions = [[] for _ in range(n)]
     pending: list = []          # decisions whose target frame has not arrived
     frames = [[] for _ in range(n)]
@@ -146,9 +148,10 @@ def _run_round(envs, policy, ids, seed, video_dir, on_decision, keep_latents) ->
             for j in np.flatnonzero(live):
                 decisions[j].append({"step": decision.step, "target_step": decision.target_step, "nmse": None})
         envs.call("set_render_images", want_video or policy.images_needed(policy.t + 1))
-        obs, _, terminated, truncated, infos = envs.step(action)
+        obs, reward, terminated, truncated, infos = envs.step(action)
         t_new = policy.t + 1
         length += live
+        max_reward = np.where(live, np.maximum(max_reward, reward), max_reward)
         if "is_success" in infos:
             success |= live & np.asarray(infos["is_success"], bool)
         due = [d for d in pending if d.target_step == t_new]
@@ -174,7 +177,7 @@ def _run_round(envs, policy, ids, seed, video_dir, on_decision, keep_latents) ->
     records = []
     for j, episode in enumerate(ids):
         records.append({"episode": episode, "seed": seeds[j], "success": bool(success[j]),
-                        "length": int(length[j]), "decisions": sorted(decisions[j], key=lambda d: d["step"])})
+                        "length": int(length[j]), "max_reward": float(max_reward[j]), "decisions": sorted(decisions[j], key=lambda d: d["step"])})
         if want_video and frames[j]:
             import imageio.v2 as imageio
             Path(video_dir).mkdir(parents=True, exist_ok=True)

@@ -59,7 +59,9 @@ def test_rollouts_give_consistent_per_decision_nmse_records(checkpoint, tmp_path
     records = report["records"]
     assert [r["seed"] for r in records] == [7, 8, 9] and [r["episode"] for r in records] == [0, 1, 2]
     assert report["success_rate"] == np.mean([r["success"] for r in records])
+    assert report["mean_max_reward"] == pytest.approx(np.mean([r["max_reward"] for r in records]))
     for r in records:
+        assert 0.0 <= r["max_reward"] <= 1.0                    # PushT reward = coverage of the goal
         steps = [d["step"] for d in r["decisions"]]
         assert steps == list(range(0, r["length"], 8))
         for d in r["decisions"]:
