@@ -116,7 +116,7 @@ class MonitorClient(_Records):
         self._http = httpx.Client(base_url=base_url, timeout=timeout)
         self._cond = threading.Condition()
         self._closing = False
-        self._abandon = False
+        self._abandon = threading.Event()  # set by close(): stop retrying and leave the rest unsent
         self._thread = threading.Thread(target=self._run, name="monitor-client", daemon=True)
         self._thread.start()
 
@@ -142,10 +142,9 @@ class MonitorClient(_Records):
                     return response
             except httpx.TransportError as exc:
                 log.debug("monitor link down (%s); retrying", exc)
-            with self._cond:
-                if self._closing and self._abandon:
-                    return None
-                self._cond.wait(backoff)
+            # A separate event, not the buffer's condition: new records must not cut the back-off short.
+            if self._abandon.wait(backoff):
+                return None
             backoff = min(backoff * 2, self.max_backoff)
 
     def _run(self) -> None:
@@ -159,7 +158,10 @@ class MonitorClient(_Records):
             response = self._send_until_done(batch, uuid.uuid4().hex)
             if response is None:
                 return
-            if response.status_code >= 300:
+            if response.status_code >= 300 and len(batch) == 1:
+                self.stats.rejected.append((batch[0], response.status_code, _detail(response)))
+                log.warning("monitor refused a %s record: %s", batch[0]["kind"], response.text)
+            elif response.status_code >= 300:
                 # One bad record must not sink its neighbours: resend one by one and keep the refusals.
                 for rec in batch:
                     single = self._send_until_done([rec], uuid.uuid4().hex)
@@ -190,8 +192,8 @@ class MonitorClient(_Records):
         done = self.flush(timeout)
         with self._cond:
             self._closing = True
-            self._abandon = True
             self._cond.notify_all()
+        self._abandon.set()
         self._thread.join(timeout=max(self.max_backoff * 2, 5.0))
         self._http.close()
         return done
@@ -257,7 +259,9 @@ class AsyncMonitorClient(_Records):
             response = await self._send_until_done(batch, uuid.uuid4().hex)
             if response is None:
                 return
-            if response.status_code >= 300:
+            if response.status_code >= 300 and len(batch) == 1:
+                self.stats.rejected.append((batch[0], response.status_code, _detail(response)))
+            elif response.status_code >= 300:
                 for rec in batch:
                     single = await self._send_until_done([rec], uuid.uuid4().hex)
                     if single is None:
