@@ -13,7 +13,7 @@ fi
 SUDO=""
 [ "$(id -u)" = 0 ] || SUDO="sudo"
 need_apt=""
-for pkg in libosmesa6 libgl1 chromium; do
+for pkg in libosmesa6 libgl1 chromium postgresql; do
   dpkg -s "$pkg" >/dev/null 2>&1 || need_apt="$need_apt $pkg"
 done
 if [ -n "$need_apt" ]; then
