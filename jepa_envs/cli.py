@@ -70,7 +70,7 @@ def _make_demos_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", required=True, help="output HDF5 file (robomimic layout)")
     p.add_argument("--seed", type=int, default=0, help="first episode seed (episodes use seed, seed+1, ...)")
     p.add_argument("--image-size", type=int, default=None, help="camera image size (default: the task's)")
-    p.add_argument("--difficulty", default="easy", help="PushT difficulty preset: easy (default), medium, hard")
+    p.add_argument("--difficulty", default="easy", help="PushT difficulty preset: easy (default), medium, hard, full")
 
 
 @subcommand("make-demos", "write scripted-expert demonstrations to HDF5", _make_demos_args)

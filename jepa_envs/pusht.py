@@ -142,10 +142,10 @@ class PushTDifficulty:
     ``max_initial_coverage``, so success always needs the block to be pushed and turned.
     """
 
-    offset_range: tuple[float, float] = (40.0, 90.0)
-    rotation_range_deg: tuple[float, float] = (15.0, 45.0)
-    success_threshold: float = 0.85
-    max_initial_coverage: float = 0.6
+    offset_range: tuple[float, float] = (30.0, 70.0)
+    rotation_range_deg: tuple[float, float] = (15.0, 40.0)
+    success_threshold: float = 0.8
+    max_initial_coverage: float = 0.5
 
     def __post_init__(self):
         lo, hi = self.offset_range
@@ -164,14 +164,18 @@ class PushTDifficulty:
 DIFFICULTIES = {
     # default: learnable by a small image policy in minutes on CPU, still a real push-and-turn task
     "easy": PushTDifficulty(),
-    "medium": PushTDifficulty(offset_range=(60.0, 140.0), rotation_range_deg=(30.0, 90.0), success_threshold=0.9),
+    "medium": PushTDifficulty(offset_range=(40.0, 90.0), rotation_range_deg=(15.0, 45.0), success_threshold=0.85,
+                              max_initial_coverage=0.6),
+    "hard": PushTDifficulty(offset_range=(60.0, 140.0), rotation_range_deg=(30.0, 90.0), success_threshold=0.9,
+                            max_initial_coverage=0.6),
     # close to diffusion_policy's PushT: anywhere on the table, any angle, 95% coverage
-    "hard": PushTDifficulty(offset_range=(80.0, 200.0), rotation_range_deg=(0.0, 180.0), success_threshold=0.95),
+    "full": PushTDifficulty(offset_range=(80.0, 200.0), rotation_range_deg=(0.0, 180.0), success_threshold=0.95,
+                            max_initial_coverage=0.6),
 }
 
 
 def make_difficulty(difficulty: str | PushTDifficulty = "easy", **overrides) -> PushTDifficulty:
-    """A preset by name ("easy" default, "medium", "hard") with optional field overrides."""
+    """A preset by name ("easy" default, "medium", "hard", "full") with optional field overrides."""
     if isinstance(difficulty, PushTDifficulty):
         base = difficulty
     elif difficulty in DIFFICULTIES:
@@ -293,7 +297,7 @@ class PushTSim:
 class PushTEnv(JEPAEnv):
     """Gymnasium env for JEPA/PushT-v0. See the module docstring for units, reward and termination.
 
-    Options (constructor kwargs): ``difficulty`` ("easy" default, "medium", "hard" or a PushTDifficulty) and
+    Options (constructor kwargs): ``difficulty`` ("easy" default, "medium", "hard", "full" or a PushTDifficulty) and
     overrides of its fields: ``offset_range``, ``rotation_range_deg``, ``success_threshold``,
     ``max_initial_coverage``. ``render_size`` sets the size of ``render()`` frames (default 256).
     ``reset(options={"state": s})`` starts from an exact 5-D state.
@@ -346,7 +350,8 @@ class PushTEnv(JEPAEnv):
         if options and "state" in options:
             state = np.asarray(options["state"], dtype=np.float64)
             if state.shape != (5,):
-                raise ValueError(f"options['state'] must have shape (5,) (agent xy, block xy, angle), got {state.shape}")
+                raise ValueError("options['state'] must have shape (5,) (agent xy, block xy, angle), "
+                                 f"got {state.shape}")
         else:
             state = self._sample_initial_state()
         self.backend.set_state(state)

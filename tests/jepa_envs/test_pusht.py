@@ -104,7 +104,7 @@ def test_goal_block_and_agent_are_drawn_and_render_can_be_skipped():
 
 def test_difficulty_options_are_validated():
     assert PushTEnv(success_threshold=0.9).success_threshold == 0.9
-    assert make_difficulty("hard").success_threshold == 0.95
+    assert make_difficulty("full").success_threshold == 0.95
     with pytest.raises(TypeError, match="unknown PushT option"):
         PushTEnv(bogus=1)
     with pytest.raises(ValueError, match="unknown PushT difficulty"):
