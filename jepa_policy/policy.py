@@ -110,7 +110,8 @@ class Policy:
         images = {}
         for key in self.spec.image_keys:
             arr = np.asarray(obs[key])
-            images[key] = torch.from_numpy(np.ascontiguousarray(arr if batched else arr[None])).to(self.device)
+            # a copy: env observations may be read-only views, which torch must not alias
+            images[key] = torch.from_numpy(np.array(arr if batched else arr[None], dtype=np.uint8)).to(self.device)
         z = self.model.encode_future(images).float().cpu().numpy()
         return z if batched else z[0]
 
