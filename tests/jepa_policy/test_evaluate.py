@@ -107,3 +107,27 @@ def test_realized_latents_match_a_fresh_encoding_of_the_env_frame(checkpoint):
         obs, *_ = env.step(policy.act(obs))
     env.close()
     np.testing.assert_allclose(decision["z_real"], policy.encode_future(obs), rtol=1e-5, atol=1e-6)
+
+
+def test_arms_without_a_future_head_record_decisions_without_nmse(pusht_demo_file, tmp_path):
+    import torch
+
+    from jepa_envs.data import load_dataset
+    from jepa_policy.evaluate import evaluate
+    from jepa_policy.policy import Policy
+    from jepa_policy.train import load_config, train
+
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        demos = load_dataset(pusht_demo_file, task="PushT", image_size=32)
+        ckpt = train(load_config("PushT", "quick", arm="mip", out_dir=str(tmp_path), steps=2, warmup_steps=1),
+                     demos)["checkpoint"]
+        events = []
+        report = evaluate(Policy.from_checkpoint(ckpt), episodes=1, seed=0, num_envs=1, max_steps=10,
+                          on_decision=events.append)
+    finally:
+        torch.set_num_threads(threads)
+    assert [d["step"] for d in report["records"][0]["decisions"]] == [0, 8]
+    assert all(d["nmse"] is None for d in report["records"][0]["decisions"])
+    assert report["mean_nmse"] is None and events == []
