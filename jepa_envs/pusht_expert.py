@@ -1,11 +1,13 @@
-"""Scripted expert for JEPA/PushT-v0: sampling-based push planning by simulation.
+"""Scripted expert for JEPA/PushT-v0: push planning by simulation over a fixed grid of candidate pushes.
 
-Every time its queue of targets runs out the expert plans one *push*: it samples candidate contacts on the T's
-outline with a push direction and length, builds a smooth path of absolute agent targets (go around the block
-if the straight line would hit it, then push), simulates each candidate on a copy of the pymunk space
-(``Space.copy``) and keeps the one that brings the block closest to the goal pose (or reaches success).
-The sampling is random (seeded), so demonstrations vary, and the targets move at a bounded speed along
-polylines, so they are smooth and imitable.
+Every time its queue of targets runs out the expert plans one *push*. Candidates form a fixed grid: every edge
+of the T's outline, three contact points per edge, three push directions around the inward normal and two push
+lengths (scaled to the remaining error). Each candidate is a smooth path of absolute agent targets (straight to
+the push start when clear, else around the block on a safe circle, then the push) and is simulated on a copy of
+the pymunk space (``Space.copy``, rewound per candidate); the expert executes the one that brings the block
+closest to the goal pose (or reaches success) at the smallest number of steps. A fixed grid makes the choice a
+near-deterministic function of the state, which is what makes the demos imitable; the seeded jitter of the grid
+and of the speeds per push makes them vary.
 """
 from __future__ import annotations
 
@@ -44,13 +46,17 @@ _EDGE_LEN = np.linalg.norm(_EDGE_END - _EDGE_START, axis=1)
 
 @dataclass
 class ExpertConfig:
-    num_candidates: int = 24          # pushes simulated per decision
+    contact_points: tuple[float, ...] = (0.25, 0.5, 0.75)  # positions along each outline edge
+    push_angles_deg: tuple[float, ...] = (-25.0, 0.0, 25.0)  # push direction relative to the inward normal
+    push_lengths: tuple[float, ...] = (0.5, 1.0)  # fractions of the push length allowed by the remaining error
     speed: float = 15.0               # world units per control step while approaching
     push_speed: float = 10.0          # world units per control step while pushing
     standoff: float = 10.0            # gap between agent and block before a push
-    max_push_angle_deg: float = 35.0  # push direction deviates at most this much from the contact normal
     hold_steps: int = 2               # targets repeated at the end of a push so the agent catches up
     step_cost: float = 0.5            # world units of pose cost a candidate pays per control step it takes
+    jitter: float = 0.05              # seeded shift of the contact points (edge fraction) per push, for variety
+    jitter_angle_deg: float = 5.0     # seeded shift of the push directions per push
+    speed_jitter: float = 0.2         # seeded relative change of both speeds per push
 
 
 class PushTExpert:
@@ -74,48 +80,62 @@ class PushTExpert:
         return self._queue.pop(0).astype(np.float32)
 
     def plan(self, sim: PushTSim, success_threshold: float) -> list[np.ndarray]:
-        """Targets of the best of several rounds of simulated candidate pushes."""
+        """Targets of the best simulated push of the grid (re-jittered up to 3 times if none improves)."""
+        cfg, rng = self.config, self.rng
         current = pose_cost(sim.block_pose)
         best_targets, best_score, best_cost = None, math.inf, math.inf
         trial, start = sim.clone(), sim.snapshot()  # one copy of the space, rewound for every candidate
         try:
-            for _ in range(3):  # widen the search when no candidate improves on the current pose
-                for _ in range(self.config.num_candidates):
-                    targets = self._candidate(sim, current)
+            for _ in range(3):
+                speeds = (cfg.speed * rng.uniform(1 - cfg.speed_jitter, 1 + cfg.speed_jitter),
+                          cfg.push_speed * rng.uniform(1 - cfg.speed_jitter, 1 + cfg.speed_jitter))
+                shift = rng.uniform(-cfg.jitter, cfg.jitter), rng.uniform(-cfg.jitter_angle_deg, cfg.jitter_angle_deg)
+                for approach, push, clear in self._candidates(sim, current, speeds, shift):
                     trial.restore(start)
-                    cost, used = _simulate(trial, targets, success_threshold)
+                    if clear:  # the approach cannot touch the block: simulate the push from its start only
+                        trial.agent.position = tuple(approach[-1])
+                        trial.agent.velocity = (0.0, 0.0)
+                        trial.space.reindex_shapes_for_body(trial.agent)
+                        cost, used = _simulate(trial, push, success_threshold)
+                        targets = approach + push[:used]
+                    else:
+                        cost, used = _simulate(trial, approach + push, success_threshold)
+                        targets = (approach + push)[:used]
                     # a small price per step prefers near contacts: shorter, more consistent demonstrations
-                    score = cost + self.config.step_cost * used
+                    score = cost + cfg.step_cost * len(targets)
                     if score < best_score:
-                        best_targets, best_score, best_cost = targets[:used], score, cost
+                        best_targets, best_score, best_cost = targets, score, cost
                 if best_cost < current - 1.0:
                     break
         finally:
             trial.free()
         return best_targets
 
-    def _candidate(self, sim: PushTSim, current_cost: float) -> list[np.ndarray]:
-        cfg, rng = self.config, self.rng
+    def _candidates(self, sim: PushTSim, current_cost: float, speeds, shift):
+        """(approach targets, push targets, approach verified clear) for every push of the grid."""
+        cfg = self.config
         pose = sim.block_pose
-        edge = rng.choice(len(_EDGE_LEN), p=_EDGE_LEN / _EDGE_LEN.sum())
-        t = rng.uniform(0.1, 0.9)
-        contact = _EDGE_START[edge] + t * (_EDGE_END[edge] - _EDGE_START[edge])
-        normal = _EDGE_NORMAL[edge]
-        turn = math.radians(rng.uniform(-cfg.max_push_angle_deg, cfg.max_push_angle_deg))
-        c, s = math.cos(turn), math.sin(turn)
-        direction = -np.array([c * normal[0] - s * normal[1], s * normal[0] + c * normal[1]])
-        start_local = contact + normal * (AGENT_RADIUS + cfg.standoff)
-        max_len = float(np.clip(0.8 * current_cost + 5.0, 5.0, 80.0))
-        push_len = rng.uniform(0.2, 1.0) * max_len
-        end_local = start_local + direction * (cfg.standoff + push_len)
-        start, end = transform(np.stack([start_local, end_local]), pose)
         agent = np.asarray(sim.agent.position, dtype=np.float64)
-        speed = cfg.speed * rng.uniform(0.8, 1.2)
-        targets = _densify(_approach_path(agent, start, pose), speed)
-        targets += _densify([start, end], cfg.push_speed * rng.uniform(0.8, 1.2))[1:]
-        targets += [targets[-1]] * cfg.hold_steps
+        max_len = float(np.clip(0.8 * current_cost + 5.0, 5.0, 80.0))
         lo, hi = AGENT_RADIUS + 6.0, WORLD_SIZE - AGENT_RADIUS - 6.0
-        return [np.clip(p, lo, hi) for p in targets]
+        for edge in range(len(_EDGE_LEN)):
+            normal = _EDGE_NORMAL[edge]
+            for point in cfg.contact_points:
+                contact = _EDGE_START[edge] + (point + shift[0]) * (_EDGE_END[edge] - _EDGE_START[edge])
+                start_local = contact + normal * (AGENT_RADIUS + cfg.standoff)
+                for angle in cfg.push_angles_deg:
+                    turn = math.radians(angle + shift[1])
+                    c, s = math.cos(turn), math.sin(turn)
+                    direction = -np.array([c * normal[0] - s * normal[1], s * normal[0] + c * normal[1]])
+                    for length in cfg.push_lengths:
+                        end_local = start_local + direction * (cfg.standoff + length * max_len)
+                        start, end = transform(np.stack([start_local, end_local]), pose)
+                        path = _approach_path(agent, start, pose)
+                        clear = len(path) == 2 or _segment_clear(path[-2], start, pose, AGENT_RADIUS + 4.0)
+                        approach = [np.clip(p, lo, hi) for p in _densify(path, speeds[0])]
+                        push = [np.clip(p, lo, hi) for p in _densify([start, end], speeds[1])[1:]]
+                        push += [push[-1]] * cfg.hold_steps
+                        yield approach, push, clear
 
 
 def _simulate(trial: PushTSim, targets: list[np.ndarray], threshold: float) -> tuple[float, int]:
