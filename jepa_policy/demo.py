@@ -1,0 +1,384 @@
+"""jepa-demo: the whole method end to end on the embedded PushT task (the project's main job).
+
+1. scripted PushT demonstrations (robomimic-layout HDF5);
+2. JEPA Policy and MIP trained with the same seed, data and budget (the ``cpu`` preset of the paper's recipe);
+3. the monitor service started for real (uvicorn on loopback, SQLite file); seeded rollouts of each arm with the
+   real ``MonitorClient`` in the loop: z_hat at each decision, E_rgb(o_{t+k}) when the frame arrives, the outcome
+   at the end. A held-out set of labelled rollouts calibrates the task; later rollouts are scored live against
+   that calibration and raise alerts;
+4. a Markdown report with PNG figures in the output folder and a printed summary.
+
+Every number in the report is what this run measured. Reruns reuse demos and checkpoints unless ``--fresh``.
+"""
+from __future__ import annotations
+
+import argparse
+import hashlib
+import json
+import secrets
+import shutil
+import sys
+import time
+from contextlib import contextmanager
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import httpx
+import numpy as np
+
+TASK = "PushT"
+
+
+@dataclass(frozen=True)
+class DemoConfig:
+    """Budget of one run; ``MODES`` holds the three named budgets."""
+
+    mode: str
+    demos: int                 # scripted demonstrations
+    preset: str                # training preset of jepa_policy/configs/PushT.json
+    seeds: tuple[int, ...]     # training seeds (one per arm each)
+    calib_episodes: int        # held-out, labelled rollouts per arm and seed that calibrate the task
+    live_episodes: int         # later rollouts scored live against that calibration
+    latency_iters: int         # timed decisions per arm (after 30 warm-up calls, or fewer in quick mode)
+    latency_warmup: int
+    train_overrides: dict = field(default_factory=dict)
+    num_envs: int = 4
+    bootstrap: int = 10_000
+    permutations: int = 10_000
+
+
+MODES = {
+    "quick": DemoConfig("quick", demos=6, preset="quick", seeds=(42,), calib_episodes=6, live_episodes=4,
+                        latency_iters=20, latency_warmup=3, train_overrides={"steps": 30, "eval_every": 15,
+                                                                             "eval_episodes": 2},
+                        num_envs=2, bootstrap=1000, permutations=1000),
+    "default": DemoConfig("default", demos=100, preset="cpu", seeds=(42,), calib_episodes=40, live_episodes=24,
+                          latency_iters=300, latency_warmup=30),
+    "full": DemoConfig("full", demos=200, preset="cpu", seeds=(41, 42, 43), calib_episodes=40, live_episodes=40,
+                       latency_iters=300, latency_warmup=30),
+}
+ARMS = ("jepa", "mip")
+ROBOT = "pusht-sim"
+CALIB_SEED, LIVE_SEED = 10_000, 20_000  # rollout seeds never overlap the demonstrations' seeds (0, 1, ...)
+
+
+class Timer:
+    """Wall time of each named step, printed at the end."""
+
+    def __init__(self):
+        self.steps: dict[str, float] = {}
+        self.start = time.perf_counter()
+
+    @contextmanager
+    def step(self, name: str):
+        print(f"\n== {name}", flush=True)
+        t0 = time.perf_counter()
+        yield
+        self.steps[name] = time.perf_counter() - t0
+        print(f"   {name}: {self.steps[name]:.1f} s", flush=True)
+
+    @property
+    def total(self) -> float:
+        return time.perf_counter() - self.start
+
+
+def _digest(data) -> str:
+    return hashlib.sha256(json.dumps(data, sort_keys=True, default=str).encode()).hexdigest()[:12]
+
+
+# ----------------------------------------------------------------------------- step 1: demonstrations
+
+def make_demos(cfg: DemoConfig, out: Path, fresh: bool) -> Path:
+    """Scripted expert demonstrations, reused when the same request was already written."""
+    from jepa_envs.data import write_dataset
+    from jepa_envs.pusht_expert import generate_demos
+
+    path = out / "data" / f"pusht_{cfg.demos}demos.hdf5"
+    if path.exists() and not fresh:
+        print(f"   reusing {path}")
+        return path
+    path.parent.mkdir(parents=True, exist_ok=True)
+    episodes, env_args = generate_demos(cfg.demos, seed=0)
+    tmp = path.with_suffix(".tmp.hdf5")
+    write_dataset(tmp, episodes, env_args)
+    tmp.replace(path)
+    print(f"   {len(episodes)} demonstrations, {sum(len(e['actions']) for e in episodes)} transitions -> {path}")
+    return path
+
+
+# ----------------------------------------------------------------------------- step 2: training
+
+def train_arm(cfg: DemoConfig, arm: str, seed: int, dataset: Path, out: Path, fresh: bool) -> Path:
+    """Train one arm with the shared preset; a finished run with the same config is reused."""
+    from jepa_policy.train import load_checkpoint, load_config, train
+
+    run_dir = out / "runs" / f"{arm}_seed{seed}"
+    overrides = dict(cfg.train_overrides, arm=arm, seed=seed, dataset=str(dataset), out_dir=str(run_dir))
+    tcfg = load_config(TASK, cfg.preset, **overrides)
+    ckpt = run_dir / "checkpoints" / "latest.pt"
+    stamp = run_dir / "demo_config.json"
+    wanted = {"train": tcfg.to_dict(), "dataset_digest": _file_digest(dataset)}
+    if ckpt.exists() and stamp.exists() and not fresh and json.loads(stamp.read_text()) == wanted:
+        if int(load_checkpoint(ckpt)["step"]) == tcfg.steps:
+            print(f"   reusing {ckpt}")
+            return ckpt
+    if run_dir.exists():
+        shutil.rmtree(run_dir)
+    train(tcfg)
+    stamp.write_text(json.dumps(wanted, indent=2))
+    return ckpt
+
+
+def _file_digest(path: Path) -> str:
+    st = path.stat()
+    return _digest([str(path.resolve()), st.st_size, st.st_mtime_ns])
+
+
+# ----------------------------------------------------------------------------- step 3: monitored rollouts
+
+class Monitor:
+    """The monitor service for real: uvicorn subprocess, SQLite file, admin/robot/operator keys."""
+
+    def __init__(self, out: Path, fresh: bool):
+        from monitor_service.server import start_server
+
+        db = out / "monitor.db"
+        if fresh or db.exists():  # a rerun re-measures its rollouts, so the monitor starts from an empty store
+            for suffix in ("", "-wal", "-shm"):
+                Path(str(db) + suffix).unlink(missing_ok=True)
+        self.admin_key = secrets.token_urlsafe(24)
+        self.server = start_server(f"sqlite:///{db}", admin_key=self.admin_key, log_path=out / "monitor.log")
+        self.url = self.server.url
+        self.http = httpx.Client(base_url=self.url, timeout=120.0)
+        self.operator_key = self._call("POST", "/v1/keys", json={"name": "demo-operator", "role": "operator"})["key"]
+        self.robot_key: str | None = None
+
+    def _call(self, method: str, path: str, key: str | None = None, **kw):
+        r = self.http.request(method, path, headers={"X-API-Key": key or self.admin_key}, **kw)
+        if r.status_code >= 400:
+            raise RuntimeError(f"monitor {method} {path} -> {r.status_code}: {r.text}")
+        return r.json()
+
+    def register_task(self, latent_dim: int) -> None:
+        """Register PushT with the policy's latent size and create the robot's key."""
+        from monitor_service.server import provision
+
+        self.robot_key = provision(self.url, self.admin_key, {TASK: latent_dim}, robot=ROBOT)
+
+    def client(self):
+        from monitor_service.client import MonitorClient
+
+        return MonitorClient(self.url, self.robot_key, robot=ROBOT)
+
+    def calibrate(self, checkpoint: str, cfg: DemoConfig) -> dict:
+        """The task's calibration from the held-out episodes, or {"error": why} when the data cannot support one
+        (e.g. every held-out rollout succeeded); the run goes on and the report says so."""
+        r = self.http.post("/v1/calibrations", headers={"X-API-Key": self.admin_key}, json={
+            "task": TASK, "checkpoint": checkpoint, "n_bootstrap": cfg.bootstrap,
+            "n_permutation": cfg.permutations, "seed": 0})
+        if r.status_code in (409, 422):
+            return {"error": r.json().get("detail", r.text)}
+        if r.status_code >= 400:
+            raise RuntimeError(f"monitor POST /v1/calibrations -> {r.status_code}: {r.text}")
+        return r.json()
+
+    def alerts(self) -> list[dict]:
+        return self._call("GET", "/v1/alerts", key=self.operator_key, params={"limit": 5000})
+
+    def episodes(self) -> list[dict]:
+        return self._call("GET", "/v1/episodes", key=self.operator_key, params={"limit": 5000})
+
+    def report(self) -> dict:
+        return self._call("GET", "/v1/report", key=self.operator_key)
+
+    def close(self) -> None:
+        self.http.close()
+        self.server.stop()
+
+
+def run_rollouts(policy, cfg: DemoConfig, *, arm: str, seed: int, phase: str, first_seed: int, episodes: int,
+                 client=None, checkpoint_id: str | None = None, bar_desc: str = "") -> list[dict]:
+    """Seeded rollouts in rounds of ``num_envs``, streaming each decision to the monitor when ``client`` is set."""
+    from tqdm import tqdm
+
+    from jepa_policy.evaluate import evaluate
+
+    def episode_id(rollout_seed: int) -> str:
+        return f"{arm}-s{seed}-{phase}-{rollout_seed}"
+
+    def on_decision(ev):
+        eid = episode_id(ev.seed)
+        if ev.kind == "prediction":
+            client.decision(TASK, eid, ev.step, ev.target_step - ev.step, ev.z_hat, checkpoint=checkpoint_id,
+                            held_out=phase == "calibration", group=f"seed{seed}")
+        else:
+            client.target(eid, ev.target_step, ev.z_real)
+
+    records = []
+    with tqdm(total=episodes, desc=bar_desc or f"{arm}/{phase}", unit="ep") as bar:
+        for start in range(0, episodes, cfg.num_envs):
+            n = min(cfg.num_envs, episodes - start)
+            report = evaluate(policy, episodes=n, seed=first_seed + start, num_envs=n,
+                              on_decision=on_decision if client is not None else None)
+            for rec in report["records"]:
+                rec.update(arm=arm, train_seed=seed, phase=phase, episode_id=episode_id(rec["seed"]))
+                if client is not None:
+                    client.outcome(rec["episode_id"], rec["success"], held_out=phase == "calibration",
+                                   group=f"seed{seed}")
+                records.append(rec)
+            bar.update(n)
+    return records
+
+
+def _first_observation(policy, seed: int) -> dict:
+    import gymnasium as gym
+
+    from jepa_policy.evaluate import env_kwargs_for
+
+    env = gym.make(policy.spec.env_id, **env_kwargs_for(policy.spec, policy.env_args))
+    try:
+        return env.reset(seed=seed)[0]
+    finally:
+        env.close()
+
+
+def decision_latency(policies: dict, cfg: DemoConfig) -> dict:
+    """Frame-to-chunk latency of the trained EMA policies, arms interleaved in this process (Table 5 protocol).
+
+    "jepa" is the control path (the second pass skips the future head); "jepa+monitor" also returns z_hat,
+    which is what the monitored rollouts run.
+    """
+    from jepa_policy.bench import count_passes, time_calls
+
+    obs = _first_observation(policies["jepa"], LIVE_SEED)
+    variants = {"mip": (policies["mip"], False), "jepa": (policies["jepa"], False),
+                "jepa+monitor": (policies["jepa"], True)}
+    calls = {}
+    for label, (policy, want) in variants.items():
+        policy.reset()
+        calls[label] = (lambda p=policy, w=want: p.predict(obs, want_future=w))
+    rows = time_calls(calls, warmup=cfg.latency_warmup, iters=cfg.latency_iters)
+    for label, (policy, want) in variants.items():
+        passes = count_passes(policy.model, calls[label])
+        rows[label].update(network_passes=max(passes.values()), passes=passes,
+                           params_m=sum(p.numel() for p in policy.model.parameters()) / 1e6)
+    return {"arms": rows, "warmup": cfg.latency_warmup, "iters": cfg.latency_iters,
+            "threads": __import__("torch").get_num_threads()}
+
+
+def rollout_frames(policy, seed: int, count: int = 5) -> list[tuple[str, np.ndarray]]:
+    """A few camera frames of one JEPA rollout, for the report."""
+    import gymnasium as gym
+
+    from jepa_policy.evaluate import env_kwargs_for
+
+    env = gym.make(policy.spec.env_id, **env_kwargs_for(policy.spec, policy.env_args))
+    key = policy.spec.image_keys[0]
+    frames, success = [], False
+    try:
+        obs, _ = env.reset(seed=seed)
+        policy.reset()
+        done, t = False, 0
+        while not done:
+            frames.append((t, obs[key]))
+            obs, _, terminated, truncated, info = env.step(policy.act(obs))
+            success |= bool(info["is_success"])
+            done, t = terminated or truncated, t + 1
+        frames.append((t, obs[key]))
+    finally:
+        env.close()
+    picks = np.linspace(0, len(frames) - 1, count).round().astype(int)
+    outcome = "success" if success else "failure"
+    return [(f"seed {seed} step {frames[i][0]} ({outcome})" if i == picks[-1] else f"step {frames[i][0]}",
+             frames[i][1]) for i in picks]
+
+
+# ----------------------------------------------------------------------------- the job
+
+def run(cfg: DemoConfig, out: Path, fresh: bool = False) -> dict:
+    """Run the main job and return the summary (also written to ``out/summary.json``)."""
+    import torch
+
+    from jepa_policy.policy import Policy
+    from jepa_policy.report import write_report
+
+    out.mkdir(parents=True, exist_ok=True)
+    timer = Timer()
+    with timer.step("1/5 scripted demonstrations"):
+        dataset = make_demos(cfg, out, fresh)
+    checkpoints: dict[tuple[str, int], Path] = {}
+    with timer.step("2/5 training JEPA Policy and MIP (same seed, data and budget)"):
+        for seed in cfg.seeds:
+            for arm in ARMS:
+                checkpoints[arm, seed] = train_arm(cfg, arm, seed, dataset, out, fresh)
+
+    records: list[dict] = []
+    calibrations: dict[int, dict] = {}
+    # The monitor server shares this machine's cores with the rollouts; torch's multi-threaded kernels then spin
+    # against it (measured here: 4x slower rollouts with 2 threads than with 1), so act single-threaded.
+    torch.set_num_threads(1)
+    with timer.step("3/5 monitor service + monitored rollouts"):
+        monitor = Monitor(out, fresh=True)
+        try:
+            print(f"   monitor at {monitor.url} (SQLite {out / 'monitor.db'})")
+            for seed in cfg.seeds:
+                policies = {arm: Policy.from_checkpoint(checkpoints[arm, seed]) for arm in ARMS}
+                jepa = policies["jepa"]
+                if monitor.robot_key is None:
+                    monitor.register_task(jepa.model.future_dim)
+                ckpt_id = f"jepa-seed{seed}-step{jepa.checkpoint_step}"
+                with monitor.client() as client:
+                    records += run_rollouts(jepa, cfg, arm="jepa", seed=seed, phase="calibration",
+                                            first_seed=CALIB_SEED, episodes=cfg.calib_episodes, client=client,
+                                            checkpoint_id=ckpt_id)
+                    if not client.flush(timeout=120):
+                        raise RuntimeError("the monitor client could not deliver the calibration records")
+                calibrations[seed] = monitor.calibrate(ckpt_id, cfg)
+                with monitor.client() as client:
+                    records += run_rollouts(jepa, cfg, arm="jepa", seed=seed, phase="live",
+                                            first_seed=LIVE_SEED, episodes=cfg.live_episodes, client=client,
+                                            checkpoint_id=ckpt_id)
+                    if not client.flush(timeout=120):
+                        raise RuntimeError("the monitor client could not deliver the live records")
+                for phase, first, n in (("calibration", CALIB_SEED, cfg.calib_episodes),
+                                        ("live", LIVE_SEED, cfg.live_episodes)):
+                    records += run_rollouts(policies["mip"], cfg, arm="mip", seed=seed, phase=phase,
+                                            first_seed=first, episodes=n)
+            alerts, episodes, monitor_report = monitor.alerts(), monitor.episodes(), monitor.report()
+        finally:
+            monitor.close()
+    with timer.step("4/5 decision latency (JEPA vs MIP, interleaved)"):
+        policies = {arm: Policy.from_checkpoint(checkpoints[arm, cfg.seeds[0]]) for arm in ARMS}
+        latency = decision_latency(policies, cfg)
+        frames = rollout_frames(policies["jepa"], LIVE_SEED)
+    with timer.step("5/5 report"):
+        summary = write_report(out, cfg=asdict(cfg), dataset=dataset, checkpoints=checkpoints, records=records,
+                               calibrations=calibrations, alerts=alerts, monitor_episodes=episodes,
+                               monitor_report=monitor_report, latency=latency, frames=frames)
+    summary["timing"] = {"steps_s": timer.steps, "total_s": timer.total}
+    (out / "summary.json").write_text(json.dumps(summary, indent=2, default=str))
+    print(summary["text"])
+    print("\nwall time per step:")
+    for name, seconds in timer.steps.items():
+        print(f"  {name:<60s} {seconds:7.1f} s")
+    print(f"  {'total':<60s} {timer.total:7.1f} s")
+    print(f"\nreport: {out / 'report.md'}")
+    return summary
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="jepa-demo", description=__doc__.split("\n\n")[0])
+    size = parser.add_mutually_exclusive_group()
+    size.add_argument("--quick", action="store_true", help="a minute or two: smaller everything, same code path")
+    size.add_argument("--full", action="store_true", help="a real study: three seeds per arm, paired comparison")
+    parser.add_argument("--out", default="demo_out", help="output folder (default: demo_out)")
+    parser.add_argument("--fresh", action="store_true", help="recompute demonstrations and checkpoints")
+    args = parser.parse_args(argv)
+    mode = "quick" if args.quick else "full" if args.full else "default"
+    out = Path(args.out) / mode
+    run(MODES[mode], out, fresh=args.fresh)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
