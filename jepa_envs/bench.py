@@ -100,7 +100,7 @@ def buildable_tasks() -> list[TaskSpec]:
     return [spec for spec in all_task_specs() if backend_available(spec.suite)[0]]
 
 
-def run_bench(tasks: list[str] | None = None, steps: int = 1000, budget_s: float = 4.0) -> list[dict]:
+def run_bench(tasks: list[str] | None = None, steps: int = 1000, budget_s: float = 3.0) -> list[dict]:
     """Measure and print the table; tasks that fail to build are reported and skipped."""
     specs = [get_task_spec(t) for t in tasks] if tasks else buildable_tasks()
     print(f"jepa-envs bench: up to {steps} steps or {budget_s:.0f} s per comparison; "

@@ -124,7 +124,7 @@ def info(args: argparse.Namespace) -> int:
 def _bench_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--tasks", nargs="+", default=None, help="tasks to measure (default: every buildable task)")
     p.add_argument("--steps", type=int, default=1000, help="most env steps per arm of each comparison")
-    p.add_argument("--seconds", type=float, default=4.0, help="time budget of each comparison")
+    p.add_argument("--seconds", type=float, default=3.0, help="time budget of each comparison")
 
 
 @subcommand("bench", "steps/s raw backend vs our interface, and render-every-step vs render-on-demand", _bench_args)
