@@ -21,6 +21,7 @@ BACKENDS = {
     "robomimic": ("robosuite", "jepa_envs.robomimic_env"),
     "libero": ("libero", "jepa_envs.libero_env"),
     "mimicgen": ("mimicgen", "jepa_envs.mimicgen_env"),
+    "real": ("zmq", "jepa_envs.real_robot.proxy"),
 }
 
 
@@ -133,6 +134,20 @@ def bench(args: argparse.Namespace) -> int:
 
     run_bench(args.tasks, args.steps, args.seconds)
     return 0
+
+
+def _convert_args(p: argparse.ArgumentParser) -> None:
+    from jepa_envs.abs_actions import cli_add_arguments
+
+    cli_add_arguments(p)
+
+
+@subcommand("convert-abs-actions", "delta -> absolute actions (position, 6-D rotation, gripper) by state replay",
+            _convert_args)
+def convert_abs_actions(args: argparse.Namespace) -> int:
+    from jepa_envs.abs_actions import cli_run
+
+    return cli_run(args)
 
 
 def build_parser() -> argparse.ArgumentParser:

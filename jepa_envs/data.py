@@ -10,8 +10,8 @@ Files:
   upright (robomimic flips robosuite's OpenGL frames when it writes them).
 - LIBERO: ``data/demo_N/obs/{agentview_rgb, eye_in_hand_rgb, joint_states, gripper_states, ee_states}``, with
   ``bddl_file_name``, ``env_args`` and ``problem_info`` in ``data.attrs``. LIBERO stores the raw OpenGL frames
-  of both cameras; they are turned by 180 degrees (``[::-1, ::-1]``, as LIBERO's consumers and our LIBERO env
-  do), ``ee_states`` (position 3 + axis-angle 3) becomes ``robot0_eef_pos`` and ``robot0_eef_quat`` (x, y, z, w)
+  of both cameras; their rows are flipped (``[::-1]``), exactly what our LIBERO env does to its renders
+  (``jepa_envs.robosuite_common.upright``: a 180-degree turn would also mirror left and right), ``ee_states`` (position 3 + axis-angle 3) becomes ``robot0_eef_pos`` and ``robot0_eef_quat`` (x, y, z, w)
   and ``gripper_states`` becomes ``robot0_gripper_qpos``.
 
 Actions: files with the task's action dimension are used as they are. Absolute 7-D-per-arm actions
@@ -314,7 +314,7 @@ class _Reader:
                                "camera images must be uint8 (T, H, W, 3)")
         images = ds[()]
         if self.libero:
-            images = images[:, ::-1, ::-1]  # LIBERO stores OpenGL frames: turn by 180 degrees
+            images = images[:, ::-1]  # LIBERO stores OpenGL frames (bottom row first): flip the rows, as upright()
         if images.shape[1:3] != (size, size):
             if self.image_size is None:
                 raise DatasetError(f"{self.path}: data/{demo}/obs/{src} is {images.shape[1]}x{images.shape[2]} "

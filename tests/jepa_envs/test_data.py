@@ -114,9 +114,10 @@ def test_libero_layout_maps_keys_orientation_and_actions(tmp_path):
     raw = _write_libero(path, actions, control_delta=False)
     ds = load_dataset(path, cache_dir=False)
     assert ds.spec.name == "MokaMoka" and ds.spec.image_size == 24
-    # LIBERO stores OpenGL frames: both cameras come out turned by 180 degrees
-    np.testing.assert_array_equal(ds.obs["agentview_image"], raw["agentview_rgb"][:, ::-1, ::-1])
-    np.testing.assert_array_equal(ds.obs["robot0_eye_in_hand_image"], raw["eye_in_hand_rgb"][:, ::-1, ::-1])
+    # LIBERO stores OpenGL frames: both cameras come out with their rows flipped, as the LIBERO env renders them
+    from jepa_envs.robosuite_common import upright
+    np.testing.assert_array_equal(ds.obs["agentview_image"], upright(raw["agentview_rgb"]))
+    np.testing.assert_array_equal(ds.obs["robot0_eye_in_hand_image"], upright(raw["eye_in_hand_rgb"]))
     np.testing.assert_allclose(ds.obs["robot0_eef_pos"], raw["ee_states"][:, :3], rtol=1e-6)
     quat = Rotation.from_rotvec(raw["ee_states"][:, 3:]).as_quat()  # scipy: (x, y, z, w)
     got = ds.obs["robot0_eef_quat"].astype(np.float64)
