@@ -15,10 +15,13 @@ from __future__ import annotations
 import argparse
 import hashlib
 import json
+import multiprocessing
+import os
 import secrets
 import shutil
 import sys
 import time
+from concurrent.futures import ProcessPoolExecutor
 from contextlib import contextmanager
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -108,10 +111,15 @@ def make_demos(cfg: DemoConfig, out: Path, fresh: bool) -> Path:
 
 # ----------------------------------------------------------------------------- step 2: training
 
-def train_arm(cfg: DemoConfig, arm: str, seed: int, dataset: Path, out: Path, fresh: bool) -> Path:
+def train_arm(cfg: DemoConfig, arm: str, seed: int, dataset: Path, out: Path, fresh: bool,
+              threads: int | None = None) -> Path:
     """Train one arm with the shared preset; a finished run with the same config is reused."""
+    import torch
+
     from jepa_policy.train import load_checkpoint, load_config, train
 
+    if threads:
+        torch.set_num_threads(threads)
     run_dir = out / "runs" / f"{arm}_seed{seed}"
     overrides = dict(cfg.train_overrides, arm=arm, seed=seed, dataset=str(dataset), out_dir=str(run_dir))
     tcfg = load_config(TASK, cfg.preset, **overrides)
@@ -120,13 +128,29 @@ def train_arm(cfg: DemoConfig, arm: str, seed: int, dataset: Path, out: Path, fr
     wanted = {"train": tcfg.to_dict(), "dataset_digest": _file_digest(dataset)}
     if ckpt.exists() and stamp.exists() and not fresh and json.loads(stamp.read_text()) == wanted:
         if int(load_checkpoint(ckpt)["step"]) == tcfg.steps:
-            print(f"   reusing {ckpt}")
+            print(f"   reusing {ckpt}", flush=True)
             return ckpt
     if run_dir.exists():
         shutil.rmtree(run_dir)
     train(tcfg)
     stamp.write_text(json.dumps(wanted, indent=2))
     return ckpt
+
+
+def train_all(cfg: DemoConfig, dataset: Path, out: Path, fresh: bool) -> dict[tuple[str, int], Path]:
+    """Every (arm, seed) run, in parallel processes of one thread each (one per core).
+
+    Small models on a few cores train faster as independent single-threaded processes than one after another
+    with torch's intra-op threads, and the arms still see the same seed, data and budget.
+    """
+    jobs = [(arm, seed) for seed in cfg.seeds for arm in ARMS]
+    workers = max(1, min(len(jobs), os.cpu_count() or 1))
+    if workers == 1:
+        return {job: train_arm(cfg, *job, dataset, out, fresh) for job in jobs}
+    ctx = multiprocessing.get_context("spawn")
+    with ProcessPoolExecutor(max_workers=workers, mp_context=ctx) as pool:
+        futures = {job: pool.submit(train_arm, cfg, *job, dataset, out, fresh, 1) for job in jobs}
+        return {job: future.result() for job, future in futures.items()}
 
 
 def _file_digest(path: Path) -> str:
@@ -306,11 +330,8 @@ def run(cfg: DemoConfig, out: Path, fresh: bool = False) -> dict:
     timer = Timer()
     with timer.step("1/5 scripted demonstrations"):
         dataset = make_demos(cfg, out, fresh)
-    checkpoints: dict[tuple[str, int], Path] = {}
     with timer.step("2/5 training JEPA Policy and MIP (same seed, data and budget)"):
-        for seed in cfg.seeds:
-            for arm in ARMS:
-                checkpoints[arm, seed] = train_arm(cfg, arm, seed, dataset, out, fresh)
+        checkpoints = train_all(cfg, dataset, out, fresh)
 
     records: list[dict] = []
     calibrations: dict[int, dict] = {}
