@@ -80,12 +80,13 @@ class Policy:
     def images_needed(self, step: int) -> bool:
         """Whether the frame of episode step ``step`` is used: the history of a decision or its future target.
 
-        Decisions happen at multiples of ``n_action_steps``; a render-on-demand loop renders only these frames.
+        Decisions happen at multiples of ``n_action_steps``; a render-on-demand loop renders only these frames
+        (the schedule of ``jepa_envs.wrappers.RenderOnDemand``). Arms without a future head need no t+k frames.
         """
-        n = self.n_action_steps
-        history = any((step + j) % n == 0 for j in range(self.obs_steps))
-        target = step >= self.k and (step - self.k) % n == 0
-        return history or target
+        from jepa_envs.wrappers import frames_to_render
+
+        future_k = self.k if self.model.cfg.has_future_token else 0
+        return frames_to_render(step, self.n_action_steps, self.obs_steps, future_k)
 
     # ------------------------------------------------------------------ public acting API
     def act(self, obs: dict) -> np.ndarray:

@@ -115,6 +115,15 @@ def test_images_needed_covers_every_frame_a_decision_uses(model):
             assert d + 4 in needed                        # future target t+k
     assert needed == {t for t in range(60) if t % 8 in (0, 7, 4)}  # 3 of every 8 frames are rendered
 
+    # the same schedule as the env-side wrapper
+    from jepa_envs.wrappers import render_schedule
+    assert sorted(needed) == render_schedule(60, 8, 2, 4)
+
+
+def test_arm_without_future_head_needs_no_future_frames():
+    mip = Policy(build_model(ModelConfig.for_task(SPEC, arm="mip", **TINY)), SPEC)
+    assert {t for t in range(60) if mip.images_needed(t)} == {t for t in range(60) if t % 8 in (0, 7)}
+
 
 def test_from_checkpoint_acts_with_ema_weights(pusht_demo_file, tmp_path):
     demos = load_dataset(pusht_demo_file, task="PushT", image_size=32)
