@@ -16,7 +16,7 @@ from diffusers import DDPMScheduler
 from torch import Tensor, nn
 
 from jepa_policy.config import ModelConfig
-from jepa_policy.model import BasePolicyModel, ResNet18GN, SharedBlock, init_weights, sinusoid
+from jepa_policy.model import BasePolicyModel, ResNet18GN, SharedBlock, init_weights, reset_linears, sinusoid
 
 
 class SpatialSoftmax(nn.Module):
@@ -106,6 +106,7 @@ class DiffusionPolicyModel(BasePolicyModel):
                                        beta_schedule="squaredcos_cap_v2", variance_type="fixed_small",
                                        clip_sample=True, prediction_type="epsilon")
         self.apply(init_weights)
+        reset_linears(self.encoder)
 
     @property
     def future_dim(self) -> int:

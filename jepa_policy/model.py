@@ -448,6 +448,7 @@ class PolicyModel(BasePolicyModel):
             mask[:h, h] = False
         self.register_buffer("self_attn_mask", mask, persistent=False)
         self.apply(init_weights)
+        reset_linears(self.encoder, self.memory)
 
     @property
     def future_dim(self) -> int:
@@ -614,6 +615,20 @@ def init_weights(module: nn.Module) -> None:
         p = getattr(module, name, None)
         if isinstance(p, nn.Parameter):
             nn.init.normal_(p, std=0.02)
+
+
+def reset_linears(*modules: nn.Module) -> None:
+    """Give the observation path's linears back PyTorch's fan-in-scaled default init.
+
+    N(0, 0.02) is the init of a Transformer at width 384 and more (GPT, DP, MIP); diffusion_policy leaves its
+    observation encoder at the default. On the observation path of a narrow model (the CPU presets) 0.02 shrinks
+    Embed_o(c) to about 1% of the memory's time token and training sits on a plateau: on PushT (cpu preset,
+    2k steps) the first-step action loss fell to 0.040 with it against 0.124 without (docs/training.md).
+    """
+    for module in modules:
+        for m in module.modules():
+            if isinstance(m, nn.Linear):
+                m.reset_parameters()
 
 
 def build_model(cfg: ModelConfig) -> BasePolicyModel:
