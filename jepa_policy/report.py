@@ -48,7 +48,8 @@ def paired_comparison(diffs: np.ndarray, n_boot: int = 20_000, seed: int = 0) ->
     return out
 
 
-def summarize(records: list[dict], calibrations: dict, alerts: list[dict], latency: dict) -> dict:
+def summarize(records: list[dict], calibrations: dict, alerts: list[dict], latency: dict,
+              monitor_episodes: list[dict] = ()) -> dict:
     """Numbers of the report from the rollout records and the monitor's answers."""
     arms = sorted({r["arm"] for r in records}, key=lambda a: (a != "jepa", a))
     success = {}
@@ -60,7 +61,9 @@ def summarize(records: list[dict], calibrations: dict, alerts: list[dict], laten
             srs = [r for r in rs if r["train_seed"] == seed]
             per_seed[seed] = sum(r["success"] for r in srs) / len(srs)
         success[arm] = {"rate": k / len(rs), "successes": k, "episodes": len(rs), "ci95": wilson_ci(k, len(rs)),
-                        "per_seed": per_seed}
+                        "per_seed": per_seed, "mean_length": float(np.mean([r["length"] for r in rs])),
+                        "mean_best_reward": (float(np.mean([r["max_reward"] for r in rs]))
+                                             if all("max_reward" in r for r in rs) else None)}
 
     jepa_live = [r for r in records if r["arm"] == "jepa" and r["phase"] == "live"]
     alerted = {a["episode_id"] for a in alerts}
@@ -72,6 +75,7 @@ def summarize(records: list[dict], calibrations: dict, alerts: list[dict], laten
         "alerted_episodes": len(alerted),
         "alerted_failures": sum(r["episode_id"] in alerted for r in live_failures),
         "alerted_successes": sum(r["episode_id"] in alerted for r in jepa_live if r["success"]),
+        "alert_notes": sorted({e["alert_note"] for e in monitor_episodes if not e["held_out"] and e["alert_note"]}),
     }
     summary = {"success": success, "calibrations": calibrations, "live": live, "latency": latency}
     seeds = sorted({r["train_seed"] for r in records})
@@ -180,19 +184,24 @@ def render_markdown(summary: dict, cfg: dict, figures: dict[str, str]) -> tuple[
     """(report page, console summary)."""
     lines = [f"# JEPA Policy on PushT: main job report ({cfg['mode']} mode)", ""]
     text = []
-    lines += ["## Success rate", "", "| arm | success | 95% CI (Wilson) | episodes | per training seed |",
-              "|---|---|---|---|---|"]
+    lines += ["## Success rate", "", "| arm | success | 95% CI (Wilson) | episodes | per training seed | "
+              "mean best coverage | mean length |", "|---|---|---|---|---|---|---|"]
     for arm, s in summary["success"].items():
         seeds = ", ".join(f"{k}: {_pct(v)}" for k, v in s["per_seed"].items())
+        best = "n/a" if s["mean_best_reward"] is None else f"{s['mean_best_reward']:.3f}"
         lines.append(f"| {arm} | {_pct(s['rate'])} | [{_pct(s['ci95'][0])}, {_pct(s['ci95'][1])}] | "
-                     f"{s['episodes']} | {seeds} |")
+                     f"{s['episodes']} | {seeds} | {best} | {s['mean_length']:.0f} |")
         text.append(f"success {arm:5s}: {_pct(s['rate'])} (95% CI {_pct(s['ci95'][0])}-{_pct(s['ci95'][1])}, "
                     f"n={s['episodes']})")
     jepa_rate = summary["success"].get("jepa", {}).get("rate", 0.0)
     if jepa_rate < SUCCESS_AIM:
+        best = summary["success"].get("jepa", {}).get("mean_best_reward")
+        progress = "" if best is None else (f" Its rollouts reached a mean best goal coverage of {best:.2f} "
+                                            "(success needs the task's coverage threshold).")
         note = (f"**Aim not reached:** JEPA Policy succeeded in {_pct(jepa_rate)} of rollouts, below the "
-                f"{_pct(SUCCESS_AIM)} aim for this budget. The comparison and the AUROC below are measured all the "
-                "same; read them with that in mind.")
+                f"{_pct(SUCCESS_AIM)} aim for this budget.{progress} What is known about the gap is in "
+                "docs/training.md (PushT `cpu` preset). The comparison and the monitor figures below are measured "
+                "all the same; read them with that in mind.")
         lines += ["", note]
         text.append(note.replace("**", ""))
     if "paired" in summary:
@@ -238,9 +247,14 @@ def render_markdown(summary: dict, cfg: dict, figures: dict[str, str]) -> tuple[
         text.append(f"AUROC seed {seed}: {r['auroc']:.3f} [{r['auroc_ci_low']:.3f}, {r['auroc_ci_high']:.3f}], "
                     f"permutation p={r['permutation_p']:.4f}; threshold {thr}")
     lv = summary["live"]
-    lines += ["", f"Live rollouts scored against that calibration: {lv['episodes']} episodes, {lv['failures']} "
+    calibrated = any("error" not in cal for cal in summary["calibrations"].values())
+    lead = ("Live rollouts scored against that calibration" if calibrated else
+            "Live rollouts (no calibration exists, so the monitor raises no alert and says so on each episode)")
+    lines += ["", f"{lead}: {lv['episodes']} episodes, {lv['failures']} "
               f"failures; {lv['alerts']} intervention alerts on {lv['alerted_episodes']} episodes "
               f"({lv['alerted_failures']} of them failures, {lv['alerted_successes']} successes)."]
+    if lv.get("alert_notes"):
+        lines += [f"Monitor's note on the live episodes: \"{note}\"" for note in lv["alert_notes"]]
     text.append(f"live: {lv['alerts']} alerts on {lv['alerted_episodes']} of {lv['episodes']} episodes "
                 f"({lv['alerted_failures']}/{lv['failures']} failures flagged)")
 
@@ -263,7 +277,7 @@ def write_report(out: Path, *, cfg: dict, dataset: Path, checkpoints: dict, reco
     with open(out / "records.jsonl", "w") as f:
         for rec in records:
             f.write(json.dumps(rec) + "\n")
-    summary = summarize(records, calibrations, alerts, latency)
+    summary = summarize(records, calibrations, alerts, latency, monitor_episodes)
     run_dirs = {f"{arm} seed {seed}": Path(p).parent.parent for (arm, seed), p in checkpoints.items()}
     figures = {"Learning curves": "learning_curves.png", "ROC of the early NMSE score": "roc.png",
                "NMSE distributions": "nmse_distributions.png", "Rollout frames": "frames.png"}
