@@ -15,8 +15,27 @@ def arm_lowdim(num_arms: int) -> tuple[tuple[str, int], ...]:
     return tuple((f"robot{i}_{name}", dim) for i in range(num_arms) for name, dim in ARM_LOWDIM)
 
 
+class ObservationLayout:
+    """Observation keys derived from ``cameras`` and ``lowdim``; shared by TaskSpec and the policy's ModelConfig."""
+
+    cameras: tuple[str, ...]
+    lowdim: tuple[tuple[str, int], ...]
+
+    @property
+    def image_keys(self) -> tuple[str, ...]:
+        return tuple(f"{c}_image" for c in self.cameras)
+
+    @property
+    def lowdim_keys(self) -> tuple[str, ...]:
+        return tuple(k for k, _ in self.lowdim)
+
+    @property
+    def lowdim_dim(self) -> int:
+        return sum(d for _, d in self.lowdim)
+
+
 @dataclass(frozen=True)
-class TaskSpec:
+class TaskSpec(ObservationLayout):
     """One task of the toolkit. Reach it from an env as ``env.unwrapped.task_spec``."""
 
     name: str                      # short name used by CLIs and configs, e.g. "ToolHang"
@@ -37,18 +56,6 @@ class TaskSpec:
     num_demos: int = 0             # demonstrations in the paper's dataset
     notes: str = ""
     extra: dict = field(default_factory=dict, compare=False, hash=False)
-
-    @property
-    def image_keys(self) -> tuple[str, ...]:
-        return tuple(f"{c}_image" for c in self.cameras)
-
-    @property
-    def lowdim_keys(self) -> tuple[str, ...]:
-        return tuple(k for k, _ in self.lowdim)
-
-    @property
-    def lowdim_dim(self) -> int:
-        return sum(d for _, d in self.lowdim)
 
     def with_image_size(self, size: int) -> "TaskSpec":
         return replace(self, image_size=int(size))

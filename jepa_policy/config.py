@@ -10,6 +10,8 @@ import json
 from dataclasses import asdict, dataclass, field, fields, replace
 from typing import Any
 
+from jepa_envs.spec import ObservationLayout
+
 ARMS = (
     "jepa",              # JEPA Policy: action tokens + one future token in one shared stack (Sec. 3.2)
     "mip",               # action-only MIP: no future token, lambda_z = 0 (Sec. 4.2)
@@ -25,7 +27,7 @@ LAMBDA_Z_MODES = ("adaptive", "fixed")
 
 
 @dataclass(frozen=True)
-class ModelConfig:
+class ModelConfig(ObservationLayout):
     """Typed, validated configuration of one model of the family. Construct it with ``for_task``."""
 
     arm: str = "jepa"
@@ -80,18 +82,6 @@ class ModelConfig:
         self.validate()
 
     # ----- derived shapes -----
-    @property
-    def image_keys(self) -> tuple[str, ...]:
-        return tuple(f"{c}_image" for c in self.cameras)
-
-    @property
-    def lowdim_keys(self) -> tuple[str, ...]:
-        return tuple(k for k, _ in self.lowdim)
-
-    @property
-    def lowdim_dim(self) -> int:
-        return sum(d for _, d in self.lowdim)
-
     @property
     def crop_size(self) -> int:
         return int(round(self.crop_ratio * self.image_size))

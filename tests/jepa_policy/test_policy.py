@@ -15,15 +15,6 @@ SPEC = get_task_spec("PushT").with_image_size(32)
 TINY = {"width": 32, "layers": 1, "heads": 2, "encoder_width": 8, "time_emb_dim": 16, "dropout": 0.0}
 
 
-@pytest.fixture(autouse=True, scope="module")
-def one_thread():
-    """One intra-op thread: on a shared 2-core machine more threads oversubscribe the cores and run slower."""
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
-
-
 @pytest.fixture(scope="module")
 def model():
     torch.manual_seed(0)

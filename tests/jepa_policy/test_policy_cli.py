@@ -2,18 +2,8 @@
 import json
 
 import pytest
-import torch
 
 from jepa_policy.cli import main
-
-
-@pytest.fixture(autouse=True, scope="module")
-def one_thread():
-    """One intra-op thread: on a shared 2-core machine more threads oversubscribe the cores and run slower."""
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
 
 
 def test_describe_json_prints_paper_counts(capsys):

@@ -12,15 +12,6 @@ from jepa_envs.spec import all_task_specs
 from jepa_policy.train import TrainConfig, cosine_with_warmup, load_checkpoint, load_config, train
 
 
-@pytest.fixture(autouse=True, scope="module")
-def one_thread():
-    """One intra-op thread: on a shared 2-core machine more threads oversubscribe the cores and run slower."""
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
-
-
 @pytest.fixture(scope="module")
 def demos(pusht_demo_file):
     return load_dataset(pusht_demo_file, task="PushT", image_size=32)
