@@ -348,19 +348,18 @@ def run(cfg: DemoConfig, out: Path, fresh: bool = False) -> dict:
                 if monitor.robot_key is None:
                     monitor.register_task(jepa.model.future_dim)
                 ckpt_id = f"jepa-seed{seed}-step{jepa.checkpoint_step}"
-                with monitor.client() as client:
-                    records += run_rollouts(jepa, cfg, arm="jepa", seed=seed, phase="calibration",
-                                            first_seed=CALIB_SEED, episodes=cfg.calib_episodes, client=client,
-                                            checkpoint_id=ckpt_id)
-                    if not client.flush(timeout=120):
-                        raise RuntimeError("the monitor client could not deliver the calibration records")
+
+                def monitored(phase: str, first_seed: int, episodes: int) -> list[dict]:
+                    with monitor.client() as client:
+                        recs = run_rollouts(jepa, cfg, arm="jepa", seed=seed, phase=phase, first_seed=first_seed,
+                                            episodes=episodes, client=client, checkpoint_id=ckpt_id)
+                        if not client.flush(timeout=120):
+                            raise RuntimeError(f"the monitor client could not deliver the {phase} records")
+                    return recs
+
+                records += monitored("calibration", CALIB_SEED, cfg.calib_episodes)
                 calibrations[seed] = monitor.calibrate(ckpt_id, cfg)
-                with monitor.client() as client:
-                    records += run_rollouts(jepa, cfg, arm="jepa", seed=seed, phase="live",
-                                            first_seed=LIVE_SEED, episodes=cfg.live_episodes, client=client,
-                                            checkpoint_id=ckpt_id)
-                    if not client.flush(timeout=120):
-                        raise RuntimeError("the monitor client could not deliver the live records")
+                records += monitored("live", LIVE_SEED, cfg.live_episodes)
                 for phase, first, n in (("calibration", CALIB_SEED, cfg.calib_episodes),
                                         ("live", LIVE_SEED, cfg.live_episodes)):
                     records += run_rollouts(policies["mip"], cfg, arm="mip", seed=seed, phase=phase,

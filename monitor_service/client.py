@@ -47,9 +47,11 @@ class ClientStats:
 class _Records:
     """Builds records and owns the bounded buffer; shared by the sync and async clients."""
 
-    def __init__(self, robot: str | None, max_buffer: int, batch_size: int):
+    def __init__(self, robot: str | None, max_buffer: int, batch_size: int, api_key: str, max_backoff: float):
         if max_buffer < 1 or batch_size < 1:
             raise ValueError("max_buffer and batch_size must be positive")
+        self.api_key = api_key
+        self.max_backoff = max_backoff
         self.robot = robot
         self.max_buffer = max_buffer
         self.batch_size = batch_size
@@ -110,9 +112,7 @@ class MonitorClient(_Records):
         self, base_url: str, api_key: str, *, robot: str | None = None, max_buffer: int = 100_000,
         batch_size: int = 256, timeout: float = 5.0, max_backoff: float = 1.0,
     ):
-        super().__init__(robot, max_buffer, batch_size)
-        self.api_key = api_key
-        self.max_backoff = max_backoff
+        super().__init__(robot, max_buffer, batch_size, api_key, max_backoff)
         self._http = httpx.Client(base_url=base_url, timeout=timeout)
         self._cond = threading.Condition()
         self._closing = False
@@ -215,9 +215,7 @@ class AsyncMonitorClient(_Records):
         self, base_url: str, api_key: str, *, robot: str | None = None, max_buffer: int = 100_000,
         batch_size: int = 256, timeout: float = 5.0, max_backoff: float = 1.0,
     ):
-        super().__init__(robot, max_buffer, batch_size)
-        self.api_key = api_key
-        self.max_backoff = max_backoff
+        super().__init__(robot, max_buffer, batch_size, api_key, max_backoff)
         self._http = httpx.AsyncClient(base_url=base_url, timeout=timeout)
         self._wake = asyncio.Event()
         self._closing = False
