@@ -39,10 +39,13 @@ class ServerProcess:
                 self.kill()
 
     def kill(self) -> None:
-        """Hard stop (SIGKILL, as a crash would)."""
-        if self.process.poll() is None:
-            self.process.kill()
-            self.process.wait(10)
+        """Hard stop (SIGKILL, as a crash would) of the server's whole process group: with ``workers > 1``
+        uvicorn's worker processes would otherwise outlive their killed supervisor."""
+        try:
+            os.killpg(self.process.pid, signal.SIGKILL)
+        except ProcessLookupError:
+            pass
+        self.process.wait(10)
 
     def __enter__(self) -> ServerProcess:
         return self
@@ -70,7 +73,8 @@ def start_server(
     log = open(log_path, "ab")
     cmd = [sys.executable, "-m", "monitor_service.cli", "serve", "--host", "127.0.0.1", "--port", str(port),
            "--workers", str(workers), "--log-level", "warning"]
-    proc = subprocess.Popen(cmd, env=full_env, stdout=log, stderr=subprocess.STDOUT)
+    # its own process group, so that ``kill`` reaches uvicorn's worker processes too
+    proc = subprocess.Popen(cmd, env=full_env, stdout=log, stderr=subprocess.STDOUT, start_new_session=True)
     log.close()
     server = ServerProcess(f"http://127.0.0.1:{port}", port, proc, log_path)
     deadline = time.monotonic() + ready_timeout

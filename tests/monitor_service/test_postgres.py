@@ -43,6 +43,25 @@ def pg_url():
         shutil.rmtree(root, ignore_errors=True)
 
 
+def _stat(pid) -> list[str] | None:
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    except OSError:
+        return None
+
+
+def children(pid: int) -> list[int]:
+    """Pids whose parent is ``pid``."""
+    return [int(p.name) for p in Path("/proc").iterdir()
+            if p.name.isdigit() and (st := _stat(p.name)) is not None and int(st[1]) == pid]
+
+
+def alive(pid: int) -> bool:
+    """Running and not a zombie (a zombie only waits for init to reap it)."""
+    st = _stat(pid)
+    return st is not None and st[0] != "Z"
+
+
 def test_migrations_on_postgres(pg_url):
     engine = db.make_engine(pg_url)
     db.upgrade(engine)
@@ -84,7 +103,10 @@ def test_service_on_postgres_concurrent_idempotent_calibrated_and_restarted(pg_u
         cal = http.post("/v1/calibrations", json={"task": "PgTask", "alpha": 0.2}, headers=A)
         assert cal.status_code == 201, cal.text
         assert cal.json()["result"]["n_success"] + cal.json()["result"]["n_failure"] == 32
+        workers = children(server.process.pid)
+        assert len(workers) >= 2
         server.kill()
+        assert not [p for p in workers if alive(p)], "uvicorn workers outlived their killed supervisor"
         server = start_server(pg_url, admin_key=ADMIN, port=port, log_path=tmp_path / "s.log")
         eps = {e["id"]: e for e in http.get("/v1/episodes?task=PgTask&limit=100", headers=A).json()}
         assert eps.pop("pg-shared")["n_decisions"] == 32
