@@ -8,6 +8,7 @@ from __future__ import annotations
 import argparse
 import importlib.util
 import json
+import os
 import sys
 import time
 from dataclasses import asdict, dataclass
@@ -72,6 +73,8 @@ def _make_demos_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--seed", type=int, default=0, help="first episode seed (episodes use seed, seed+1, ...)")
     p.add_argument("--image-size", type=int, default=None, help="camera image size (default: the task's)")
     p.add_argument("--difficulty", default="easy", help="PushT difficulty preset: easy (default), medium, hard, full")
+    p.add_argument("--workers", type=int, default=os.cpu_count() or 1,
+                   help="processes that plan episodes (default: one per core; the file is the same for any number)")
 
 
 @subcommand("make-demos", "write scripted-expert demonstrations to HDF5", _make_demos_args)
@@ -82,12 +85,14 @@ def make_demos(args: argparse.Namespace) -> int:
                          f"Use the public {spec.suite} demonstrations with jepa_envs.data.load_dataset instead")
     if args.episodes < 1:
         raise SystemExit(f"error: --episodes must be >= 1, got {args.episodes}")
+    if args.workers < 1:
+        raise SystemExit(f"error: --workers must be >= 1, got {args.workers}")
     from jepa_envs.data import write_dataset
     from jepa_envs.pusht_expert import generate_demos
 
     t0 = time.perf_counter()
     episodes, env_args = generate_demos(args.episodes, seed=args.seed, image_size=args.image_size,
-                                        difficulty=args.difficulty)
+                                        difficulty=args.difficulty, workers=args.workers)
     write_dataset(args.out, episodes, env_args)
     steps = sum(len(ep["actions"]) for ep in episodes)
     attempts = env_args["expert"]["attempts"]

@@ -11,7 +11,11 @@ and of the speeds per push makes them vary.
 """
 from __future__ import annotations
 
+import contextlib
+import itertools
 import math
+import multiprocessing
+from concurrent.futures import ProcessPoolExecutor
 from dataclasses import asdict, dataclass
 
 import numpy as np
@@ -218,29 +222,50 @@ def collect_episode(env, seed: int, expert: PushTExpert, max_steps: int | None =
     }
 
 
+def _expert_episode(seed: int, attempt: int, image_size: int | None, env_options: dict) -> dict:
+    """Attempt ``attempt`` of ``generate_demos``: env seed ``seed + attempt``, expert seeded by (seed, attempt)."""
+    env = PushTEnv(image_size=image_size, **env_options)
+    try:
+        return collect_episode(env, seed + attempt, PushTExpert(seed=[seed, attempt]))
+    finally:
+        env.close()
+
+
 def generate_demos(num_episodes: int, seed: int = 0, image_size: int | None = None, only_successes: bool = True,
-                   max_attempts_factor: int = 2, **env_options) -> tuple[list[dict], dict]:
+                   max_attempts_factor: int = 2, workers: int = 1, **env_options) -> tuple[list[dict], dict]:
     """``num_episodes`` expert demos on seeds seed, seed+1, ...; returns (episodes, env_args).
 
     With ``only_successes`` failed episodes are dropped and further seeds are tried (up to
-    ``max_attempts_factor * num_episodes`` in all). ``env_args`` is what ``jepa_envs.data.write_dataset`` stores.
+    ``max_attempts_factor * num_episodes`` in all). ``workers > 1`` plans the episodes in that many processes;
+    the result is the same as with one (each attempt is seeded on its own and kept in seed order).
+    ``env_args`` is what ``jepa_envs.data.write_dataset`` stores.
     """
     if num_episodes < 1:
         raise ValueError(f"num_episodes must be >= 1, got {num_episodes}")
-    env = PushTEnv(image_size=image_size, **env_options)
-    try:
-        episodes, attempts = [], 0
-        while len(episodes) < num_episodes:
-            if attempts >= max_attempts_factor * num_episodes:
-                raise RuntimeError(f"the PushT expert succeeded in only {len(episodes)} of {attempts} episodes; "
-                                   "use an easier difficulty or only_successes=False")
-            ep = collect_episode(env, seed + attempts, PushTExpert(seed=[seed, attempts]))
+    if workers < 1:
+        raise ValueError(f"workers must be >= 1, got {workers}")
+    env = PushTEnv(image_size=image_size, **env_options)  # validates the options and gives the effective spec
+    # the effective difficulty fields, so the file alone rebuilds the same env
+    env_kwargs = {"image_size": env.task_spec.image_size, **asdict(env.difficulty)}
+    env.close()
+    max_attempts = max_attempts_factor * num_episodes
+    episodes, attempts = [], 0
+    with contextlib.ExitStack() as stack:
+        if workers == 1:
+            results = (_expert_episode(seed, a, image_size, env_options) for a in range(max_attempts))
+        else:
+            pool = stack.enter_context(ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn")))
+            stack.callback(pool.shutdown, cancel_futures=True)
+            results = pool.map(_expert_episode, itertools.repeat(seed), range(max_attempts), itertools.repeat(image_size),
+                               itertools.repeat(env_options))
+        for ep in results:
             attempts += 1
             if ep["success"] or not only_successes:
                 episodes.append(ep)
-        # the effective difficulty fields, so the file alone rebuilds the same env
-        env_kwargs = {"image_size": env.task_spec.image_size, **asdict(env.difficulty)}
-        return episodes, {"env_name": "PushT", "type": "jepa_envs", "env_kwargs": env_kwargs,
-                          "expert": {"seed": seed, "attempts": attempts}}
-    finally:
-        env.close()
+            if len(episodes) == num_episodes:
+                break
+    if len(episodes) < num_episodes:
+        raise RuntimeError(f"the PushT expert succeeded in only {len(episodes)} of {attempts} episodes; "
+                           "use an easier difficulty or only_successes=False")
+    return episodes, {"env_name": "PushT", "type": "jepa_envs", "env_kwargs": env_kwargs,
+                      "expert": {"seed": seed, "attempts": attempts}}

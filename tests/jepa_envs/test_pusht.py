@@ -13,7 +13,7 @@ from PIL import Image, ImageDraw
 
 import jepa_envs  # noqa: F401  (registers the ids)
 from jepa_envs.pusht import (COLORS, GOAL_POSE, T_PARTS, PushTEnv, coverage, make_difficulty, transform)
-from jepa_envs.pusht_expert import PushTExpert, collect_episode
+from jepa_envs.pusht_expert import PushTExpert, collect_episode, generate_demos
 
 
 def test_check_env_passes():
@@ -147,6 +147,19 @@ def test_expert_succeeds_on_seeded_episodes_with_varied_smooth_demos():
         assert jumps.max() < 60.0  # targets move along paths, no teleports
         assert ep["dones"][-1] == 1 and ep["dones"][:-1].sum() == 0
     env.close()
+
+
+def test_parallel_demo_generation_equals_serial():
+    serial, args1 = generate_demos(3, seed=5, image_size=24)
+    parallel, args2 = generate_demos(3, seed=5, image_size=24, workers=2)
+    assert args1 == args2
+    for a, b in zip(serial, parallel, strict=True):
+        assert a["seed"] == b["seed"]
+        for key in ("actions", "states", "rewards", "dones"):
+            np.testing.assert_array_equal(a[key], b[key])
+        np.testing.assert_array_equal(a["obs"]["top_image"], b["obs"]["top_image"])
+    with pytest.raises(ValueError, match="workers"):
+        generate_demos(1, workers=0)
 
 
 def test_state_replay_reproduces_the_episode():
