@@ -6,7 +6,13 @@ cd "$(dirname "$0")/.."
 PY=${PYTHON:-python3}
 STAMP=.setup-stamp
 HASH=$(cat pyproject.toml scripts/setup.sh | sha256sum | cut -c1-16)
-if [ -f "$STAMP" ] && [ "$(cat "$STAMP")" = "$HASH" ] && "$PY" -c "import jepa_envs, jepa_policy, monitor_service" 2>/dev/null; then
+# The install must resolve to this checkout from anywhere (-P: the current folder does not count), or a copy
+# moved to a new path would pass the check through the current folder while the console scripts fail elsewhere.
+installed_here() {
+  "$PY" -P -c "import pathlib, sys, jepa_envs, jepa_policy, monitor_service
+sys.exit(pathlib.Path(jepa_envs.__file__).resolve().parents[1] != pathlib.Path.cwd().resolve())" 2>/dev/null
+}
+if [ -f "$STAMP" ] && [ "$(cat "$STAMP")" = "$HASH" ] && installed_here; then
   exit 0
 fi
 
