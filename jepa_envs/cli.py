@@ -92,7 +92,7 @@ def make_demos(args: argparse.Namespace) -> int:
 
     t0 = time.perf_counter()
     episodes, env_args = generate_demos(args.episodes, seed=args.seed, image_size=args.image_size,
-                                        difficulty=args.difficulty, workers=args.workers)
+                                        difficulty=args.difficulty, workers=args.workers, progress=True)
     write_dataset(args.out, episodes, env_args)
     steps = sum(len(ep["actions"]) for ep in episodes)
     attempts = env_args["expert"]["attempts"]

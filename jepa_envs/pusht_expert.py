@@ -19,6 +19,7 @@ from concurrent.futures import ProcessPoolExecutor
 from dataclasses import asdict, dataclass
 
 import numpy as np
+from tqdm import tqdm
 
 from jepa_envs.pusht import (AGENT_RADIUS, GOAL_POSE, T_OUTLINE, T_RADIUS, WORLD_SIZE, PushTEnv, PushTSim,
                              coverage, point_t_distance, transform, wrap_angle)
@@ -232,12 +233,14 @@ def _expert_episode(seed: int, attempt: int, image_size: int | None, env_options
 
 
 def generate_demos(num_episodes: int, seed: int = 0, image_size: int | None = None, only_successes: bool = True,
-                   max_attempts_factor: int = 2, workers: int = 1, **env_options) -> tuple[list[dict], dict]:
+                   max_attempts_factor: int = 2, workers: int = 1, progress: bool = False,
+                   **env_options) -> tuple[list[dict], dict]:
     """``num_episodes`` expert demos on seeds seed, seed+1, ...; returns (episodes, env_args).
 
     With ``only_successes`` failed episodes are dropped and further seeds are tried (up to
     ``max_attempts_factor * num_episodes`` in all). ``workers > 1`` plans the episodes in that many processes;
     the result is the same as with one (each attempt is seeded on its own and kept in seed order).
+    ``progress`` shows a progress bar of the episodes kept.
     ``env_args`` is what ``jepa_envs.data.write_dataset`` stores.
     """
     if num_episodes < 1:
@@ -258,10 +261,12 @@ def generate_demos(num_episodes: int, seed: int = 0, image_size: int | None = No
             stack.callback(pool.shutdown, cancel_futures=True)
             results = pool.map(_expert_episode, itertools.repeat(seed), range(max_attempts), itertools.repeat(image_size),
                                itertools.repeat(env_options))
+        bar = stack.enter_context(tqdm(total=num_episodes, desc="PushT demos", unit="demo", disable=not progress))
         for ep in results:
             attempts += 1
             if ep["success"] or not only_successes:
                 episodes.append(ep)
+                bar.update()
             if len(episodes) == num_episodes:
                 break
     if len(episodes) < num_episodes:
