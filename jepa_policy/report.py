@@ -13,6 +13,7 @@ from scipy import stats
 
 EARLY_DECISIONS = 5          # paper Sec. 4.10: median NMSE of the first five decisions
 SUCCESS_AIM = 0.60           # issue 6: the CPU config should reach a useful success rate
+MIN_CLASS_FOR_AUROC = 10     # below this many held-out successes (or failures) the AUROC is flagged as uninformative
 
 
 def wilson_ci(successes: int, n: int) -> tuple[float, float]:
@@ -29,6 +30,20 @@ def early_score(decisions: list[dict]) -> float | None:
     if len(first) < EARLY_DECISIONS or any(d["nmse"] is None for d in first):
         return None
     return float(np.median([d["nmse"] for d in first]))
+
+
+def auroc_caveat(n_success: int, n_failure: int) -> str | None:
+    """A warning when the smaller class of held-out episodes is too small for the AUROC to mean much, else None.
+
+    With m episodes in the smaller class the AUROC moves in steps of 1/m of the ranking and its bootstrap interval
+    only resamples those m episodes, so it says little about how the score ranks failures in general.
+    """
+    m, name = min((n_success, "success"), (n_failure, "failure"))
+    if m >= MIN_CLASS_FOR_AUROC:
+        return None
+    return (f"only {m} held-out {name} episode{'s' if m != 1 else ''}: this AUROC and its interval rest on "
+            f"{'it' if m == 1 else 'them'} and say little (at least {MIN_CLASS_FOR_AUROC} of each class are needed "
+            "to read it; the paper's per-task values rest on hundreds of episodes)")
 
 
 def paired_comparison(diffs: np.ndarray, n_boot: int = 20_000, seed: int = 0) -> dict:
@@ -176,6 +191,10 @@ def save_frames(frames: list[tuple[str, np.ndarray]], path: Path) -> None:
 
 # ----------------------------------------------------------------------------- the page
 
+def _num(x: float | None) -> str:
+    return "n/a" if x is None else f"{x:.3f}"
+
+
 def _pct(x: float) -> str:
     return f"{100 * x:.1f}%"
 
@@ -240,12 +259,15 @@ def render_markdown(summary: dict, cfg: dict, figures: dict[str, str]) -> tuple[
             f"{r['auroc_ci_high']:.3f}], {r['n_bootstrap']} resamples), PR-AUC {r['average_precision']:.3f}, "
             f"permutation p = {r['permutation_p']:.4f} ({r['n_permutation']} permutations).",
             f"  Youden threshold {r['youden_threshold']:.4g} (balanced accuracy in-sample "
-            f"{r['youden_bacc_in_sample']:.3f}, held-out {r['youden_bacc_held_out']} by {r['held_out_method']}); "
+            f"{r['youden_bacc_in_sample']:.3f}, held-out {_num(r['youden_bacc_held_out'])} by {r['held_out_method']}); "
             f"conformal threshold at alpha={r['alpha']}: {r['conformal_threshold']} ({r['conformal_note']}).",
             f"  Active alarm threshold ({cal['threshold_rule']}): {thr if thr is not None else 'infinite (no alarms)'}.",
         ]
         text.append(f"AUROC seed {seed}: {r['auroc']:.3f} [{r['auroc_ci_low']:.3f}, {r['auroc_ci_high']:.3f}], "
                     f"permutation p={r['permutation_p']:.4f}; threshold {thr}")
+        if (caveat := auroc_caveat(r["n_success"], r["n_failure"])) is not None:
+            lines.append(f"  **Caveat:** {caveat}.")
+            text.append(f"  caveat: {caveat}")
     lv = summary["live"]
     calibrated = any("error" not in cal for cal in summary["calibrations"].values())
     lead = ("Live rollouts scored against that calibration" if calibrated else

@@ -92,6 +92,9 @@ def test_calibration_matches_sklearn(quick_run):
     scores = np.array([s for s, _ in scored])
     assert cal["result"]["auroc"] == pytest.approx(roc_auc_score(labels, scores))
     assert cal["result"]["n_failure"] == labels.sum()
+    from jepa_policy.report import MIN_CLASS_FOR_AUROC
+    small = min(cal["result"]["n_success"], cal["result"]["n_failure"]) < MIN_CLASS_FOR_AUROC
+    assert ("**Caveat:**" in (out / "report.md").read_text()) == small
 
 
 def test_paired_comparison_reference():
@@ -102,3 +105,14 @@ def test_paired_comparison_reference():
     assert p["t_interval"] == pytest.approx([t.low, t.high])
     assert p["sign_test_p"] == pytest.approx(0.125)  # 4 of 4 positive: exact two-sided 2 * 0.5**4
     assert p["bootstrap_interval"][0] <= diffs.mean() <= p["bootstrap_interval"][1]
+
+
+def test_auroc_caveat_flags_small_classes():
+    from jepa_policy.report import MIN_CLASS_FOR_AUROC, auroc_caveat
+
+    assert auroc_caveat(MIN_CLASS_FOR_AUROC, 50) is None
+    assert auroc_caveat(40, MIN_CLASS_FOR_AUROC) is None
+    one = auroc_caveat(1, 38)
+    assert one is not None and "only 1 held-out success episode:" in one
+    few = auroc_caveat(30, 3)
+    assert few is not None and "only 3 held-out failure episodes" in few
