@@ -55,7 +55,7 @@ MODES = {
                         latency_iters=20, latency_warmup=3, train_overrides={"steps": 30, "eval_every": 15,
                                                                              "eval_episodes": 2},
                         num_envs=2, bootstrap=1000, permutations=1000),
-    "default": DemoConfig("default", demos=100, preset="cpu", seeds=(42,), calib_episodes=40, live_episodes=24,
+    "default": DemoConfig("default", demos=200, preset="cpu", seeds=(42,), calib_episodes=40, live_episodes=24,
                           latency_iters=300, latency_warmup=30),
     "full": DemoConfig("full", demos=200, preset="cpu", seeds=(41, 42, 43), calib_episodes=40, live_episodes=40,
                        latency_iters=300, latency_warmup=30),
@@ -101,7 +101,7 @@ def make_demos(cfg: DemoConfig, out: Path, fresh: bool) -> Path:
         print(f"   reusing {path}")
         return path
     path.parent.mkdir(parents=True, exist_ok=True)
-    episodes, env_args = generate_demos(cfg.demos, seed=0)
+    episodes, env_args = generate_demos(cfg.demos, seed=0, workers=os.cpu_count() or 1, progress=True)
     tmp = path.with_suffix(".tmp.hdf5")
     write_dataset(tmp, episodes, env_args)
     tmp.replace(path)
