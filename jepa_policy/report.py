@@ -195,6 +195,10 @@ def _num(x: float | None) -> str:
     return "n/a" if x is None else f"{x:.3f}"
 
 
+def _interval(iv: list[float] | None) -> str:
+    return "n/a" if iv is None else f"[{iv[0]:+.1f}, {iv[1]:+.1f}]"
+
+
 def _pct(x: float) -> str:
     return f"{100 * x:.1f}%"
 
@@ -225,12 +229,13 @@ def render_markdown(summary: dict, cfg: dict, figures: dict[str, str]) -> tuple[
         text.append(note.replace("**", ""))
     if "paired" in summary:
         p = summary["paired"]
+        per_seed = ", ".join(f"{d:+.1f}" for d in p["differences"])
         lines += ["", "### Paired comparison over training seeds (Sec. 4.3 statistical reading)", "",
-                  f"JEPA - MIP success difference per seed (points): {', '.join(f'{d:+.1f}' for d in p['differences'])}; "
-                  f"mean {p['mean']:+.2f}; paired t 95% interval {p.get('t_interval', 'n/a')}; paired bootstrap "
-                  f"interval {p['bootstrap_interval']}; exact sign test p = {p['sign_test_p']:.3f}; Wilcoxon "
-                  f"signed-rank p = {p['wilcoxon_p']:.3f}. With {p['n']} seeds no test can reach p < 0.05 "
-                  "(the paper's point: the evidence is consistency, not significance)."]
+                  f"JEPA - MIP success difference per seed (points): {per_seed}; "
+                  f"mean {p['mean']:+.2f}; paired t 95% interval {_interval(p.get('t_interval'))}; paired "
+                  f"bootstrap interval {_interval(p['bootstrap_interval'])}; exact sign test p = "
+                  f"{p['sign_test_p']:.3f}; Wilcoxon signed-rank p = {p['wilcoxon_p']:.3f}. With {p['n']} seeds no "
+                  "test can reach p < 0.05 (the paper's point: the evidence is consistency, not significance)."]
         text.append(f"paired JEPA-MIP over seeds: mean {p['mean']:+.2f} points, sign p={p['sign_test_p']:.3f}")
 
     lat = summary["latency"]["arms"]
@@ -261,7 +266,8 @@ def render_markdown(summary: dict, cfg: dict, figures: dict[str, str]) -> tuple[
             f"  Youden threshold {r['youden_threshold']:.4g} (balanced accuracy in-sample "
             f"{r['youden_bacc_in_sample']:.3f}, held-out {_num(r['youden_bacc_held_out'])} by {r['held_out_method']}); "
             f"conformal threshold at alpha={r['alpha']}: {r['conformal_threshold']} ({r['conformal_note']}).",
-            f"  Active alarm threshold ({cal['threshold_rule']}): {thr if thr is not None else 'infinite (no alarms)'}.",
+            f"  Active alarm threshold ({cal['threshold_rule']}): "
+            f"{thr if thr is not None else 'infinite (no alarms)'}.",
         ]
         text.append(f"AUROC seed {seed}: {r['auroc']:.3f} [{r['auroc_ci_low']:.3f}, {r['auroc_ci_high']:.3f}], "
                     f"permutation p={r['permutation_p']:.4f}; threshold {thr}")
