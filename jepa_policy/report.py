@@ -211,9 +211,8 @@ def render_markdown(summary: dict, cfg: dict, figures: dict[str, str]) -> tuple[
               "mean best coverage | mean length |", "|---|---|---|---|---|---|---|"]
     for arm, s in summary["success"].items():
         seeds = ", ".join(f"{k}: {_pct(v)}" for k, v in s["per_seed"].items())
-        best = "n/a" if s["mean_best_reward"] is None else f"{s['mean_best_reward']:.3f}"
         lines.append(f"| {arm} | {_pct(s['rate'])} | [{_pct(s['ci95'][0])}, {_pct(s['ci95'][1])}] | "
-                     f"{s['episodes']} | {seeds} | {best} | {s['mean_length']:.0f} |")
+                     f"{s['episodes']} | {seeds} | {_num(s['mean_best_reward'])} | {s['mean_length']:.0f} |")
         text.append(f"success {arm:5s}: {_pct(s['rate'])} (95% CI {_pct(s['ci95'][0])}-{_pct(s['ci95'][1])}, "
                     f"n={s['episodes']})")
     jepa_rate = summary["success"].get("jepa", {}).get("rate", 0.0)
