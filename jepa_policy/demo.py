@@ -55,9 +55,9 @@ MODES = {
                         latency_iters=20, latency_warmup=3, train_overrides={"steps": 30, "eval_every": 15,
                                                                              "eval_episodes": 2},
                         num_envs=2, bootstrap=1000, permutations=1000),
-    "default": DemoConfig("default", demos=200, preset="cpu", seeds=(42,), calib_episodes=40, live_episodes=24,
+    "default": DemoConfig("default", demos=200, preset="cpu", seeds=(42,), calib_episodes=64, live_episodes=24,
                           latency_iters=300, latency_warmup=30),
-    "full": DemoConfig("full", demos=200, preset="cpu", seeds=(41, 42, 43), calib_episodes=40, live_episodes=40,
+    "full": DemoConfig("full", demos=200, preset="cpu", seeds=(41, 42, 43), calib_episodes=64, live_episodes=40,
                        latency_iters=300, latency_warmup=30),
 }
 ARMS = ("jepa", "mip")

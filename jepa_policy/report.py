@@ -195,6 +195,11 @@ def _num(x: float | None) -> str:
     return "n/a" if x is None else f"{x:.3f}"
 
 
+def _thr(x: float | None) -> str:
+    """An alarm threshold: four significant digits, or what no threshold means."""
+    return "infinite (no alarms)" if x is None else f"{x:.4g}"
+
+
 def _interval(iv: list[float] | None) -> str:
     return "n/a" if iv is None else f"[{iv[0]:+.1f}, {iv[1]:+.1f}]"
 
@@ -264,12 +269,12 @@ def render_markdown(summary: dict, cfg: dict, figures: dict[str, str]) -> tuple[
             f"permutation p = {r['permutation_p']:.4f} ({r['n_permutation']} permutations).",
             f"  Youden threshold {r['youden_threshold']:.4g} (balanced accuracy in-sample "
             f"{r['youden_bacc_in_sample']:.3f}, held-out {_num(r['youden_bacc_held_out'])} by {r['held_out_method']}); "
-            f"conformal threshold at alpha={r['alpha']}: {r['conformal_threshold']} ({r['conformal_note']}).",
+            f"conformal threshold at alpha={r['alpha']}: {_thr(r['conformal_threshold'])} ({r['conformal_note']}).",
             f"  Active alarm threshold ({cal['threshold_rule']}): "
-            f"{thr if thr is not None else 'infinite (no alarms)'}.",
+            f"{_thr(thr)}.",
         ]
         text.append(f"AUROC seed {seed}: {r['auroc']:.3f} [{r['auroc_ci_low']:.3f}, {r['auroc_ci_high']:.3f}], "
-                    f"permutation p={r['permutation_p']:.4f}; threshold {thr}")
+                    f"permutation p={r['permutation_p']:.4f}; threshold {_thr(thr)}")
         if (caveat := auroc_caveat(r["n_success"], r["n_failure"])) is not None:
             lines.append(f"  **Caveat:** {caveat}.")
             text.append(f"  caveat: {caveat}")
@@ -283,7 +288,8 @@ def render_markdown(summary: dict, cfg: dict, figures: dict[str, str]) -> tuple[
     if lv.get("alert_notes"):
         lines += [f"Monitor's note on the live episodes: \"{note}\"" for note in lv["alert_notes"]]
     text.append(f"live: {lv['alerts']} alerts on {lv['alerted_episodes']} of {lv['episodes']} episodes "
-                f"({lv['alerted_failures']}/{lv['failures']} failures flagged)")
+                f"({lv['alerted_failures']}/{lv['failures']} failures and {lv['alerted_successes']}/"
+                f"{lv['episodes'] - lv['failures']} successes flagged)")
 
     lines += ["", "## Figures", ""]
     for title, name in figures.items():

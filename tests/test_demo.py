@@ -116,3 +116,27 @@ def test_auroc_caveat_flags_small_classes():
     assert one is not None and "only 1 held-out success episode:" in one
     few = auroc_caveat(30, 3)
     assert few is not None and "only 3 held-out failure episodes" in few
+
+
+def test_report_summary_names_threshold_and_false_alarms():
+    from jepa_policy.report import render_markdown
+
+    rate = {"rate": 0.3, "ci95": [0.2, 0.4], "episodes": 10, "per_seed": {42: 0.3}, "mean_best_reward": 0.6,
+            "mean_length": 100.0}
+    result = {"n_failure": 20, "n_success": 12, "auroc": 0.7, "auroc_ci_low": 0.5, "auroc_ci_high": 0.85,
+              "n_bootstrap": 100, "average_precision": 0.8, "permutation_p": 0.04, "n_permutation": 100,
+              "youden_threshold": 0.1234567, "youden_bacc_in_sample": 0.7, "youden_bacc_held_out": 0.6,
+              "held_out_method": "2-fold", "alpha": 0.1, "conformal_threshold": 0.17552496612009205,
+              "conformal_note": "rank 12 of 12"}
+    live = {"episodes": 24, "failures": 14, "alerts": 8, "alerted_episodes": 8, "alerted_failures": 7,
+            "alerted_successes": 1}
+    summary = {"success": {"jepa": rate, "mip": rate}, "latency": {"arms": {}},
+               "calibrations": {42: {"result": result, "threshold": 0.17552496612009205, "checkpoint": "c",
+                                     "threshold_rule": "conformal"}},
+               "live": live}
+    page, text = render_markdown(summary, {"mode": "default"}, {})
+    assert "threshold 0.1755" in text and "0.175524" not in page
+    assert "7/14 failures and 1/10 successes flagged" in text
+    summary["calibrations"][42]["threshold"] = result["conformal_threshold"] = None
+    page, text = render_markdown(summary, {"mode": "default"}, {})
+    assert "threshold infinite (no alarms)" in text and "Active alarm threshold (conformal): infinite" in page
