@@ -23,7 +23,7 @@ import sys
 import time
 from concurrent.futures import ProcessPoolExecutor
 from contextlib import contextmanager
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 import httpx
@@ -393,11 +393,29 @@ def main(argv: list[str] | None = None) -> int:
     size.add_argument("--full", action="store_true", help="a real study: three seeds per arm, paired comparison")
     parser.add_argument("--out", default="demo_out", help="output folder (default: demo_out)")
     parser.add_argument("--fresh", action="store_true", help="recompute demonstrations and checkpoints")
+    parser.add_argument("--steps", type=int, default=None,
+                        help="training steps per arm instead of the preset's (beyond the 15-minute budget: more "
+                             "steps, higher success); written to <out>/<mode>-steps<N>")
     args = parser.parse_args(argv)
     mode = "quick" if args.quick else "full" if args.full else "default"
-    out = Path(args.out) / mode
-    run(MODES[mode], out, fresh=args.fresh)
+    try:
+        cfg, name = demo_config(mode, args.steps)
+    except ValueError as e:
+        parser.error(str(e))
+    run(cfg, Path(args.out) / name, fresh=args.fresh)
     return 0
+
+
+def demo_config(mode: str, steps: int | None = None) -> tuple[DemoConfig, str]:
+    """The budget of ``mode`` with an optional training-step override, and the name of its output folder."""
+    cfg = MODES[mode]
+    if steps is None:
+        return cfg, mode
+    if steps < 1:
+        raise ValueError(f"--steps must be a positive number of training steps, got {steps}")
+    return (replace(cfg, mode=f"{mode}, {steps} training steps", train_overrides={**cfg.train_overrides,
+                                                                                     "steps": steps}),
+            f"{mode}-steps{steps}")
 
 
 if __name__ == "__main__":

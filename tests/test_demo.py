@@ -140,3 +140,17 @@ def test_report_summary_names_threshold_and_false_alarms():
     summary["calibrations"][42]["threshold"] = result["conformal_threshold"] = None
     page, text = render_markdown(summary, {"mode": "default"}, {})
     assert "threshold infinite (no alarms)" in text and "Active alarm threshold (conformal): infinite" in page
+
+
+def test_steps_override_changes_only_the_training_steps(capsys):
+    cfg, name = demo.demo_config("default", 6000)
+    base = demo.MODES["default"]
+    assert name == "default-steps6000" and cfg.train_overrides == {"steps": 6000}
+    assert (cfg.seeds, cfg.calib_episodes, cfg.live_episodes, cfg.preset) == (base.seeds, base.calib_episodes,
+                                                                              base.live_episodes, base.preset)
+    quick, _ = demo.demo_config("quick", 7)
+    assert quick.train_overrides["steps"] == 7 and quick.train_overrides["eval_every"] == 15
+    assert demo.demo_config("full") == (demo.MODES["full"], "full")
+    with pytest.raises(SystemExit):
+        demo.main(["--steps", "0"])
+    assert "--steps must be a positive number of training steps, got 0" in capsys.readouterr().err
