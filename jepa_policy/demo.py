@@ -413,9 +413,7 @@ def demo_config(mode: str, steps: int | None = None) -> tuple[DemoConfig, str]:
         return cfg, mode
     if steps < 1:
         raise ValueError(f"--steps must be a positive number of training steps, got {steps}")
-    return (replace(cfg, mode=f"{mode}, {steps} training steps", train_overrides={**cfg.train_overrides,
-                                                                                     "steps": steps}),
-            f"{mode}-steps{steps}")
+    return replace(cfg, train_overrides={**cfg.train_overrides, "steps": steps}), f"{mode}-steps{steps}"
 
 
 if __name__ == "__main__":

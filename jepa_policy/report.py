@@ -210,7 +210,9 @@ def _pct(x: float) -> str:
 
 def render_markdown(summary: dict, cfg: dict, figures: dict[str, str]) -> tuple[str, str]:
     """(report page, console summary)."""
-    lines = [f"# JEPA Policy on PushT: main job report ({cfg['mode']} mode)", ""]
+    steps = cfg.get("train_overrides", {}).get("steps")
+    budget = "" if steps is None else f", {steps} training steps per arm"
+    lines = [f"# JEPA Policy on PushT: main job report ({cfg['mode']} mode{budget})", ""]
     text = []
     lines += ["## Success rate", "", "| arm | success | 95% CI (Wilson) | episodes | per training seed | "
               "mean best coverage | mean length |", "|---|---|---|---|---|---|---|"]

@@ -135,17 +135,19 @@ def test_report_summary_names_threshold_and_false_alarms():
                                      "threshold_rule": "conformal"}},
                "live": live}
     page, text = render_markdown(summary, {"mode": "default"}, {})
+    assert page.startswith("# JEPA Policy on PushT: main job report (default mode)\n")
     assert "threshold 0.1755" in text and "0.175524" not in page
     assert "7/14 failures and 1/10 successes flagged" in text
     summary["calibrations"][42]["threshold"] = result["conformal_threshold"] = None
-    page, text = render_markdown(summary, {"mode": "default"}, {})
+    page, text = render_markdown(summary, {"mode": "default", "train_overrides": {"steps": 6000}}, {})
+    assert page.startswith("# JEPA Policy on PushT: main job report (default mode, 6000 training steps per arm)")
     assert "threshold infinite (no alarms)" in text and "Active alarm threshold (conformal): infinite" in page
 
 
 def test_steps_override_changes_only_the_training_steps(capsys):
     cfg, name = demo.demo_config("default", 6000)
     base = demo.MODES["default"]
-    assert name == "default-steps6000" and cfg.train_overrides == {"steps": 6000}
+    assert name == "default-steps6000" and cfg.train_overrides == {"steps": 6000} and cfg.mode == "default"
     assert (cfg.seeds, cfg.calib_episodes, cfg.live_episodes, cfg.preset) == (base.seeds, base.calib_episodes,
                                                                               base.live_episodes, base.preset)
     quick, _ = demo.demo_config("quick", 7)
