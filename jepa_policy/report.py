@@ -272,8 +272,7 @@ def render_markdown(summary: dict, cfg: dict, figures: dict[str, str]) -> tuple[
             f"  Youden threshold {r['youden_threshold']:.4g} (balanced accuracy in-sample "
             f"{r['youden_bacc_in_sample']:.3f}, held-out {_num(r['youden_bacc_held_out'])} by {r['held_out_method']}); "
             f"conformal threshold at alpha={r['alpha']}: {_thr(r['conformal_threshold'])} ({r['conformal_note']}).",
-            f"  Active alarm threshold ({cal['threshold_rule']}): "
-            f"{_thr(thr)}.",
+            f"  Active alarm threshold ({cal['threshold_rule']}): {_thr(thr)}.",
         ]
         text.append(f"AUROC seed {seed}: {r['auroc']:.3f} [{r['auroc_ci_low']:.3f}, {r['auroc_ci_high']:.3f}], "
                     f"permutation p={r['permutation_p']:.4f}; threshold {_thr(thr)}")
