@@ -91,6 +91,18 @@ def test_crop_frames_uses_one_window_for_all_frames_of_a_sample():
             assert torch.equal(out[b, t], frames[b, t, top[b]:top[b] + 7, left[b]:left[b] + 7])
 
 
+def test_full_size_crop_returns_the_frames_unchanged():
+    frames = torch.randint(0, 256, (2, 3, 10, 10, 3), dtype=torch.uint8)
+    zero = torch.zeros(2, dtype=torch.long)
+    out = crop_frames(frames, zero, zero, 10)
+    assert torch.equal(out, frames)
+    # the same values the general gather gives for a window that covers the whole frame
+    ar = torch.arange(10)
+    gathered = frames[torch.arange(2)[:, None, None, None], torch.arange(3)[None, :, None, None],
+                      ar[None, None, :, None], ar[None, None, None, :]]
+    assert torch.equal(out, gathered)
+
+
 def test_training_crop_is_temporally_consistent_and_eval_crop_is_centred():
     model = tiny_model("jepa")
     cfg = model.cfg
