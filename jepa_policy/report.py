@@ -204,6 +204,11 @@ def _interval(iv: list[float] | None) -> str:
     return "n/a" if iv is None else f"[{iv[0]:+.1f}, {iv[1]:+.1f}]"
 
 
+def _count(n: int, singular: str, plural: str) -> str:
+    """'1 failure', '2 failures'."""
+    return f"{n} {singular if n == 1 else plural}"
+
+
 def _pct(x: float) -> str:
     return f"{100 * x:.1f}%"
 
@@ -228,7 +233,7 @@ def render_markdown(summary: dict, cfg: dict, figures: dict[str, str]) -> tuple[
         progress = "" if best is None else (f" Its rollouts reached a mean best goal coverage of {best:.2f} "
                                             "(success needs the task's coverage threshold).")
         note = (f"**Aim not reached:** JEPA Policy succeeded in {_pct(jepa_rate)} of rollouts, below the "
-                f"{_pct(SUCCESS_AIM)} aim for this budget.{progress} What is known about the gap is in "
+                f"{_pct(SUCCESS_AIM)} aim for the default budget.{progress} What is known about the gap is in "
                 "docs/training.md (PushT `cpu` preset). The comparison and the monitor figures below are measured "
                 "all the same; read them with that in mind.")
         lines += ["", note]
@@ -285,7 +290,7 @@ def render_markdown(summary: dict, cfg: dict, figures: dict[str, str]) -> tuple[
             "Live rollouts (no calibration exists, so the monitor raises no alert and says so on each episode)")
     lines += ["", f"{lead}: {lv['episodes']} episodes, {lv['failures']} "
               f"failures; {lv['alerts']} intervention alerts on {lv['alerted_episodes']} episodes "
-              f"({lv['alerted_failures']} of them failures, {lv['alerted_successes']} successes)."]
+              f"({_count(lv['alerted_failures'], 'failure', 'failures')}, {_count(lv['alerted_successes'], 'success', 'successes')})."]
     if lv.get("alert_notes"):
         lines += [f"Monitor's note on the live episodes: \"{note}\"" for note in lv["alert_notes"]]
     text.append(f"live: {lv['alerts']} alerts on {lv['alerted_episodes']} of {lv['episodes']} episodes "

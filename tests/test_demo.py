@@ -138,6 +138,8 @@ def test_report_summary_names_threshold_and_false_alarms():
     assert page.startswith("# JEPA Policy on PushT: main job report (default mode)\n")
     assert "threshold 0.1755" in text and "0.175524" not in page
     assert "7/14 failures and 1/10 successes flagged" in text
+    assert "8 intervention alerts on 8 episodes (7 failures, 1 success)." in page
+    assert "below the 60.0% aim for the default budget" in text
     summary["calibrations"][42]["threshold"] = result["conformal_threshold"] = None
     page, text = render_markdown(summary, {"mode": "default", "train_overrides": {"steps": 6000}}, {})
     assert page.startswith("# JEPA Policy on PushT: main job report (default mode, 6000 training steps per arm)")
