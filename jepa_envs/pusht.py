@@ -410,15 +410,23 @@ class PushTEnv(JEPAEnv):
         super().close()
 
 
+# the T's two rectangles as (x0, y0, x1, y1) in the block frame, as plain floats for point_t_distance
+_T_BOXES = tuple((float(lo[0]), float(lo[1]), float(hi[0]), float(hi[1]))
+                 for lo, hi in ((part.min(axis=0), part.max(axis=0)) for part in T_PARTS))
+
+
 def point_t_distance(point, pose) -> float:
-    """Distance from a world point to the T at ``pose`` (0 inside)."""
+    """Distance from a world point to the T at ``pose`` (0 inside).
+
+    Scalar float arithmetic: the expert calls this tens of thousands of times per demonstration, where numpy's
+    per-call overhead on 2-vectors dominated. ``np.hypot`` is kept where both gaps are non-zero, so results are
+    bit-identical to the vectorised form (hypot(g, 0) is exactly |g|)."""
     x, y, a = pose
     c, s = math.cos(a), math.sin(a)
-    dx, dy = point[0] - x, point[1] - y
-    local = np.array([c * dx + s * dy, -s * dx + c * dy])  # inverse of ``transform``
+    dx, dy = float(point[0]) - x, float(point[1]) - y
+    lx, ly = c * dx + s * dy, -s * dx + c * dy  # inverse of ``transform``
     best = math.inf
-    for part in T_PARTS:
-        lo, hi = part.min(axis=0), part.max(axis=0)
-        gap = np.maximum(np.maximum(lo - local, local - hi), 0.0)
-        best = min(best, float(np.hypot(*gap)))
+    for x0, y0, x1, y1 in _T_BOXES:
+        gx, gy = max(x0 - lx, lx - x1, 0.0), max(y0 - ly, ly - y1, 0.0)
+        best = min(best, gx if gy == 0.0 else gy if gx == 0.0 else float(np.hypot(gx, gy)))
     return best

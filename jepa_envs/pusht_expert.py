@@ -156,7 +156,9 @@ def _simulate(trial: PushTSim, targets: list[np.ndarray], threshold: float) -> t
 
 def _segment_clear(a: np.ndarray, b: np.ndarray, pose, clearance: float) -> bool:
     n = max(2, int(np.linalg.norm(b - a) / 6.0) + 1)
-    return all(point_t_distance(a + (b - a) * f, pose) >= clearance for f in np.linspace(0.0, 1.0, n))
+    ax, ay, bx, by = float(a[0]), float(a[1]), float(b[0]), float(b[1])
+    return all(point_t_distance((ax + (bx - ax) * f, ay + (by - ay) * f), pose) >= clearance
+               for f in np.linspace(0.0, 1.0, n).tolist())
 
 
 def _approach_path(agent: np.ndarray, start: np.ndarray, pose) -> list[np.ndarray]:

@@ -12,7 +12,8 @@ from gymnasium.utils.env_checker import check_env
 from PIL import Image, ImageDraw
 
 import jepa_envs  # noqa: F401  (registers the ids)
-from jepa_envs.pusht import (COLORS, GOAL_POSE, T_PARTS, PushTEnv, coverage, make_difficulty, transform)
+from jepa_envs.pusht import (COLORS, GOAL_POSE, T_PARTS, PushTEnv, coverage, make_difficulty, point_t_distance,
+                             transform)
 from jepa_envs.pusht_expert import PushTExpert, collect_episode, generate_demos
 
 
@@ -71,6 +72,32 @@ def _raster_coverage(pose, scale=2):
                                   (450, 60, 0.0)])
 def test_coverage_matches_rasterised_reference(pose):
     assert coverage(pose) == pytest.approx(_raster_coverage(pose), abs=0.01)
+
+
+def _reference_t_distance(points: np.ndarray, pose) -> np.ndarray:
+    """Distance from world points to the T, in the world frame: 0 inside a part, else the nearest edge."""
+    best = np.full(len(points), np.inf)
+    for part in T_PARTS:
+        poly = transform(part, pose)
+        a, b = poly, np.roll(poly, -1, axis=0)                      # the part's edges a -> b
+        ab, ap = b - a, points[:, None, :] - a[None]
+        f = np.clip((ap * ab).sum(-1) / (ab * ab).sum(-1), 0.0, 1.0)
+        edge = np.linalg.norm(ap - f[..., None] * ab, axis=-1).min(axis=1)
+        cross = ab[None, :, 0] * ap[..., 1] - ab[None, :, 1] * ap[..., 0]
+        inside = (cross >= 0).all(axis=1) | (cross <= 0).all(axis=1)
+        best = np.minimum(best, np.where(inside, 0.0, edge))
+    return best
+
+
+@pytest.mark.parametrize("pose", [(256, 256, 0.0), (300, 200, 1.1), (180, 330, -2.5)])
+def test_point_t_distance_matches_a_world_frame_reference(pose):
+    """The expert's clearance checks: 0 inside the T, the distance to its outline outside (the scalar form)."""
+    points = np.random.default_rng(0).uniform(pose[0] - 150, pose[0] + 150, (2000, 2))
+    points[:, 1] += pose[1] - pose[0]
+    ours = np.array([point_t_distance(tuple(p), pose) for p in points])
+    np.testing.assert_allclose(ours, _reference_t_distance(points, pose), atol=1e-9)
+    assert (ours == 0).sum() > 50 and (ours > 0).sum() > 1000   # both regions were sampled
+    assert point_t_distance(np.asarray(pose[:2]) + 0.0, pose) == point_t_distance(tuple(pose[:2]), pose)
 
 
 def test_success_flag_at_goal_and_not_by_doing_nothing():
