@@ -289,12 +289,14 @@ def render_markdown(summary: dict, cfg: dict, figures: dict[str, str]) -> tuple[
     lead = ("Live rollouts scored against that calibration" if calibrated else
             "Live rollouts (no calibration exists, so the monitor raises no alert and says so on each episode)")
     lines += ["", f"{lead}: {lv['episodes']} episodes, {lv['failures']} "
-              f"failures; {lv['alerts']} intervention alerts on {lv['alerted_episodes']} episodes "
-              f"({_count(lv['alerted_failures'], 'failure', 'failures')}, {_count(lv['alerted_successes'], 'success', 'successes')})."]
+              f"failures; {_count(lv['alerts'], 'intervention alert', 'intervention alerts')} on "
+              f"{_count(lv['alerted_episodes'], 'episode', 'episodes')} "
+              f"({_count(lv['alerted_failures'], 'failure', 'failures')}, "
+              f"{_count(lv['alerted_successes'], 'success', 'successes')})."]
     if lv.get("alert_notes"):
         lines += [f"Monitor's note on the live episodes: \"{note}\"" for note in lv["alert_notes"]]
-    text.append(f"live: {lv['alerts']} alerts on {lv['alerted_episodes']} of {lv['episodes']} episodes "
-                f"({lv['alerted_failures']}/{lv['failures']} failures and {lv['alerted_successes']}/"
+    text.append(f"live: {_count(lv['alerts'], 'alert', 'alerts')} on {lv['alerted_episodes']} of {lv['episodes']} "
+                f"episodes ({lv['alerted_failures']}/{lv['failures']} failures and {lv['alerted_successes']}/"
                 f"{lv['episodes'] - lv['failures']} successes flagged)")
 
     lines += ["", "## Figures", ""]

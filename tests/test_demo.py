@@ -140,6 +140,10 @@ def test_report_summary_names_threshold_and_false_alarms():
     assert "7/14 failures and 1/10 successes flagged" in text
     assert "8 intervention alerts on 8 episodes (7 failures, 1 success)." in page
     assert "below the 60.0% aim for the default budget" in text
+    live.update(alerts=1, alerted_episodes=1, alerted_failures=1, alerted_successes=0)
+    page, text = render_markdown(summary, {"mode": "default"}, {})
+    assert "1 intervention alert on 1 episode (1 failure, 0 successes)." in page
+    assert "live: 1 alert on 1 of 24 episodes" in text
     summary["calibrations"][42]["threshold"] = result["conformal_threshold"] = None
     page, text = render_markdown(summary, {"mode": "default", "train_overrides": {"steps": 6000}}, {})
     assert page.startswith("# JEPA Policy on PushT: main job report (default mode, 6000 training steps per arm)")
