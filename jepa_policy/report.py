@@ -32,6 +32,11 @@ def early_score(decisions: list[dict]) -> float | None:
     return float(np.median([d["nmse"] for d in first]))
 
 
+def _count(n: int, singular: str, plural: str) -> str:
+    """'1 failure', '2 failures'."""
+    return f"{n} {singular if n == 1 else plural}"
+
+
 def auroc_caveat(n_success: int, n_failure: int) -> str | None:
     """A warning when the smaller class of held-out episodes is too small for the AUROC to mean much, else None.
 
@@ -41,9 +46,9 @@ def auroc_caveat(n_success: int, n_failure: int) -> str | None:
     m, name = min((n_success, "success"), (n_failure, "failure"))
     if m >= MIN_CLASS_FOR_AUROC:
         return None
-    return (f"only {m} held-out {name} episode{'s' if m != 1 else ''}: this AUROC and its interval rest on "
-            f"{'it' if m == 1 else 'them'} and say little (at least {MIN_CLASS_FOR_AUROC} of each class are needed "
-            "to read it; the paper's per-task values rest on hundreds of episodes)")
+    return (f"only {_count(m, f'held-out {name} episode', f'held-out {name} episodes')}: this AUROC and its "
+            f"interval rest on {'it' if m == 1 else 'them'} and say little (at least {MIN_CLASS_FOR_AUROC} of each "
+            "class are needed to read it; the paper's per-task values rest on hundreds of episodes)")
 
 
 def paired_comparison(diffs: np.ndarray, n_boot: int = 20_000, seed: int = 0) -> dict:
@@ -202,11 +207,6 @@ def _thr(x: float | None) -> str:
 
 def _interval(iv: list[float] | None) -> str:
     return "n/a" if iv is None else f"[{iv[0]:+.1f}, {iv[1]:+.1f}]"
-
-
-def _count(n: int, singular: str, plural: str) -> str:
-    """'1 failure', '2 failures'."""
-    return f"{n} {singular if n == 1 else plural}"
 
 
 def _pct(x: float) -> str:
