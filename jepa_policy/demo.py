@@ -53,7 +53,9 @@ class DemoConfig:
 MODES = {
     "quick": DemoConfig("quick", demos=6, preset="quick", seeds=(42,), calib_episodes=6, live_episodes=4,
                         latency_iters=20, latency_warmup=3, train_overrides={"steps": 30, "eval_every": 15,
-                                                                             "eval_episodes": 2},
+                                                                             "eval_episodes": 2,
+                                                                             "init_candidates": 2,
+                                                                             "init_screen_steps": 6},
                         num_envs=2, bootstrap=1000, permutations=1000),
     "default": DemoConfig("default", demos=200, preset="cpu", seeds=(42,), calib_episodes=64, live_episodes=24,
                           latency_iters=300, latency_warmup=30),

@@ -299,6 +299,17 @@ def render_markdown(summary: dict, cfg: dict, figures: dict[str, str]) -> tuple[
                 f"episodes ({lv['alerted_failures']}/{lv['failures']} failures and {lv['alerted_successes']}/"
                 f"{lv['episodes'] - lv['failures']} successes flagged)")
 
+    if summary.get("init_selection"):
+        lines += ["", "## Training starts (best-of-K, docs/training.md)", "",
+                  "| run | candidate seeds | mean first-step loss over the scored steps | chosen |", "|---|---|---|---|"]
+        for label, sel in summary["init_selection"].items():
+            steps = f"steps {sel['score_steps'][0]}-{sel['score_steps'][1]}"
+            scores = ", ".join(f"{x:.4f}" for x in sel["scores"])
+            lines.append(f"| {label} | {', '.join(map(str, sel['seeds']))} | {scores} ({sel['score_on']}, {steps}) "
+                         f"| {sel['chosen_seed']} |")
+        text.append("training starts chosen (best-of-K): " + ", ".join(
+            f"{label} -> {sel['chosen_seed']}" for label, sel in summary["init_selection"].items()))
+
     lines += ["", "## Figures", ""]
     for title, name in figures.items():
         lines += [f"### {title}", "", f"![{title}]({name})", ""]
@@ -320,6 +331,10 @@ def write_report(out: Path, *, cfg: dict, dataset: Path, checkpoints: dict, reco
             f.write(json.dumps(rec) + "\n")
     summary = summarize(records, calibrations, alerts, latency, monitor_episodes)
     run_dirs = {f"{arm} seed {seed}": Path(p).parent.parent for (arm, seed), p in checkpoints.items()}
+    starts = {label: json.loads((d / "init_selection.json").read_text()) for label, d in run_dirs.items()
+              if (d / "init_selection.json").exists()}
+    if starts:
+        summary["init_selection"] = starts
     figures = {"Learning curves": "learning_curves.png", "ROC of the early NMSE score": "roc.png",
                "NMSE distributions": "nmse_distributions.png", "Rollout frames": "frames.png"}
     plot_learning_curves(run_dirs, out / figures["Learning curves"])

@@ -15,6 +15,7 @@ import dataclasses
 import json
 import os
 import random
+import shutil
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -61,6 +62,8 @@ class TrainConfig:
     eval_seed: int = 100_000          # fixed evaluation seed (Sec. 4.1)
     eval_envs: int = 4                # parallel environments of one evaluation
     progress: bool = True
+    init_candidates: int = 1          # best-of-K start: K initialisations race init_screen_steps (``train``)
+    init_screen_steps: int = 0        # steps each candidate trains before the lowest-loss one continues
     model: dict = field(default_factory=dict)  # ModelConfig overrides, e.g. {"image_size": 64}
 
     def to_dict(self) -> dict:
@@ -99,6 +102,11 @@ class TrainConfig:
             (0 <= self.warmup_steps <= self.steps, "warmup_steps must be in [0, steps]"),
             (self.log_every >= 1 and self.ckpt_every >= 1, "log_every and ckpt_every must be >= 1"),
             (self.eval_every >= 0 and self.eval_episodes >= 1, "eval_every >= 0 and eval_episodes >= 1"),
+            (self.init_candidates >= 1, "init_candidates must be >= 1 (1 = a single start, no selection)"),
+            (self.init_candidates == 1 or 1 <= self.init_screen_steps < self.steps,
+             "with init_candidates > 1, init_screen_steps must be in [1, steps)"),
+            (self.init_candidates == 1 or self.stop_at == 0 or self.stop_at > self.init_screen_steps,
+             "stop_at must be 0 or after init_screen_steps when init_candidates > 1"),
         ]
         for ok, message in checks:
             if not ok:
@@ -199,7 +207,8 @@ def build_policy_model(model_cfg):
 
 
 def save_checkpoint(path: Path, *, model, ema, optimizer, scheduler, step: int, cfg: TrainConfig, model_cfg,
-                    spec, stats: dict, curve: list, sampler_position: dict, env_args: dict | None = None) -> None:
+                    spec, stats: dict, curve: list, sampler_position: dict, env_args: dict | None = None,
+                    init_selection: dict | None = None) -> None:
     """Everything a run needs to continue bit-exactly, and everything ``Policy.from_checkpoint`` needs to act."""
     path.parent.mkdir(parents=True, exist_ok=True)
     payload = {
@@ -218,6 +227,7 @@ def save_checkpoint(path: Path, *, model, ema, optimizer, scheduler, step: int, 
         "rng": rng_state(),
         "sampler": sampler_position,
         "eval_curve": curve,
+        "init_selection": init_selection,
     }
     tmp = path.with_suffix(".tmp")
     torch.save(payload, tmp)
@@ -236,13 +246,73 @@ def load_checkpoint(path: str | Path, map_location="cpu") -> dict:
 
 # ----------------------------------------------------------------------------- the loop
 
+CANDIDATE_SEED_STRIDE = 10_000  # candidate i of a best-of-K start uses seed + i * this (candidate 0 is the seed)
+SELECT_ON = "loss_act_step0"    # best-of-K score: the first-step action loss where the arm has it, else the loss
+
+
+def candidate_seeds(cfg: TrainConfig) -> list[int]:
+    """Seeds of the K starts a best-of-K run races; the first is ``cfg.seed``, so K = 1 is the plain run."""
+    return [cfg.seed + CANDIDATE_SEED_STRIDE * i for i in range(cfg.init_candidates)]
+
+
+def _load_demos(cfg: TrainConfig):
+    if not cfg.dataset:
+        raise ValueError("no dataset given; record one with `jepa-envs make-demos PushT --episodes 50 "
+                         "--out demos.hdf5` and pass --dataset demos.hdf5")
+    from jepa_envs.data import load_dataset
+    return load_dataset(cfg.dataset, task=cfg.task, image_size=cfg.image_size or None)
+
+
 def train(cfg: TrainConfig, demos=None) -> dict:
     """Run (or continue) training; returns the final checkpoint path, the step, the eval curve and the logs.
 
     Launch with ``torchrun --nproc-per-node N -m jepa_policy.cli train ...`` for DistributedDataParallel;
     ``demos`` may be a loaded ``DemoDataset`` (tests), otherwise ``cfg.dataset`` is loaded.
+
+    Best-of-K start (``init_candidates`` = K > 1; not in the paper, a small-budget measure, docs/training.md).
+    A narrow image encoder's random initialisation sometimes fits far worse than the others, and it shows
+    in the training loss long before the end. K runs that differ only in their seed (``candidate_seeds``) each
+    train the first ``init_screen_steps`` steps of the same schedule, in ``out_dir/init_candidates/seed<s>``;
+    the one with the lowest mean first-step action loss (``SELECT_ON``; the total loss for arms without it) over
+    the last third of those steps continues from its own checkpoint to the end. The selection uses training
+    data only, never an evaluation, and the result is exactly the plain run of the chosen seed (resume is
+    exact); ``init_selection.json`` and the checkpoint record the seeds, their scores and the choice.
     """
     cfg.validate()
+    if cfg.resume:
+        chosen = (load_checkpoint(cfg.resume).get("init_selection") or {}).get("chosen_seed")
+        if chosen is not None:   # a best-of-K run continues with the seed it chose
+            cfg = dataclasses.replace(cfg, seed=int(chosen))
+        return _train_run(cfg, demos)
+    if cfg.init_candidates == 1:
+        return _train_run(cfg, demos)
+    if int(os.environ.get("WORLD_SIZE", "1")) > 1:
+        raise ValueError("init_candidates > 1 (best-of-K start) runs in a single process; run it without "
+                         "torchrun, or pass --init-candidates 1 and choose the seed yourself")
+    demos = _load_demos(cfg) if demos is None else demos
+    out, n = Path(cfg.out_dir), cfg.init_screen_steps
+    window = max(1, n // 3)
+    seeds, scores = candidate_seeds(cfg), []
+    for seed in seeds:
+        trial = dataclasses.replace(cfg, seed=seed, stop_at=n, init_candidates=1, init_screen_steps=0,
+                                    eval_every=0, out_dir=str(out / "init_candidates" / f"seed{seed}"))
+        tail = _train_run(trial, demos)["losses"][-window:]
+        score_on = SELECT_ON if SELECT_ON in tail[0] else "loss"
+        scores.append(float(np.mean([row[score_on] for row in tail])))
+    best = int(np.argmin(scores))
+    selection = {"seeds": seeds, "scores": scores, "score_on": score_on, "screen_steps": n,
+                 "score_steps": [n - window + 1, n], "chosen_seed": seeds[best]}
+    chosen_dir = out / "init_candidates" / f"seed{seeds[best]}"
+    shutil.copyfile(chosen_dir / "log.jsonl", out / "log.jsonl")   # one learning curve from step 1
+    (out / "init_selection.json").write_text(json.dumps(selection, indent=2))
+    final = dataclasses.replace(cfg, seed=seeds[best], resume=str(chosen_dir / "checkpoints" / "latest.pt"))
+    result = _train_run(final, demos, selection)
+    result["init_selection"] = selection
+    return result
+
+
+def _train_run(cfg: TrainConfig, demos=None, selection: dict | None = None) -> dict:
+    """One run from one seed (or from ``cfg.resume``): the loop itself."""
     from jepa_policy.config import ModelConfig
 
     world = int(os.environ.get("WORLD_SIZE", "1"))
@@ -257,11 +327,7 @@ def train(cfg: TrainConfig, demos=None) -> dict:
 
     # data
     if demos is None:
-        if not cfg.dataset:
-            raise ValueError("no dataset given; record one with `jepa-envs make-demos PushT --episodes 50 "
-                             "--out demos.hdf5` and pass --dataset demos.hdf5")
-        from jepa_envs.data import load_dataset
-        demos = load_dataset(cfg.dataset, task=cfg.task, image_size=cfg.image_size or None)
+        demos = _load_demos(cfg)
     spec = demos.spec
     if spec.name != get_task_spec(cfg.task).name:
         raise ValueError(f"dataset is for task {spec.name!r} but the config trains {cfg.task!r}")
@@ -285,6 +351,7 @@ def train(cfg: TrainConfig, demos=None) -> dict:
         scheduler.load_state_dict(ckpt["scheduler"])
         set_rng_state(ckpt["rng"])
         step, curve = int(ckpt["step"]), list(ckpt["eval_curve"])
+        selection = selection or ckpt.get("init_selection")
 
     net = model  # model.forward(batch) is compute_loss(batch), so DDP wraps it directly
     if world > 1:
@@ -310,7 +377,8 @@ def train(cfg: TrainConfig, demos=None) -> dict:
         if is_main:
             save_checkpoint(ckpt_path, model=model, ema=ema, optimizer=optimizer, scheduler=scheduler, step=step,
                             cfg=cfg, model_cfg=model_cfg, spec=spec, stats=stats, curve=curve,
-                            sampler_position=sampler_position(step), env_args=getattr(demos, "env_args", None))
+                            sampler_position=sampler_position(step), env_args=getattr(demos, "env_args", None),
+                            init_selection=selection)
 
     def sampler_position(s):
         epoch, taken = divmod(s, sampler.batches_per_epoch())
@@ -335,7 +403,7 @@ def train(cfg: TrainConfig, demos=None) -> dict:
     autocast = torch.autocast("cuda", dtype=torch.bfloat16) if device.type == "cuda" and cfg.bf16 \
         else contextlib.nullcontext()
     shards = cfg.grad_accum
-    history, t_last, samples_since = [], time.perf_counter(), 0
+    history, losses, t_last, samples_since = [], [], time.perf_counter(), 0
     model.train()
     batches = iter(loader)
     last = cfg.stop_at or cfg.steps
@@ -353,6 +421,7 @@ def train(cfg: TrainConfig, demos=None) -> dict:
             infos.append({"loss": float(loss.detach()), **_scalars(info)})
         optimizer.step()
         scheduler.step()
+        losses.append({k: float(np.mean([i[k] for i in infos])) for k in ("loss", SELECT_ON) if k in infos[0]})
         ema.update_parameters(model)
         step += 1
         samples_since += cfg.batch_size
@@ -385,5 +454,5 @@ def train(cfg: TrainConfig, demos=None) -> dict:
         dist.barrier()
     if owns_group:
         dist.destroy_process_group()
-    return {"checkpoint": str(ckpt_path), "step": step, "curve": curve, "history": history,
+    return {"checkpoint": str(ckpt_path), "step": step, "curve": curve, "history": history, "losses": losses,
             "model": model, "ema": ema}

@@ -9,6 +9,7 @@ import sqlite3
 
 import numpy as np
 import pytest
+import torch
 from sklearn.metrics import roc_auc_score
 
 from jepa_policy import demo
@@ -37,6 +38,22 @@ def test_report_files_exist(quick_run):
     assert set(summary["timing"]["steps_s"]) == {
         "1/5 scripted demonstrations", "2/5 training JEPA Policy and MIP (same seed, data and budget)",
         "3/5 monitor service + monitored rollouts", "4/5 decision latency (JEPA vs MIP, interleaved)", "5/5 report"}
+
+
+def test_best_of_k_starts_are_reported_as_trained(quick_run):
+    out, summary = quick_run
+    page = (out / "report.md").read_text()
+    assert "## Training starts (best-of-K" in page
+    for arm in ("jepa", "mip"):
+        run_dir = out / "runs" / f"{arm}_seed42"
+        sel = json.loads((run_dir / "init_selection.json").read_text())
+        assert summary["init_selection"][f"{arm} seed 42"] == sel
+        assert sel["seeds"] == [42, 10_042] and sel["chosen_seed"] == sel["seeds"][int(np.argmin(sel["scores"]))]
+        assert f"| {arm} seed 42 | 42, 10042 |" in page
+        ckpt = torch.load(run_dir / "checkpoints" / "latest.pt", weights_only=False)
+        assert ckpt["step"] == 30 and ckpt["init_selection"] == sel
+        rows = [json.loads(line) for line in (run_dir / "log.jsonl").read_text().splitlines()]
+        assert rows[0]["step"] == 5 and rows[-1]["step"] == 30   # one curve from the start (log_every 5)
 
 
 def test_success_rates_match_records(quick_run):

@@ -100,3 +100,49 @@ def test_train_rejects_dataset_of_another_task(demos, tmp_path):
         train(load_config("Square", "cpu", out_dir=str(tmp_path), steps=1, warmup_steps=0), demos)
     with pytest.raises(ValueError, match="make-demos"):
         train(load_config("PushT", "quick", out_dir=str(tmp_path), steps=1, warmup_steps=0))
+
+
+def test_best_of_k_start_continues_the_lowest_loss_candidate_exactly(demos, tmp_path):
+    opts = dict(steps=8, log_every=1, warmup_steps=2, batch_size=8, seed=5)
+    cfg = load_config("PushT", "quick", out_dir=str(tmp_path / "best"), init_candidates=3, init_screen_steps=3,
+                      **opts)
+    result = train(cfg, demos)
+    sel = result["init_selection"]
+    assert sel["seeds"] == [5, 10_005, 20_005] and sel["score_steps"] == [3, 3]
+    assert sel["score_on"] == "loss_act_step0"
+    # each score is the candidate's own logged training loss over the scored steps, and the lowest one won
+    for seed, score in zip(sel["seeds"], sel["scores"]):
+        rows = [json.loads(line) for line in
+                (tmp_path / "best" / "init_candidates" / f"seed{seed}" / "log.jsonl").read_text().splitlines()]
+        assert [r["step"] for r in rows] == [1, 2, 3]
+        assert score == pytest.approx(rows[2]["loss_act_step0"], rel=1e-6)
+    assert len(set(sel["scores"])) == 3
+    assert sel["chosen_seed"] == sel["seeds"][int(np.argmin(sel["scores"]))]
+    assert json.loads((tmp_path / "best" / "init_selection.json").read_text()) == sel
+    # the result is the plain run of the chosen seed, to the bit, with one learning curve from step 1
+    plain = train(load_config("PushT", "quick", out_dir=str(tmp_path / "plain"), **{**opts, "seed": sel["chosen_seed"]}),
+                  demos)
+    a, b = load_checkpoint(result["checkpoint"]), load_checkpoint(plain["checkpoint"])
+    assert a["step"] == 8 and a["init_selection"] == sel and b["init_selection"] is None
+    for key in a["ema"]:
+        assert torch.equal(a["ema"][key], b["ema"][key]), key
+    rows = [json.loads(line) for line in (tmp_path / "best" / "log.jsonl").read_text().splitlines()]
+    assert [r["step"] for r in rows] == list(range(1, 9))
+    assert [r["loss"] for r in rows] == [h["loss"] for h in plain["history"]]
+    # a later resume of the selected run keeps the chosen seed (stop at 6, then continue to 8)
+    part = train(dataclasses.replace(cfg, out_dir=str(tmp_path / "part"), stop_at=6), demos)
+    assert part["step"] == 6
+    rest = train(dataclasses.replace(cfg, out_dir=str(tmp_path / "part"), resume=part["checkpoint"]), demos)
+    c = load_checkpoint(rest["checkpoint"])
+    assert c["init_selection"]["chosen_seed"] == sel["chosen_seed"]
+    for key in a["ema"]:
+        assert torch.equal(a["ema"][key], c["ema"][key]), key
+
+
+def test_best_of_k_start_options_are_checked():
+    with pytest.raises(ValueError, match="init_screen_steps must be in"):
+        load_config("PushT", "quick", steps=10, init_candidates=2, init_screen_steps=10)
+    with pytest.raises(ValueError, match="init_candidates must be >= 1"):
+        load_config("PushT", "quick", init_candidates=0)
+    with pytest.raises(ValueError, match="stop_at must be 0 or after init_screen_steps"):
+        load_config("PushT", "quick", steps=10, init_candidates=2, init_screen_steps=4, stop_at=3)
