@@ -279,12 +279,7 @@ def train(cfg: TrainConfig, demos=None) -> dict:
     exact); ``init_selection.json`` and the checkpoint record the seeds, their scores and the choice.
     """
     cfg.validate()
-    if cfg.resume:
-        chosen = (load_checkpoint(cfg.resume).get("init_selection") or {}).get("chosen_seed")
-        if chosen is not None:   # a best-of-K run continues with the seed it chose
-            cfg = dataclasses.replace(cfg, seed=int(chosen))
-        return _train_run(cfg, demos)
-    if cfg.init_candidates == 1:
+    if cfg.resume or cfg.init_candidates == 1:   # a resumed best-of-K run continues with the seed it chose
         return _train_run(cfg, demos)
     if int(os.environ.get("WORLD_SIZE", "1")) > 1:
         raise ValueError("init_candidates > 1 (best-of-K start) runs in a single process; run it without "
@@ -305,8 +300,8 @@ def train(cfg: TrainConfig, demos=None) -> dict:
     chosen_dir = out / "init_candidates" / f"seed{seeds[best]}"
     shutil.copyfile(chosen_dir / "log.jsonl", out / "log.jsonl")   # one learning curve from step 1
     (out / "init_selection.json").write_text(json.dumps(selection, indent=2))
-    final = dataclasses.replace(cfg, seed=seeds[best], resume=str(chosen_dir / "checkpoints" / "latest.pt"))
-    result = _train_run(final, demos, selection)
+    final = dataclasses.replace(cfg, resume=str(chosen_dir / "checkpoints" / "latest.pt"))
+    result = _train_run(final, demos, selection)   # continues with the chosen seed (see the resume block)
     result["init_selection"] = selection
     return result
 
@@ -352,6 +347,8 @@ def _train_run(cfg: TrainConfig, demos=None, selection: dict | None = None) -> d
         set_rng_state(ckpt["rng"])
         step, curve = int(ckpt["step"]), list(ckpt["eval_curve"])
         selection = selection or ckpt.get("init_selection")
+        if selection:   # its chosen seed drives the batches and noise from here (the weights and RNG came above)
+            cfg = dataclasses.replace(cfg, seed=int(selection["chosen_seed"]))
 
     net = model  # model.forward(batch) is compute_loss(batch), so DDP wraps it directly
     if world > 1:

@@ -9,11 +9,11 @@ import sqlite3
 
 import numpy as np
 import pytest
-import torch
 from sklearn.metrics import roc_auc_score
 
 from jepa_policy import demo
 from jepa_policy.report import EARLY_DECISIONS, early_score, paired_comparison, wilson_ci
+from jepa_policy.train import load_checkpoint
 
 
 @pytest.fixture(scope="module")
@@ -50,7 +50,7 @@ def test_best_of_k_starts_are_reported_as_trained(quick_run):
         assert summary["init_selection"][f"{arm} seed 42"] == sel
         assert sel["seeds"] == [42, 10_042] and sel["chosen_seed"] == sel["seeds"][int(np.argmin(sel["scores"]))]
         assert f"| {arm} seed 42 | 42, 10042 |" in page
-        ckpt = torch.load(run_dir / "checkpoints" / "latest.pt", weights_only=False)
+        ckpt = load_checkpoint(run_dir / "checkpoints" / "latest.pt")
         assert ckpt["step"] == 30 and ckpt["init_selection"] == sel
         rows = [json.loads(line) for line in (run_dir / "log.jsonl").read_text().splitlines()]
         assert rows[0]["step"] == 5 and rows[-1]["step"] == 30   # one curve from the start (log_every 5)
