@@ -73,6 +73,10 @@ def _make_demos_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--seed", type=int, default=0, help="first episode seed (episodes use seed, seed+1, ...)")
     p.add_argument("--image-size", type=int, default=None, help="camera image size (default: the task's)")
     p.add_argument("--difficulty", default="easy", help="PushT difficulty preset: easy (default), medium, hard, full")
+    p.add_argument("--finish-threshold", type=float, default=None,
+                   help="coverage at which each demonstration ends, between the task's success threshold and 1 "
+                        "(default: the threshold itself; jepa-demo uses 0.9 on easy: demos that finish with a "
+                        "margin teach a policy to clear the threshold, see docs/training.md)")
     p.add_argument("--workers", type=int, default=os.cpu_count() or 1,
                    help="processes that plan episodes (default: one per core; the file is the same for any number)")
 
@@ -91,8 +95,12 @@ def make_demos(args: argparse.Namespace) -> int:
     from jepa_envs.pusht_expert import generate_demos
 
     t0 = time.perf_counter()
-    episodes, env_args = generate_demos(args.episodes, seed=args.seed, image_size=args.image_size,
-                                        difficulty=args.difficulty, workers=args.workers, progress=True)
+    try:
+        episodes, env_args = generate_demos(args.episodes, seed=args.seed, image_size=args.image_size,
+                                            difficulty=args.difficulty, workers=args.workers, progress=True,
+                                            finish_threshold=args.finish_threshold)
+    except ValueError as exc:  # an option out of range (difficulty, finish threshold): say which and stop
+        raise SystemExit(f"error: {exc}") from None
     write_dataset(args.out, episodes, env_args)
     steps = sum(len(ep["actions"]) for ep in episodes)
     attempts = env_args["expert"]["attempts"]

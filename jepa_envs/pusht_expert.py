@@ -236,13 +236,21 @@ def _expert_episode(seed: int, attempt: int, image_size: int | None, env_options
 
 def generate_demos(num_episodes: int, seed: int = 0, image_size: int | None = None, only_successes: bool = True,
                    max_attempts_factor: int = 2, workers: int = 1, progress: bool = False,
-                   **env_options) -> tuple[list[dict], dict]:
+                   finish_threshold: float | None = None, **env_options) -> tuple[list[dict], dict]:
     """``num_episodes`` expert demos on seeds seed, seed+1, ...; returns (episodes, env_args).
 
     With ``only_successes`` failed episodes are dropped and further seeds are tried (up to
     ``max_attempts_factor * num_episodes`` in all). ``workers > 1`` plans the episodes in that many processes;
     the result is the same as with one (each attempt is seeded on its own and kept in seed order).
     ``progress`` shows a progress bar of the episodes kept.
+
+    ``finish_threshold`` (at least the task's success threshold, at most 1): the expert keeps pushing until the
+    coverage reaches it, and each demonstration ends there instead of at the task's threshold. An expert that
+    stops the moment the threshold is crossed teaches a regression policy to bring the block *to about* the
+    threshold, so its rollouts end just above or just below it; demonstrations that finish with a margin put the
+    imitated end state past it (docs/training.md, "Where the demonstrations end"). The file still records the
+    task's own threshold, so evaluation is unchanged.
+
     ``env_args`` is what ``jepa_envs.data.write_dataset`` stores.
     """
     if num_episodes < 1:
@@ -252,7 +260,15 @@ def generate_demos(num_episodes: int, seed: int = 0, image_size: int | None = No
     env = PushTEnv(image_size=image_size, **env_options)  # validates the options and gives the effective spec
     # the effective difficulty fields, so the file alone rebuilds the same env
     env_kwargs = {"image_size": env.task_spec.image_size, **asdict(env.difficulty)}
+    threshold = env.difficulty.success_threshold
     env.close()
+    if finish_threshold is None:
+        finish_threshold = threshold
+    elif not threshold <= finish_threshold <= 1.0:
+        raise ValueError(f"finish_threshold must lie between the task's success threshold ({threshold}) and 1, "
+                         f"got {finish_threshold}; demonstrations that stop short of the threshold are not successes")
+    # the collection env ends an episode at the finish threshold; the recorded env_kwargs keep the task's
+    env_options = {**env_options, "success_threshold": float(finish_threshold)}
     max_attempts = max_attempts_factor * num_episodes
     episodes, attempts = [], 0
     with contextlib.ExitStack() as stack:
@@ -272,7 +288,8 @@ def generate_demos(num_episodes: int, seed: int = 0, image_size: int | None = No
             if len(episodes) == num_episodes:
                 break
     if len(episodes) < num_episodes:
-        raise RuntimeError(f"the PushT expert succeeded in only {len(episodes)} of {attempts} episodes; "
-                           "use an easier difficulty or only_successes=False")
+        raise RuntimeError(f"the PushT expert reached coverage {finish_threshold} in only {len(episodes)} of "
+                           f"{attempts} episodes; use an easier difficulty, a lower finish_threshold or "
+                           "only_successes=False")
     return episodes, {"env_name": "PushT", "type": "jepa_envs", "env_kwargs": env_kwargs,
-                      "expert": {"seed": seed, "attempts": attempts}}
+                      "expert": {"seed": seed, "attempts": attempts, "finish_threshold": float(finish_threshold)}}

@@ -45,6 +45,9 @@ class DemoConfig:
     latency_iters: int         # timed decisions per arm (after 30 warm-up calls, or fewer in quick mode)
     latency_warmup: int
     train_overrides: dict = field(default_factory=dict)
+    # coverage at which each demonstration ends (the task succeeds at 0.8): demos that finish with a margin teach
+    # the policies to clear the threshold instead of landing around it (docs/training.md)
+    finish_threshold: float = 0.9
     num_envs: int = 4
     bootstrap: int = 10_000
     permutations: int = 10_000
@@ -98,12 +101,13 @@ def make_demos(cfg: DemoConfig, out: Path, fresh: bool) -> Path:
     from jepa_envs.data import write_dataset
     from jepa_envs.pusht_expert import generate_demos
 
-    path = out / "data" / f"pusht_{cfg.demos}demos.hdf5"
+    path = out / "data" / f"pusht_{cfg.demos}demos_finish{cfg.finish_threshold:g}.hdf5"
     if path.exists() and not fresh:
         print(f"   reusing {path}")
         return path
     path.parent.mkdir(parents=True, exist_ok=True)
-    episodes, env_args = generate_demos(cfg.demos, seed=0, workers=os.cpu_count() or 1, progress=True)
+    episodes, env_args = generate_demos(cfg.demos, seed=0, workers=os.cpu_count() or 1, progress=True,
+                                        finish_threshold=cfg.finish_threshold)
     tmp = path.with_suffix(".tmp.hdf5")
     write_dataset(tmp, episodes, env_args)
     tmp.replace(path)

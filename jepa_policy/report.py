@@ -249,6 +249,21 @@ def render_markdown(summary: dict, cfg: dict, figures: dict[str, str]) -> tuple[
                   "test can reach p < 0.05 (the paper's point: the evidence is consistency, not significance)."]
         text.append(f"paired JEPA-MIP over seeds: mean {p['mean']:+.2f} points, sign p={p['sign_test_p']:.3f}")
 
+    if (d := summary.get("demonstrations")) is not None:
+        finish, task = d["finish_threshold"], d["task_threshold"]
+        ends = ("" if d["final_coverage"] is None else
+                f" (final coverage min {d['final_coverage'][0]:.3f}, median {d['final_coverage'][1]:.3f})")
+        where = ("when the task succeeds" if finish is None  # a file written before the finish was recorded
+                 else f"when the goal coverage reaches {finish:g}")
+        margin = ("" if finish is None or task is None or finish <= task else
+                  f", past the task's success threshold {task:g}, so that the policies learn to clear it rather than "
+                  "land around it (docs/training.md)")
+        lines += ["", "## Demonstrations", "",
+                  f"{d['episodes']} scripted demonstrations, {d['transitions']} transitions (mean length "
+                  f"{d['mean_length']:.1f} steps), kept from {d['expert_attempts']} expert attempts; each ends "
+                  f"{where}{ends}{margin}."]
+        text.append(f"demos: {d['episodes']} ({d['transitions']} transitions), each ending {where}")
+
     lat = summary["latency"]["arms"]
     lines += ["", "## Decision latency (same run, interleaved, EMA weights, batch 1)", "",
               "| arm | mean ms | p95 ms | max Hz | network passes |", "|---|---|---|---|---|"]
@@ -320,6 +335,29 @@ def render_markdown(summary: dict, cfg: dict, figures: dict[str, str]) -> tuple[
     return "\n".join(lines), "\n".join(["", "== summary"] + ["  " + t for t in text])
 
 
+def dataset_summary(path: Path) -> dict:
+    """What the demonstrations file holds: counts, lengths and where the scripted expert ended each demo.
+
+    ``demo_rewards`` are the per-step rewards (PushT: goal coverage), so the last one of each demo is the coverage
+    the expert finished at.
+    """
+    import h5py
+
+    with h5py.File(path, "r") as f:
+        data = f["data"]
+        env_args = json.loads(data.attrs["env_args"])
+        demos = [data[k] for k in data.keys() if k.startswith("demo_")]
+        lengths = np.array([int(g.attrs["num_samples"]) for g in demos])
+        final = np.array([float(g["rewards"][-1]) for g in demos if "rewards" in g])
+    expert = env_args.get("expert", {})
+    return {
+        "episodes": len(lengths), "transitions": int(lengths.sum()), "mean_length": float(lengths.mean()),
+        "task_threshold": env_args.get("env_kwargs", {}).get("success_threshold"),
+        "finish_threshold": expert.get("finish_threshold"), "expert_attempts": expert.get("attempts"),
+        "final_coverage": ([float(final.min()), float(np.median(final))] if len(final) else None),
+    }
+
+
 def write_report(out: Path, *, cfg: dict, dataset: Path, checkpoints: dict, records: list[dict],
                  calibrations: dict, alerts: list[dict], monitor_episodes: list[dict], monitor_report: dict,
                  latency: dict, frames: list[tuple[str, np.ndarray]]) -> dict:
@@ -330,6 +368,7 @@ def write_report(out: Path, *, cfg: dict, dataset: Path, checkpoints: dict, reco
         for rec in records:
             f.write(json.dumps(rec) + "\n")
     summary = summarize(records, calibrations, alerts, latency, monitor_episodes)
+    summary["demonstrations"] = dataset_summary(dataset)
     run_dirs = {f"{arm} seed {seed}": Path(p).parent.parent for (arm, seed), p in checkpoints.items()}
     starts = {label: json.loads((d / "init_selection.json").read_text()) for label, d in run_dirs.items()
               if (d / "init_selection.json").exists()}

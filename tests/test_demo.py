@@ -40,6 +40,25 @@ def test_report_files_exist(quick_run):
         "3/5 monitor service + monitored rollouts", "4/5 decision latency (JEPA vs MIP, interleaved)", "5/5 report"}
 
 
+def test_demonstrations_end_past_the_threshold_and_are_reported(quick_run):
+    out, summary = quick_run
+    d = summary["demonstrations"]
+    finish = demo.MODES["quick"].finish_threshold
+    assert d["episodes"] == demo.MODES["quick"].demos and d["finish_threshold"] == finish
+    assert d["task_threshold"] == 0.8 < finish
+    assert d["final_coverage"][0] >= finish   # every kept demo ended at the finish coverage, not at 0.8
+    page = (out / "report.md").read_text()
+    assert "## Demonstrations" in page
+    assert f"reaches {finish:g} (final coverage min {d['final_coverage'][0]:.3f}" in page
+    assert "), past the task's success threshold 0.8" in page
+    # the rollouts are judged at the task's threshold (0.8), not at the demos' finish coverage
+    ckpt = load_checkpoint(out / "runs" / "jepa_seed42" / "checkpoints" / "latest.pt")
+    assert ckpt["env_args"]["env_kwargs"]["success_threshold"] == 0.8
+    assert ckpt["env_args"]["expert"]["finish_threshold"] == finish
+    for rec in _records(out):
+        assert rec["success"] == (rec["max_reward"] >= 0.8)
+
+
 def test_best_of_k_starts_are_reported_as_trained(quick_run):
     out, summary = quick_run
     page = (out / "report.md").read_text()

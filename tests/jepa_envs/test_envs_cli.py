@@ -36,6 +36,9 @@ def test_make_demos_errors_name_the_problem(tmp_path):
         main(["make-demos", "Nope", "--episodes", "1", "--out", str(tmp_path / "x.hdf5")])
     with pytest.raises(SystemExit, match="--episodes must be >= 1"):
         main(["make-demos", "PushT", "--episodes", "0", "--out", str(tmp_path / "x.hdf5")])
+    with pytest.raises(SystemExit, match=r"error: finish_threshold must lie between .* \(0.8\) and 1, got 0.5"):
+        main(["make-demos", "PushT", "--episodes", "1", "--out", str(tmp_path / "x.hdf5"), "--finish-threshold", "0.5"])
+    assert not (tmp_path / "x.hdf5").exists()
 
 
 def test_list_and_info(capsys):

@@ -189,6 +189,25 @@ def test_parallel_demo_generation_equals_serial():
         generate_demos(1, workers=0)
 
 
+def test_demos_can_finish_past_the_success_threshold():
+    plain, plain_args = generate_demos(3, seed=5, image_size=24)
+    finished, args = generate_demos(3, seed=5, image_size=24, finish_threshold=0.9)
+    # the file still describes the task (evaluation at 0.8); the expert's finish coverage is recorded beside it
+    assert args["env_kwargs"] == plain_args["env_kwargs"] and args["env_kwargs"]["success_threshold"] == 0.8
+    assert plain_args["expert"]["finish_threshold"] == 0.8 and args["expert"]["finish_threshold"] == 0.9
+    for ep in plain:
+        assert 0.8 <= ep["rewards"][-1] < 0.9 and (ep["rewards"][:-1] < 0.8).all()  # rewards: the goal coverage
+    for ep in finished:
+        assert ep["rewards"][-1] >= 0.9 and (ep["rewards"][:-1] < 0.9).all()
+    same = [(a, b) for a in plain for b in finished if a["seed"] == b["seed"]]
+    assert same
+    for a, b in same:  # the same start and expert seed: the same first targets (later pushes may differ)
+        np.testing.assert_array_equal(a["actions"][:5], b["actions"][:5])
+    for bad in (0.75, 1.01):
+        with pytest.raises(ValueError, match=r"finish_threshold must lie between the task's success threshold \(0.8\)"):
+            generate_demos(1, finish_threshold=bad)
+
+
 def test_state_replay_reproduces_the_episode():
     env = PushTEnv()
     ep = collect_episode(env, 7, PushTExpert(seed=7), max_steps=40)
