@@ -186,6 +186,34 @@ def test_report_summary_names_threshold_and_false_alarms():
     assert "threshold infinite (no alarms)" in text and "Active alarm threshold (conformal): infinite" in page
 
 
+def test_report_describes_demonstrations_from_an_older_file(pusht_demo_file, tmp_path):
+    """A file written before the expert's finish coverage was recorded is described as ending at success."""
+    import h5py
+
+    from jepa_policy.report import dataset_summary, render_markdown
+
+    old = tmp_path / "old.hdf5"
+    old.write_bytes(pusht_demo_file.read_bytes())
+    with h5py.File(old, "r+") as f:
+        env_args = json.loads(f["data"].attrs["env_args"])
+        del env_args["expert"]["finish_threshold"]
+        f["data"].attrs["env_args"] = json.dumps(env_args)
+        lengths = [int(f["data"][k].attrs["num_samples"]) for k in f["data"] if k.startswith("demo_")]
+    d = dataset_summary(old)
+    assert d["finish_threshold"] is None and d["task_threshold"] == 0.8 and d["episodes"] == 4
+    assert d["transitions"] == sum(lengths) and d["mean_length"] == pytest.approx(np.mean(lengths))
+    assert 0.8 <= d["final_coverage"][0] <= d["final_coverage"][1]
+    rate = {"rate": 0.7, "ci95": [0.6, 0.8], "episodes": 10, "per_seed": {42: 0.7}, "mean_best_reward": 0.8,
+            "mean_length": 60.0}
+    summary = {"success": {"jepa": rate}, "latency": {"arms": {}}, "calibrations": {}, "demonstrations": d,
+               "live": {"episodes": 0, "failures": 0, "alerts": 0, "alerted_episodes": 0, "alerted_failures": 0,
+                        "alerted_successes": 0}}
+    page, text = render_markdown(summary, {"mode": "default"}, {})
+    assert f"4 scripted demonstrations, {sum(lengths)} transitions" in page
+    assert "each ends when the task succeeds (final coverage min" in page and "past the task's" not in page
+    assert "Aim not reached" not in page   # 70 % clears the aim: no note
+
+
 def test_steps_override_changes_only_the_training_steps(capsys):
     cfg, name = demo.demo_config("default", 6000)
     base = demo.MODES["default"]
