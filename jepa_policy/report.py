@@ -338,7 +338,7 @@ def render_markdown(summary: dict, cfg: dict, figures: dict[str, str]) -> tuple[
 def dataset_summary(path: Path) -> dict:
     """What the demonstrations file holds: counts, lengths and where the scripted expert ended each demo.
 
-    ``demo_rewards`` are the per-step rewards (PushT: goal coverage), so the last one of each demo is the coverage
+    Each demo's ``rewards`` are its per-step rewards (PushT: the goal coverage), so the last one is the coverage
     the expert finished at.
     """
     import h5py
