@@ -23,6 +23,8 @@ def _random_stats(spec) -> dict:
     stats = {"action": {"min": -np.ones(spec.action_dim, np.float32), "max": np.ones(spec.action_dim, np.float32)}}
     for key, dim in spec.lowdim:
         stats[key] = {"min": -np.ones(dim, np.float32), "max": np.ones(dim, np.float32)}
+    for key in spec.image_keys:   # the pixel stats of uniform noise, for presets with image_norm "dataset"
+        stats[key] = {"mean": np.full(3, 0.5, np.float32), "std": np.full(3, 0.29, np.float32)}
     return stats
 
 

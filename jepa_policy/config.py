@@ -24,6 +24,10 @@ ARMS = (
     "diffusion",         # Diffusion Policy transformer, DDPM epsilon prediction (Sec. 4.2)
 )
 LAMBDA_Z_MODES = ("adaptive", "fixed")
+IMAGE_NORMS = (
+    "unit",              # pixels / 255 in [0, 1], as Diffusion Policy and MIP feed a from-scratch ResNet
+    "dataset",           # per-channel standardisation with the training frames' mean and std
+)
 
 
 @dataclass(frozen=True)
@@ -35,6 +39,7 @@ class ModelConfig(ObservationLayout):
     cameras: tuple[str, ...] = ("agentview", "robot0_eye_in_hand")
     image_size: int = 84
     crop_ratio: float = 0.9                  # random crop of 90% of the image (Sec. 4.1)
+    image_norm: str = "unit"                 # pixel scaling into the encoder, one of IMAGE_NORMS
     lowdim: tuple[tuple[str, int], ...] = (("robot0_eef_pos", 3), ("robot0_eef_quat", 4),
                                            ("robot0_gripper_qpos", 2))
     action_dim: int = 10
@@ -116,6 +121,8 @@ class ModelConfig(ObservationLayout):
 
         if self.arm not in ARMS:
             bad(f"arm={self.arm!r} is unknown; choose one of {', '.join(ARMS)}")
+        if self.image_norm not in IMAGE_NORMS:
+            bad(f"image_norm={self.image_norm!r} is unknown; choose one of {', '.join(IMAGE_NORMS)}")
         if self.lambda_z_mode not in LAMBDA_Z_MODES:
             bad(f"lambda_z_mode={self.lambda_z_mode!r}; choose 'adaptive' or 'fixed'")
         if not self.cameras:

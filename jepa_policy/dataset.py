@@ -101,14 +101,33 @@ class WindowDataset(Dataset):
         }
 
 
-def normalizer_stats(actions: np.ndarray, obs: dict[str, np.ndarray], lowdim_keys) -> dict:
-    """Per-dimension min/max of the actions and every low-dim input, the format of ``set_normalizer_stats``."""
+def normalizer_stats(actions: np.ndarray, obs: dict[str, np.ndarray], lowdim_keys, image_keys=()) -> dict:
+    """The format of ``set_normalizer_stats``: per-dimension min/max of the actions and every low-dim input, and
+    per-channel pixel mean/std (in [0, 1] units) of every image key given."""
     stats = {"action": {"min": np.min(actions, axis=0).astype(np.float32),
                         "max": np.max(actions, axis=0).astype(np.float32)}}
     for key in lowdim_keys:
         stats[key] = {"min": np.min(obs[key], axis=0).astype(np.float32),
                       "max": np.max(obs[key], axis=0).astype(np.float32)}
+    for key in image_keys:
+        stats[key] = pixel_stats(obs[key])
     return stats
+
+
+def pixel_stats(frames: np.ndarray) -> dict:
+    """Exact per-channel mean and std of uint8 HWC frames (..., 3), in [0, 1] units, from 256-bin histograms."""
+    frames = np.asarray(frames)
+    if frames.dtype != np.uint8 or frames.ndim < 3 or frames.shape[-1] != 3 or frames.size == 0:
+        raise ValueError(f"pixel stats need non-empty uint8 frames of shape (..., h, w, 3); got {frames.dtype} "
+                         f"{frames.shape}")
+    levels = np.arange(256, dtype=np.float64) / 255.0
+    mean, std = np.empty(3), np.empty(3)
+    for c in range(3):
+        counts = np.bincount(frames[..., c].ravel(), minlength=256).astype(np.float64)
+        p = counts / counts.sum()
+        mean[c] = p @ levels
+        std[c] = np.sqrt(max(p @ (levels - mean[c]) ** 2, 0.0))
+    return {"mean": mean.astype(np.float32), "std": std.astype(np.float32)}
 
 
 class ResumableBatchSampler(Sampler):

@@ -28,7 +28,7 @@ from torch import Tensor, nn
 
 from jepa_policy.config import ModelConfig
 from jepa_policy.losses import sigreg, two_step_terms
-from jepa_policy.normalizer import Normalizer
+from jepa_policy.normalizer import ImageStandardizer, Normalizer
 
 # ----------------------------------------------------------------------------------------------------------
 # Image encoder: ResNet-18 with GroupNorm, from scratch (Sec. 3.2, 4.1)
@@ -304,11 +304,16 @@ class BasePolicyModel(nn.Module):
         super().__init__()
         self.cfg = cfg
         self.normalizer = Normalizer({"action": cfg.action_dim, **dict(cfg.lowdim)})
+        # Only models that standardise pixels own the module, so "unit" checkpoints keep their state_dict.
+        self.image_normalizer = ImageStandardizer(cfg.image_keys) if cfg.image_norm == "dataset" else None
 
     # ----- public API -----
     def set_normalizer_stats(self, stats: Mapping[str, Mapping[str, np.ndarray]]) -> None:
-        """stats = {"action": {"min", "max"}, "<lowdim key>": {...}} (numpy arrays)."""
+        """stats = {"action": {"min", "max"}, "<lowdim key>": {...}} (numpy arrays), plus
+        {"<image key>": {"mean", "std"}} when ``image_norm == "dataset"`` (``dataset.normalizer_stats``)."""
         self.normalizer.set_stats(stats)
+        if self.image_normalizer is not None:
+            self.image_normalizer.set_stats(stats)
 
     def forward(self, batch: Mapping, generator: torch.Generator | None = None) -> tuple[Tensor, dict]:
         return self.compute_loss(batch, generator)
@@ -381,7 +386,7 @@ class BasePolicyModel(nn.Module):
                     raise ValueError(f"future_obs[{key!r}] has batch {f.shape[0]}, obs has {batch}")
                 frames = torch.cat([frames, f[:, None]], dim=1)
             top, left = crop_windows(batch, cfg.image_size, cfg.crop_size, random, generator, frames.device)
-            crops = to_chw_float(crop_frames(frames, top, left, cfg.crop_size))
+            crops = self._pixels(key, crop_frames(frames, top, left, cfg.crop_size))
             now[key] = crops[:, :cfg.obs_steps].flatten(0, 1)
             if fut is not None:
                 fut[key] = crops[:, cfg.obs_steps]
@@ -392,8 +397,13 @@ class BasePolicyModel(nn.Module):
         for key in cfg.image_keys:
             f = self._images(future_obs, key, "future_obs", with_time=False)
             top, left = crop_windows(f.shape[0], cfg.image_size, cfg.crop_size, False, None, f.device)
-            out[key] = to_chw_float(crop_frames(f[:, None], top, left, cfg.crop_size)[:, 0])
+            out[key] = self._pixels(key, crop_frames(f[:, None], top, left, cfg.crop_size)[:, 0])
         return out
+
+    def _pixels(self, key: str, frames: Tensor) -> Tensor:
+        """uint8 (..., h, w, 3) -> float (..., 3, h, w) as the encoder takes it (``ModelConfig.image_norm``)."""
+        x = to_chw_float(frames)
+        return x if self.image_normalizer is None else self.image_normalizer(key, x)
 
     def _noise(self, shape: tuple, generator: torch.Generator | None, like: Tensor) -> Tensor:
         gen_device = generator.device if generator is not None else like.device

@@ -1,4 +1,5 @@
-"""Per-key affine normalisation of actions and low-dim inputs to [-1, 1], stored in the model's state_dict.
+"""Per-key affine normalisation of actions and low-dim inputs to [-1, 1] (``Normalizer``) and of camera pixels
+to zero mean and unit variance per channel (``ImageStandardizer``), stored in the model's state_dict.
 
 The statistics travel inside checkpoints, so a loaded policy normalises exactly as it was trained.
 """
@@ -12,6 +13,8 @@ from torch import nn
 
 # A dimension whose range is below this is treated as constant and mapped to 0 rather than blown up.
 MIN_RANGE = 1e-4
+# A colour channel whose pixel std (in [0, 1] units) is below this is constant: centred, not scaled up.
+MIN_PIXEL_STD = 1e-3
 
 
 class _Affine(nn.Module):
@@ -72,3 +75,51 @@ class Normalizer(nn.Module):
     def unnormalize(self, key: str, y: torch.Tensor) -> torch.Tensor:
         f = self._check(key)
         return (y - f.offset) / f.scale
+
+
+class ImageStandardizer(nn.Module):
+    """Per camera and colour channel ``(x - mean) / std`` of pixels in [0, 1], fitted from the training frames.
+
+    Used when ``ModelConfig.image_norm == "dataset"``. Fed as [0, 1], a mostly uniform scene (PushT: channel
+    means about 0.91, stds about 0.09) makes every conv filter's response mostly the background times the
+    filter's weight sum, a constant per channel that the one-group GroupNorm of a narrow encoder does not remove;
+    standardised, the filters start on the scene's structure (measured in docs/training.md).
+    """
+
+    def __init__(self, keys: tuple[str, ...]):
+        super().__init__()
+        self.keys = tuple(keys)
+        self.fields = nn.ModuleDict({k: _Affine(3) for k in self.keys})   # scale = 1 / std, offset = -mean / std
+        self.register_buffer("fitted", torch.tensor(False))
+
+    def set_stats(self, stats: Mapping[str, Mapping[str, np.ndarray]]) -> None:
+        """Fit from ``{image_key: {"mean": (3,), "std": (3,)}}`` in [0, 1] pixel units, one entry per camera."""
+        missing = [k for k in self.keys if k not in stats or not {"mean", "std"} <= set(stats[k])]
+        if missing:
+            raise ValueError(f"normalizer stats lack the pixel mean/std of image key(s) {missing}, which "
+                             "image_norm='dataset' needs; compute them with jepa_policy.dataset.normalizer_stats("
+                             "actions, obs, lowdim_keys, image_keys) or set image_norm='unit'")
+        for key in self.keys:
+            mean = np.asarray(stats[key]["mean"], dtype=np.float64).reshape(-1)
+            std = np.asarray(stats[key]["std"], dtype=np.float64).reshape(-1)
+            if mean.shape != (3,) or std.shape != (3,):
+                raise ValueError(f"pixel stats for {key!r} have shapes {mean.shape}/{std.shape}; expected (3,) "
+                                 "(one value per RGB channel)")
+            if not (np.isfinite(mean).all() and np.isfinite(std).all()) or (std < 0).any():
+                raise ValueError(f"pixel stats for {key!r} must be finite with std >= 0; got mean {mean}, "
+                                 f"std {std}")
+            std = np.where(std < MIN_PIXEL_STD, 1.0, std)
+            f = self.fields[key]
+            f.scale.copy_(torch.as_tensor(1.0 / std, dtype=f.scale.dtype))
+            f.offset.copy_(torch.as_tensor(-mean / std, dtype=f.offset.dtype))
+        self.fitted.fill_(True)
+
+    def forward(self, key: str, x: torch.Tensor) -> torch.Tensor:
+        """(..., 3, h, w) pixels in [0, 1] -> standardised pixels of the same shape."""
+        if not bool(self.fitted):
+            raise RuntimeError("the image standardiser has no statistics; call model.set_normalizer_stats(stats) "
+                               "with the dataset's pixel mean/std (or load a trained checkpoint)")
+        if key not in self.fields:
+            raise KeyError(f"image standardiser has no key {key!r}; it knows {list(self.fields)}")
+        f = self.fields[key]
+        return x * f.scale[:, None, None] + f.offset[:, None, None]

@@ -327,7 +327,7 @@ def _train_run(cfg: TrainConfig, demos=None, selection: dict | None = None) -> d
     if spec.name != get_task_spec(cfg.task).name:
         raise ValueError(f"dataset is for task {spec.name!r} but the config trains {cfg.task!r}")
     windows = WindowDataset.from_demos(demos)
-    stats = normalizer_stats(demos.actions, demos.obs, spec.lowdim_keys)
+    stats = normalizer_stats(demos.actions, demos.obs, spec.lowdim_keys, spec.image_keys)
 
     # model, EMA, optimiser, schedule (Sec. 4.1: AdamW 1e-4, EMA 0.995, cosine with warm-up)
     seed_everything(cfg.seed)  # identical initial weights on every rank

@@ -3,7 +3,8 @@ import numpy as np
 import pytest
 import torch
 
-from jepa_policy.dataset import ResumableBatchSampler, WindowDataset, make_loader, normalizer_stats, window_indices
+from jepa_policy.dataset import (ResumableBatchSampler, WindowDataset, make_loader, normalizer_stats, pixel_stats,
+                                 window_indices)
 
 
 def _toy(lengths=(5, 3), size=4):
@@ -66,6 +67,22 @@ def test_normalizer_stats_are_min_max():
     stats = normalizer_stats(actions, obs, ("agent_pos",))
     assert stats["action"]["min"].tolist() == [0, 0] and stats["action"]["max"].tolist() == [7, 70]
     assert stats["agent_pos"]["min"].tolist() == [0, -7] and stats["agent_pos"]["max"].tolist() == [7, 0]
+
+
+def test_pixel_stats_are_the_exact_channel_mean_and_std():
+    rng = np.random.default_rng(0)
+    frames = rng.integers(0, 256, (7, 5, 6, 3), dtype=np.uint8)
+    frames[..., 2] = 200                                     # a constant channel: std 0
+    stats = pixel_stats(frames)
+    x = frames.reshape(-1, 3).astype(np.float64) / 255.0
+    assert np.allclose(stats["mean"], x.mean(0), atol=1e-6) and np.allclose(stats["std"], x.std(0), atol=1e-6)
+    assert stats["std"][2] == 0.0
+    obs, actions, _ = _toy()
+    obs = {**obs, "top_image": frames}
+    both = normalizer_stats(actions, obs, ("agent_pos",), ("top_image",))
+    assert np.array_equal(both["top_image"]["mean"], stats["mean"]) and "min" in both["agent_pos"]
+    with pytest.raises(ValueError, match="uint8 frames"):
+        pixel_stats(frames.astype(np.float32))
 
 
 def test_sampler_ranks_partition_the_global_batch_and_resume():

@@ -39,6 +39,7 @@ def test_config_defaults_are_the_papers():
     (dict(width=100), "not divisible by heads"),
     (dict(arm="dual_cross", dual_future_layers=2), "must equal layers"),
     (dict(lambda_z_mode="auto"), "lambda_z_mode"),
+    (dict(image_norm="imagenet"), "image_norm"),
     (dict(image_size=8), "ResNet-18 needs at least 8px"),
     (dict(diffusion_infer_steps=200), "exceeds diffusion_train_steps"),
 ])
@@ -59,6 +60,62 @@ def test_normalizer_maps_min_max_to_unit_range_and_round_trips():
     assert model.normalizer.normalize("action", hi)[9].item() == 0.0
     x = torch.randn(5, 10)
     assert torch.allclose(model.normalizer.unnormalize("action", model.normalizer.normalize("action", x)), x, atol=1e-5)
+
+
+def pixel_stats_of(cfg, mean=(0.9, 0.8, 0.7), std=(0.1, 0.2, 0.05)) -> dict:
+    stats = unit_stats(cfg)
+    for key in cfg.image_keys:
+        stats[key] = {"mean": np.array(mean), "std": np.array(std)}
+    return stats
+
+
+def test_image_standardizer_matches_the_formula_and_feeds_the_encoder():
+    cfg = tiny_config("jepa", image_norm="dataset", crop_ratio=1.0)
+    model = build_model(cfg).eval()
+    model.set_normalizer_stats(pixel_stats_of(cfg))
+    batch = make_batch(cfg)
+    mean, std = torch.tensor([0.9, 0.8, 0.7])[:, None, None], torch.tensor([0.1, 0.2, 0.05])[:, None, None]
+    want = {}
+    for key in cfg.image_keys:
+        frames = batch["obs"][key]
+        got = model._pixels(key, frames)
+        want[key] = (frames.movedim(-1, -3).float() / 255.0 - mean) / std
+        assert got.shape == want[key].shape and torch.allclose(got, want[key], atol=1e-5)
+    # The encoder sees exactly those pixels: the unit model fed the standardised frames by hand agrees.
+    unit = build_model(cfg.replace(image_norm="unit")).eval()
+    unit.load_state_dict(model.state_dict(), strict=False)
+    unit.set_normalizer_stats(unit_stats(cfg))
+    images, _, _ = model._crop_obs(batch["obs"], None, False, None)
+    with torch.no_grad():
+        by_hand = unit.encoder.rgb({key: x.flatten(0, 1) for key, x in want.items()})
+        assert torch.allclose(model.encoder.rgb(images), by_hand, atol=1e-5)
+        assert not torch.allclose(unit.encoder.rgb(unit._crop_obs(batch["obs"], None, False, None)[0]), by_hand)
+    key = cfg.image_keys[0]
+    # Constant channels are centred, not blown up; the unit model has no such module in its state_dict.
+    model.set_normalizer_stats(pixel_stats_of(cfg, std=(0.1, 0.0, 0.05)))
+    assert model.image_normalizer.fields[key].scale[1].item() == 1.0
+    assert not any(k.startswith("image_normalizer") for k in unit.state_dict())
+
+
+def test_image_standardizer_errors_name_the_fix_and_stats_round_trip():
+    cfg = tiny_config("jepa", image_norm="dataset")
+    fresh = build_model(cfg)
+    with pytest.raises(ValueError, match="pixel mean/std.*normalizer_stats"):
+        fresh.set_normalizer_stats(unit_stats(cfg))
+    with pytest.raises(ValueError, match="expected \\(3,\\)"):
+        fresh.set_normalizer_stats(pixel_stats_of(cfg, mean=(0.5, 0.5)))
+    with pytest.raises(ValueError, match="finite with std >= 0"):
+        fresh.set_normalizer_stats(pixel_stats_of(cfg, std=(0.1, -0.2, 0.1)))
+    with pytest.raises(RuntimeError, match="set_normalizer_stats"):
+        fresh.image_normalizer(cfg.image_keys[0], torch.zeros(1, 3, 4, 4))
+    trained = build_model(cfg).eval()
+    trained.set_normalizer_stats(pixel_stats_of(cfg))
+    loaded = build_model(cfg).eval()
+    loaded.load_state_dict(trained.state_dict())
+    batch = make_batch(cfg)
+    a1, z1 = trained.predict(batch["obs"])
+    a2, z2 = loaded.predict(batch["obs"])
+    assert torch.equal(a1, a2) and torch.equal(z1, z2)
 
 
 def test_normalizer_errors_and_checkpoint_round_trip():
