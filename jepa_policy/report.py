@@ -232,8 +232,15 @@ def render_markdown(summary: dict, cfg: dict, figures: dict[str, str]) -> tuple[
         best = summary["success"].get("jepa", {}).get("mean_best_reward")
         progress = "" if best is None else (f" Its rollouts reached a mean best goal coverage of {best:.2f} "
                                             "(success needs the task's coverage threshold).")
+        ci = summary["success"].get("jepa", {}).get("ci95")
+        reading = ""
+        if ci is not None:
+            interval = f"{_pct(ci[0])}-{_pct(ci[1])}"
+            reading = (f" The aim lies inside this run's 95% interval ({interval}): these rollouts cannot tell "
+                       "the policy's rate from the aim." if ci[1] >= SUCCESS_AIM else
+                       f" The aim lies above this run's 95% interval ({interval}).")
         note = (f"**Aim not reached:** JEPA Policy succeeded in {_pct(jepa_rate)} of rollouts, below the "
-                f"{_pct(SUCCESS_AIM)} aim for the default budget.{progress} What is known about the gap is in "
+                f"{_pct(SUCCESS_AIM)} aim for the default budget.{reading}{progress} What is known about the gap is in "
                 "docs/training.md (PushT `cpu` preset). The comparison and the monitor figures below are measured "
                 "all the same; read them with that in mind.")
         lines += ["", note]

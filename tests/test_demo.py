@@ -176,6 +176,11 @@ def test_report_summary_names_threshold_and_false_alarms():
     assert "7/14 failures and 1/10 successes flagged" in text
     assert "8 intervention alerts on 8 episodes (7 failures, 1 success)." in page
     assert "below the 60.0% aim for the default budget" in text
+    assert "The aim lies above this run's 95% interval (20.0%-40.0%)." in text
+    rate["ci95"] = [0.2, 0.65]
+    text = render_markdown(summary, {"mode": "default"}, {})[1]
+    assert "The aim lies inside this run's 95% interval (20.0%-65.0%)" in text
+    rate["ci95"] = [0.2, 0.4]
     live.update(alerts=1, alerted_episodes=1, alerted_failures=1, alerted_successes=0)
     page, text = render_markdown(summary, {"mode": "default"}, {})
     assert "1 intervention alert on 1 episode (1 failure, 0 successes)." in page
