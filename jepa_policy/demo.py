@@ -60,7 +60,7 @@ MODES = {
                                                                              "init_candidates": 2,
                                                                              "init_screen_steps": 6},
                         num_envs=2, bootstrap=1000, permutations=1000),
-    "default": DemoConfig("default", demos=200, preset="cpu", seeds=(42,), calib_episodes=64, live_episodes=24,
+    "default": DemoConfig("default", demos=200, preset="cpu", seeds=(42,), calib_episodes=64, live_episodes=64,
                           latency_iters=300, latency_warmup=30),
     "full": DemoConfig("full", demos=200, preset="cpu", seeds=(41, 42, 43), calib_episodes=64, live_episodes=40,
                        latency_iters=300, latency_warmup=30),
