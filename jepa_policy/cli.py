@@ -1,4 +1,4 @@
-"""``jepa-policy``: train, eval, describe, bench latency, bench train, audit, protocols."""
+"""``jepa-policy``: train, eval, describe, bench latency, bench train, audit, protocols, ceiling."""
 from __future__ import annotations
 
 import argparse
@@ -116,6 +116,14 @@ def cmd_audit(args) -> int:
     return 0
 
 
+def cmd_ceiling(args) -> int:
+    from jepa_policy.ceiling import state_ceiling
+
+    print(json.dumps(state_ceiling(args.dataset, seed=args.seed, episodes=args.episodes, eval_seed=args.eval_seed,
+                                   steps=args.steps)))
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="jepa-policy", description=__doc__)
     sub = parser.add_subparsers(dest="command", required=True)
@@ -176,6 +184,14 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("protocols", help="Table 6 reporting protocols from eval_curve.json or a checkpoint")
     p.add_argument("curve")
     p.set_defaults(func=cmd_protocols)
+
+    p = sub.add_parser("ceiling", help="PushT imitation ceiling: a true-state MLP trained and rolled out on demos")
+    p.add_argument("--dataset", required=True)
+    p.add_argument("--seed", type=int, default=0, help="training seed")
+    p.add_argument("--episodes", type=int, default=200)
+    p.add_argument("--eval-seed", type=int, default=200_000)
+    p.add_argument("--steps", type=int, default=4000)
+    p.set_defaults(func=cmd_ceiling)
     return parser
 
 
