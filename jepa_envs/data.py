@@ -103,6 +103,11 @@ def _known_env_names() -> str:
 
 # -- writing --------------------------------------------------------------------------------------------------
 
+def demo_names(data: h5py.Group) -> list[str]:
+    """The ``demo_N`` groups of a file's ``data`` group, in episode order (N numerically, not as text)."""
+    return sorted((k for k in data.keys() if re.fullmatch(r"demo_\d+", k)), key=lambda k: int(k.split("_")[1]))
+
+
 def write_dataset(path, episodes: list[dict], env_args: dict) -> None:
     """Write episodes as a robomimic-layout HDF5 file (atomically: a temp file renamed into place).
 
@@ -202,8 +207,7 @@ class _Reader:
         if "data" not in f or not isinstance(f["data"], h5py.Group):
             raise DatasetError(f"{path}: no 'data' group; expected robomimic/LIBERO layout data/demo_N/...")
         self.data = f["data"]
-        self.demos = sorted((k for k in self.data.keys() if re.fullmatch(r"demo_\d+", k)),
-                            key=lambda k: int(k.split("_")[1]))
+        self.demos = demo_names(self.data)
         if not self.demos:
             raise DatasetError(f"{path}: 'data' has no demo_N groups; the file holds no demonstrations")
         self.libero = "bddl_file_name" in self.data.attrs or "agentview_rgb" in self._group(self.demos[0], "obs")

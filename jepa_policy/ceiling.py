@@ -11,13 +11,13 @@ from __future__ import annotations
 
 import json
 import math
-import re
 from pathlib import Path
 
 import numpy as np
 import torch
 from torch import nn
 
+from jepa_envs.data import demo_names
 from jepa_envs.spec import get_task_spec
 from jepa_policy.dataset import window_indices
 
@@ -48,7 +48,7 @@ def read_state_demos(path: str | Path) -> tuple[np.ndarray, np.ndarray, np.ndarr
         if env_args.get("env_name") != TASK:
             raise ValueError(f"the state ceiling is defined for the embedded PushT task (its states are the agent "
                              f"and block poses); {path} holds {env_args.get('env_name')!r} demonstrations")
-        names = sorted((k for k in f["data"] if re.fullmatch(r"demo_\d+", k)), key=lambda k: int(k[5:]))
+        names = demo_names(f["data"])
         if not names:
             raise ValueError(f"{path} holds no demo_N groups")
         states = [f["data"][k]["states"][:] for k in names]

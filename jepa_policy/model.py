@@ -402,8 +402,9 @@ class BasePolicyModel(nn.Module):
 
     def _pixels(self, key: str, frames: Tensor) -> Tensor:
         """uint8 (..., h, w, 3) -> float (..., 3, h, w) as the encoder takes it (``ModelConfig.image_norm``)."""
-        x = to_chw_float(frames)
-        return x if self.image_normalizer is None else self.image_normalizer(key, x)
+        if self.image_normalizer is None:
+            return to_chw_float(frames)
+        return self.image_normalizer.normalize(key, frames.float().div_(255.0)).movedim(-1, -3)
 
     def _noise(self, shape: tuple, generator: torch.Generator | None, like: Tensor) -> Tensor:
         gen_device = generator.device if generator is not None else like.device

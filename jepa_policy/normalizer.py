@@ -63,7 +63,8 @@ class Normalizer(nn.Module):
     def _check(self, key: str) -> _Affine:
         if not bool(self.fitted):
             raise RuntimeError("the normalizer has no statistics; call model.set_normalizer_stats(stats) "
-                               "with the dataset's per-key min/max (or load a trained checkpoint)")
+                               "with the dataset's statistics from jepa_policy.dataset.normalizer_stats (or load a "
+                               "trained checkpoint)")
         if key not in self.fields:
             raise KeyError(f"normalizer has no key {key!r}; it knows {list(self.fields)}")
         return self.fields[key]
@@ -77,29 +78,28 @@ class Normalizer(nn.Module):
         return (y - f.offset) / f.scale
 
 
-class ImageStandardizer(nn.Module):
+class ImageStandardizer(Normalizer):
     """Per camera and colour channel ``(x - mean) / std`` of pixels in [0, 1], fitted from the training frames.
 
     Used when ``ModelConfig.image_norm == "dataset"``. Fed as [0, 1], a mostly uniform scene (PushT: channel
     means about 0.91, stds about 0.09) makes every conv filter's response mostly the background times the
     filter's weight sum, a constant per channel that the one-group GroupNorm of a narrow encoder does not remove;
-    standardised, the filters start on the scene's structure (measured in docs/training.md).
+    standardised, the filters start on the scene's structure (measured in docs/training.md). It is a
+    ``Normalizer`` over the 3 channels of each image key (scale = 1 / std, offset = -mean / std), so
+    ``normalize(key, x)`` takes channel-last pixels (..., h, w, 3); only the fit differs.
     """
 
     def __init__(self, keys: tuple[str, ...]):
-        super().__init__()
-        self.keys = tuple(keys)
-        self.fields = nn.ModuleDict({k: _Affine(3) for k in self.keys})   # scale = 1 / std, offset = -mean / std
-        self.register_buffer("fitted", torch.tensor(False))
+        super().__init__({k: 3 for k in keys})
 
     def set_stats(self, stats: Mapping[str, Mapping[str, np.ndarray]]) -> None:
         """Fit from ``{image_key: {"mean": (3,), "std": (3,)}}`` in [0, 1] pixel units, one entry per camera."""
-        missing = [k for k in self.keys if k not in stats or not {"mean", "std"} <= set(stats[k])]
+        missing = [k for k in self.dims if k not in stats or not {"mean", "std"} <= set(stats[k])]
         if missing:
             raise ValueError(f"normalizer stats lack the pixel mean/std of image key(s) {missing}, which "
                              "image_norm='dataset' needs; compute them with jepa_policy.dataset.normalizer_stats("
                              "actions, obs, lowdim_keys, image_keys) or set image_norm='unit'")
-        for key in self.keys:
+        for key in self.dims:
             mean = np.asarray(stats[key]["mean"], dtype=np.float64).reshape(-1)
             std = np.asarray(stats[key]["std"], dtype=np.float64).reshape(-1)
             if mean.shape != (3,) or std.shape != (3,):
@@ -113,13 +113,3 @@ class ImageStandardizer(nn.Module):
             f.scale.copy_(torch.as_tensor(1.0 / std, dtype=f.scale.dtype))
             f.offset.copy_(torch.as_tensor(-mean / std, dtype=f.offset.dtype))
         self.fitted.fill_(True)
-
-    def forward(self, key: str, x: torch.Tensor) -> torch.Tensor:
-        """(..., 3, h, w) pixels in [0, 1] -> standardised pixels of the same shape."""
-        if not bool(self.fitted):
-            raise RuntimeError("the image standardiser has no statistics; call model.set_normalizer_stats(stats) "
-                               "with the dataset's pixel mean/std (or load a trained checkpoint)")
-        if key not in self.fields:
-            raise KeyError(f"image standardiser has no key {key!r}; it knows {list(self.fields)}")
-        f = self.fields[key]
-        return x * f.scale[:, None, None] + f.offset[:, None, None]

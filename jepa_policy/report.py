@@ -350,10 +350,12 @@ def dataset_summary(path: Path) -> dict:
     """
     import h5py
 
+    from jepa_envs.data import demo_names
+
     with h5py.File(path, "r") as f:
         data = f["data"]
         env_args = json.loads(data.attrs["env_args"])
-        demos = [data[k] for k in data.keys() if k.startswith("demo_")]
+        demos = [data[k] for k in demo_names(data)]
         lengths = np.array([int(g.attrs["num_samples"]) for g in demos])
         final = np.array([float(g["rewards"][-1]) for g in demos if "rewards" in g])
     expert = env_args.get("expert", {})

@@ -107,7 +107,7 @@ def test_image_standardizer_errors_name_the_fix_and_stats_round_trip():
     with pytest.raises(ValueError, match="finite with std >= 0"):
         fresh.set_normalizer_stats(pixel_stats_of(cfg, std=(0.1, -0.2, 0.1)))
     with pytest.raises(RuntimeError, match="set_normalizer_stats"):
-        fresh.image_normalizer(cfg.image_keys[0], torch.zeros(1, 3, 4, 4))
+        fresh.image_normalizer.normalize(cfg.image_keys[0], torch.zeros(1, 4, 4, 3))
     trained = build_model(cfg).eval()
     trained.set_normalizer_stats(pixel_stats_of(cfg))
     loaded = build_model(cfg).eval()
