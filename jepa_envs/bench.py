@@ -18,7 +18,8 @@ from typing import Callable
 import gymnasium as gym
 import numpy as np
 import jepa_envs  # noqa: F401  (registers the ids)
-from jepa_envs.spec import TaskSpec, all_task_specs, get_task_spec
+from jepa_envs.pusht import coverage
+from jepa_envs.spec import TaskSpec, all_task_specs, backend_available, get_task_spec
 from jepa_envs.wrappers import RenderOnDemand, render_schedule
 
 
@@ -42,7 +43,6 @@ def _raw_step(env) -> Callable[[], None]:
     native = base.native_zero_action()
     backend = base.backend
     if type(backend).__name__ == "PushTSim":  # the pymunk sim renders and scores on request, not in step()
-        from jepa_envs.pusht import coverage
         size = base.task_spec.image_size
 
         def step():
@@ -95,8 +95,6 @@ def bench_task(spec: TaskSpec, steps: int, budget_s: float) -> dict:
 
 
 def buildable_tasks() -> list[TaskSpec]:
-    from jepa_envs.cli import backend_available
-
     return [spec for spec in all_task_specs() if backend_available(spec.suite)[0]]
 
 

@@ -6,7 +6,6 @@ it an ``add_arguments(parser)`` function (see ``make-demos`` below).
 from __future__ import annotations
 
 import argparse
-import importlib.util
 import json
 import os
 import sys
@@ -14,17 +13,7 @@ import time
 from dataclasses import asdict, dataclass
 from typing import Callable
 
-from jepa_envs.spec import all_task_specs, get_task_spec
-
-# third-party package each suite needs, and our module that wraps it
-BACKENDS = {
-    "embedded": ("pymunk", "jepa_envs.pusht"),
-    "robomimic": ("robosuite", "jepa_envs.robomimic_env"),
-    "libero": ("libero", "jepa_envs.libero_env"),
-    "mimicgen": ("mimicgen", "jepa_envs.mimicgen_env"),
-    "real": ("zmq", "jepa_envs.real_robot.proxy"),
-}
-
+from jepa_envs.spec import all_task_specs, backend_available, get_task_spec
 
 @dataclass(frozen=True)
 class Subcommand:
@@ -43,18 +32,6 @@ def subcommand(name: str, help: str, add_arguments: Callable[[argparse.ArgumentP
         SUBCOMMANDS[name] = Subcommand(name, help, add_arguments, run)
         return run
     return register
-
-
-def backend_available(suite: str) -> tuple[bool, str]:
-    """Whether a suite's backend can be imported here, and why not."""
-    if suite not in BACKENDS:
-        return False, f"no backend for suite {suite!r}"
-    package, module = BACKENDS[suite]
-    if importlib.util.find_spec(package) is None:
-        return False, f"package {package!r} not installed"
-    if importlib.util.find_spec(module) is None:
-        return False, f"module {module} missing"
-    return True, "ok"
 
 
 def _spec_or_exit(task: str):
@@ -150,7 +127,8 @@ def bench(args: argparse.Namespace) -> int:
 
 
 def _convert_args(p: argparse.ArgumentParser) -> None:
-    from jepa_envs.abs_actions import cli_add_arguments
+    # the converter module imports robosuite-facing code; it loads only when this subcommand is built
+    from jepa_envs.convert_abs_actions import cli_add_arguments
 
     cli_add_arguments(p)
 
@@ -158,7 +136,7 @@ def _convert_args(p: argparse.ArgumentParser) -> None:
 @subcommand("convert-abs-actions", "delta -> absolute actions (position, 6-D rotation, gripper) by state replay",
             _convert_args)
 def convert_abs_actions(args: argparse.Namespace) -> int:
-    from jepa_envs.abs_actions import cli_run
+    from jepa_envs.convert_abs_actions import cli_run
 
     return cli_run(args)
 

@@ -4,6 +4,7 @@ Facts from the paper, Sec. 4.1 ("Tasks", "Timing") and SPEC.md section 2.
 """
 from __future__ import annotations
 
+import importlib.util
 from dataclasses import dataclass, field, replace
 
 ARM_LOWDIM = (("eef_pos", 3), ("eef_quat", 4), ("gripper_qpos", 2))
@@ -80,6 +81,28 @@ def get_task_spec(name_or_id: str) -> TaskSpec:
 
 def all_task_specs() -> list[TaskSpec]:
     return list(_TASKS.values())
+
+
+# third-party package each suite needs, and our module that wraps it
+BACKENDS = {
+    "embedded": ("pymunk", "jepa_envs.pusht"),
+    "robomimic": ("robosuite", "jepa_envs.robomimic_env"),
+    "libero": ("libero", "jepa_envs.libero_env"),
+    "mimicgen": ("mimicgen", "jepa_envs.mimicgen_env"),
+    "real": ("zmq", "jepa_envs.real_robot.proxy"),
+}
+
+
+def backend_available(suite: str) -> tuple[bool, str]:
+    """Whether a suite's backend can be imported here, and why not."""
+    if suite not in BACKENDS:
+        return False, f"no backend for suite {suite!r}"
+    package, module = BACKENDS[suite]
+    if importlib.util.find_spec(package) is None:
+        return False, f"package {package!r} not installed"
+    if importlib.util.find_spec(module) is None:
+        return False, f"module {module} missing"
+    return True, "ok"
 
 
 def _robomimic(name, source, cameras, num_arms, max_steps):

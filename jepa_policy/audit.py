@@ -14,6 +14,8 @@ from __future__ import annotations
 import numpy as np
 import torch
 
+from jepa_policy.dataset import WindowDataset
+
 TE32_BOUNDARY = 0.05
 
 
@@ -50,8 +52,6 @@ def manifest(num_windows: int, samples: int = 4096, seed: int = 0) -> np.ndarray
 @torch.inference_mode()
 def audit_checkpoint(policy, demos, samples: int = 4096, seed: int = 0, batch_size: int = 256) -> dict:
     """Spectral statistics of encoder latents E_rgb(o_t) and predicted z_hat on a fixed manifest of windows."""
-    from jepa_policy.dataset import WindowDataset
-
     windows = WindowDataset.from_demos(demos)
     idx = manifest(len(windows), samples, seed)
     model, device = policy.model, policy.device

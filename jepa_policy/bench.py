@@ -16,7 +16,9 @@ import torch
 from torch.optim.swa_utils import AveragedModel, get_ema_multi_avg_fn
 
 from jepa_envs.spec import get_task_spec
-from jepa_policy.train import build_policy_model, load_config, resolve_device
+from jepa_policy.checkpoint import build_model
+from jepa_policy.config import ModelConfig
+from jepa_policy.train import load_config, resolve_device
 
 
 def _random_stats(spec) -> dict:
@@ -39,9 +41,7 @@ def _synthetic_obs(spec, batch: int, steps: int, device, gen: torch.Generator) -
 
 def _ema_model(spec, arm: str, device, **overrides):
     """A randomly initialised model wrapped like training wraps it; the benchmark acts with the EMA copy."""
-    from jepa_policy.config import ModelConfig
-
-    model = build_policy_model(ModelConfig.for_task(spec, arm=arm, **overrides)).to(device)
+    model = build_model(ModelConfig.for_task(spec, arm=arm, **overrides)).to(device)
     model.set_normalizer_stats(_random_stats(spec))
     ema = AveragedModel(model, multi_avg_fn=get_ema_multi_avg_fn(0.995), use_buffers=True)
     ema.update_parameters(model)
@@ -177,10 +177,8 @@ def bench_train(task: str = "ToolHang", preset: str = "paper", arm: str = "jepa"
     batch = batch_size or cfg.batch_size
     dev = resolve_device(device)
     torch.manual_seed(seed)
-    from jepa_policy.config import ModelConfig
-
     rss_before = _peak_rss_mib()
-    model = build_policy_model(ModelConfig.for_task(spec, arm=arm, **cfg.model)).to(dev)
+    model = build_model(ModelConfig.for_task(spec, arm=arm, **cfg.model)).to(dev)
     model.set_normalizer_stats(_random_stats(spec))
     model.train()
     optimizer = torch.optim.AdamW(model.param_groups(cfg.weight_decay), lr=cfg.lr, betas=(cfg.beta1, cfg.beta2))

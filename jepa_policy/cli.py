@@ -1,4 +1,4 @@
-"""``jepa-policy``: train, eval, describe, bench latency, bench train, audit, protocols, ceiling."""
+"""``jepa-policy``: train, eval, describe, bench latency, bench train, audit, protocols, robot."""
 from __future__ import annotations
 
 import argparse
@@ -97,7 +97,7 @@ def cmd_protocols(args) -> int:
 
     path = Path(args.curve)
     if path.suffix == ".pt":
-        from jepa_policy.train import load_checkpoint
+        from jepa_policy.checkpoint import load_checkpoint
         curve = load_checkpoint(path)["eval_curve"]
     else:
         curve = json.loads(path.read_text())
@@ -116,11 +116,14 @@ def cmd_audit(args) -> int:
     return 0
 
 
-def cmd_ceiling(args) -> int:
-    from jepa_policy.ceiling import state_ceiling
+def cmd_robot(args) -> int:
+    from jepa_policy.robot import run_checkpoint_on_bridge
 
-    print(json.dumps(state_ceiling(args.dataset, seed=args.seed, episodes=args.episodes, eval_seed=args.eval_seed,
-                                   steps=args.steps)))
+    summary = run_checkpoint_on_bridge(args.checkpoint, args.address, args.episodes, seed=args.seed,
+                                       device=args.device, method=args.method, wait=not args.no_wait)
+    print(json.dumps(summary, indent=2, default=str))
+    if args.json:
+        Path(args.json).write_text(json.dumps(summary, indent=2, default=str))
     return 0
 
 
@@ -185,13 +188,16 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("curve")
     p.set_defaults(func=cmd_protocols)
 
-    p = sub.add_parser("ceiling", help="PushT imitation ceiling: a true-state MLP trained and rolled out on demos")
-    p.add_argument("--dataset", required=True)
-    p.add_argument("--seed", type=int, default=0, help="training seed")
-    p.add_argument("--episodes", type=int, default=200)
-    p.add_argument("--eval-seed", type=int, default=200_000)
-    p.add_argument("--steps", type=int, default=4000)
-    p.set_defaults(func=cmd_ceiling)
+    p = sub.add_parser("robot", help="run a checkpoint for N episodes on a robot bridge (jepa-robot-bridge)")
+    p.add_argument("--address", default="tcp://127.0.0.1:5555", help="the bridge's control socket")
+    p.add_argument("--checkpoint", required=True, help="a `jepa-policy train` checkpoint")
+    p.add_argument("--episodes", type=int, default=10, help="episodes to run")
+    p.add_argument("--seed", type=int, default=0, help="seed of the first episode")
+    p.add_argument("--device", default="cpu", help="torch device of the policy")
+    p.add_argument("--method", default="JEPA Policy", help="recorded in every episode's manifest")
+    p.add_argument("--no-wait", action="store_true", help="do not wait for Enter before each episode")
+    p.add_argument("--json", help="also write the summary to this file")
+    p.set_defaults(func=cmd_robot)
     return parser
 
 

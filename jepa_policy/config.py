@@ -10,7 +10,7 @@ import json
 from dataclasses import asdict, dataclass, field, fields, replace
 from typing import Any
 
-from jepa_envs.spec import ObservationLayout
+from jepa_envs.spec import ObservationLayout, get_task_spec
 
 ARMS = (
     "jepa",              # JEPA Policy: action tokens + one future token in one shared stack (Sec. 3.2)
@@ -175,7 +175,6 @@ class ModelConfig(ObservationLayout):
         Eq. (ratio_mode) would pin lambda_z at its floor, and the arm exists to let the future loss train alone.
         """
         if isinstance(spec, str):
-            from jepa_envs.spec import get_task_spec
             spec = get_task_spec(spec)
         base = dict(
             arm=arm, cameras=tuple(spec.cameras), image_size=int(spec.image_size), lowdim=tuple(spec.lowdim),

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import torch
 
+from jepa_policy.checkpoint import build_model
 from jepa_policy.config import ModelConfig
 
 # The paper's Tool Hang counts in millions (Sec. 4.2 "Compared Methods", Table 5).
@@ -64,7 +65,6 @@ def describe(task, arm: str = "jepa", **overrides) -> dict:
 
     On Tool Hang with no overrides the paper's counts (millions) and the relative error are included.
     """
-    from jepa_policy.model import build_model
 
     cfg = ModelConfig.for_task(task, arm=arm, **overrides)
     with torch.device("meta"):

@@ -12,11 +12,10 @@ from collections.abc import Mapping
 
 import torch
 import torch.nn.functional as F
-from diffusers import DDPMScheduler
 from torch import Tensor, nn
 
 from jepa_policy.config import ModelConfig
-from jepa_policy.model import BasePolicyModel, ResNet18GN, SharedBlock, init_weights, reset_linears, sinusoid
+from jepa_policy.blocks import BasePolicyModel, ResNet18GN, SharedBlock, init_weights, reset_linears, sinusoid
 
 
 class SpatialSoftmax(nn.Module):
@@ -101,6 +100,9 @@ class DiffusionPolicyModel(BasePolicyModel):
             raise ValueError(f"DiffusionPolicyModel builds arm 'diffusion', not {cfg.arm!r}; use build_model(cfg)")
         self.encoder = DiffusionObsEncoder(cfg)
         self.denoiser = DiffusionTransformer(cfg, self.encoder.out_dim)
+        # diffusers pulls in torch._dynamo (about 2 s of import); only models of this arm pay for it
+        from diffusers import DDPMScheduler
+
         # DP's DDPM configuration: squared-cosine betas, epsilon prediction, clipped x0 (actions live in [-1, 1]).
         self.scheduler = DDPMScheduler(num_train_timesteps=cfg.diffusion_train_steps,
                                        beta_schedule="squaredcos_cap_v2", variance_type="fixed_small",

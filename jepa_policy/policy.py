@@ -18,6 +18,8 @@ import numpy as np
 import torch
 
 from jepa_envs.spec import TaskSpec, get_task_spec
+from jepa_envs.wrappers import frames_to_render
+from jepa_policy.checkpoint import load_checkpoint, load_model
 
 
 @dataclass
@@ -51,17 +53,8 @@ class Policy:
     @classmethod
     def from_checkpoint(cls, path: str | Path, device: str | torch.device = "cpu", ema: bool = True) -> "Policy":
         """Load a ``jepa-policy train`` checkpoint; acts with the EMA weights unless ``ema=False``."""
-        from jepa_policy.config import ModelConfig
-        from jepa_policy.train import build_policy_model, load_checkpoint
-
         ckpt = load_checkpoint(path, map_location="cpu")
-        model = build_policy_model(ModelConfig.from_dict(ckpt["model_config"]))
-        if ema:
-            prefix = "module."
-            state = {k[len(prefix):]: v for k, v in ckpt["ema"].items() if k.startswith(prefix)}
-        else:
-            state = ckpt["model"]
-        model.load_state_dict(state)
+        model = load_model(ckpt, ema=ema)
         spec = get_task_spec(ckpt["task"]).with_image_size(ckpt["image_size"])
         policy = cls(model, spec, device)
         policy.checkpoint_step = int(ckpt["step"])
@@ -83,8 +76,6 @@ class Policy:
         Decisions happen at multiples of ``n_action_steps``; a render-on-demand loop renders only these frames
         (the schedule of ``jepa_envs.wrappers.RenderOnDemand``). Arms without a future head need no t+k frames.
         """
-        from jepa_envs.wrappers import frames_to_render
-
         future_k = self.k if self.model.cfg.has_future_token else 0
         return frames_to_render(step, self.n_action_steps, self.obs_steps, future_k)
 

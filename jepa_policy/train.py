@@ -24,9 +24,16 @@ import numpy as np
 import torch
 import torch.distributed as dist
 from torch.optim.swa_utils import AveragedModel, get_ema_multi_avg_fn
+from torch.utils.tensorboard import SummaryWriter
+from tqdm import tqdm
 
+from jepa_envs.data import load_dataset
 from jepa_envs.spec import get_task_spec
+from jepa_policy.checkpoint import build_model, load_checkpoint, save_checkpoint, set_rng_state
+from jepa_policy.config import ModelConfig
 from jepa_policy.dataset import ResumableBatchSampler, WindowDataset, make_loader, normalizer_stats
+from jepa_policy.evaluate import evaluate
+from jepa_policy.policy import Policy
 
 CONFIG_DIR = Path(__file__).parent / "configs"
 
@@ -111,7 +118,6 @@ class TrainConfig:
         for ok, message in checks:
             if not ok:
                 raise ValueError(f"invalid training config: {message}")
-        from jepa_policy.config import ModelConfig
         ModelConfig.for_task(spec.with_image_size(self.image_size or spec.image_size), arm=self.arm, **self.model)
 
 
@@ -157,21 +163,6 @@ def resolve_device(name: str, local_rank: int = 0) -> torch.device:
     return torch.device(name)
 
 
-def rng_state() -> dict:
-    state = {"python": random.getstate(), "numpy": np.random.get_state(), "torch": torch.get_rng_state()}
-    if torch.cuda.is_available():
-        state["cuda"] = torch.cuda.get_rng_state_all()
-    return state
-
-
-def set_rng_state(state: dict) -> None:
-    random.setstate(state["python"])
-    np.random.set_state(state["numpy"])
-    torch.set_rng_state(state["torch"])
-    if "cuda" in state and torch.cuda.is_available():
-        torch.cuda.set_rng_state_all(state["cuda"])
-
-
 def seed_everything(seed: int) -> None:
     random.seed(seed)
     np.random.seed(seed % 2**32)
@@ -200,50 +191,6 @@ def _scalars(info: dict) -> dict:
     return out
 
 
-def build_policy_model(model_cfg):
-    """Construct the network of a ModelConfig (imported here so the data half imports without the model)."""
-    from jepa_policy.model import build_model
-    return build_model(model_cfg)
-
-
-def save_checkpoint(path: Path, *, model, ema, optimizer, scheduler, step: int, cfg: TrainConfig, model_cfg,
-                    spec, stats: dict, curve: list, sampler_position: dict, env_args: dict | None = None,
-                    init_selection: dict | None = None) -> None:
-    """Everything a run needs to continue bit-exactly, and everything ``Policy.from_checkpoint`` needs to act."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    payload = {
-        "format": "jepa-policy-checkpoint/1",
-        "step": step,
-        "train_config": cfg.to_dict(),
-        "model_config": model_cfg.to_dict(),
-        "task": spec.name,
-        "image_size": spec.image_size,
-        "normalizer_stats": stats,
-        "env_args": env_args,
-        "model": model.state_dict(),
-        "ema": ema.state_dict(),
-        "optimizer": optimizer.state_dict(),
-        "scheduler": scheduler.state_dict(),
-        "rng": rng_state(),
-        "sampler": sampler_position,
-        "eval_curve": curve,
-        "init_selection": init_selection,
-    }
-    tmp = path.with_suffix(".tmp")
-    torch.save(payload, tmp)
-    os.replace(tmp, path)
-
-
-def load_checkpoint(path: str | Path, map_location="cpu") -> dict:
-    path = Path(path)
-    if not path.exists():
-        raise FileNotFoundError(f"checkpoint {path} does not exist; pass the .pt file written by `jepa-policy train`")
-    payload = torch.load(path, map_location=map_location, weights_only=False)
-    if not isinstance(payload, dict) or payload.get("format") != "jepa-policy-checkpoint/1":
-        raise ValueError(f"{path} is not a jepa-policy checkpoint (missing format tag)")
-    return payload
-
-
 # ----------------------------------------------------------------------------- the loop
 
 CANDIDATE_SEED_STRIDE = 10_000  # candidate i of a best-of-K start uses seed + i * this (candidate 0 is the seed)
@@ -259,7 +206,6 @@ def _load_demos(cfg: TrainConfig):
     if not cfg.dataset:
         raise ValueError("no dataset given; record one with `jepa-envs make-demos PushT --episodes 50 "
                          "--out demos.hdf5` and pass --dataset demos.hdf5")
-    from jepa_envs.data import load_dataset
     return load_dataset(cfg.dataset, task=cfg.task, image_size=cfg.image_size or None)
 
 
@@ -308,8 +254,6 @@ def train(cfg: TrainConfig, demos=None) -> dict:
 
 def _train_run(cfg: TrainConfig, demos=None, selection: dict | None = None) -> dict:
     """One run from one seed (or from ``cfg.resume``): the loop itself."""
-    from jepa_policy.config import ModelConfig
-
     world = int(os.environ.get("WORLD_SIZE", "1"))
     rank, local_rank = int(os.environ.get("RANK", "0")), int(os.environ.get("LOCAL_RANK", "0"))
     device = resolve_device(cfg.device, local_rank)
@@ -332,7 +276,7 @@ def _train_run(cfg: TrainConfig, demos=None, selection: dict | None = None) -> d
     # model, EMA, optimiser, schedule (Sec. 4.1: AdamW 1e-4, EMA 0.995, cosine with warm-up)
     seed_everything(cfg.seed)  # identical initial weights on every rank
     model_cfg = ModelConfig.for_task(spec, arm=cfg.arm, **cfg.model)
-    model = build_policy_model(model_cfg).to(device)
+    model = build_model(model_cfg).to(device)
     model.set_normalizer_stats(stats)
     ema = AveragedModel(model, multi_avg_fn=get_ema_multi_avg_fn(cfg.ema_decay), use_buffers=True)
     optimizer = torch.optim.AdamW(model.param_groups(cfg.weight_decay), lr=cfg.lr, betas=(cfg.beta1, cfg.beta2))
@@ -364,8 +308,6 @@ def _train_run(cfg: TrainConfig, demos=None, selection: dict | None = None) -> d
     if is_main:
         out.mkdir(parents=True, exist_ok=True)
         (out / "train_config.json").write_text(json.dumps(cfg.to_dict(), indent=2))
-        from torch.utils.tensorboard import SummaryWriter
-        from tqdm import tqdm
         writer = SummaryWriter(str(out / "tensorboard"))
         log_file = open(out / "log.jsonl", "a")
         progress = tqdm(total=cfg.steps, initial=step, disable=not cfg.progress, desc=f"{cfg.task}/{cfg.arm}")
@@ -383,8 +325,6 @@ def _train_run(cfg: TrainConfig, demos=None, selection: dict | None = None) -> d
 
     def periodic_eval():
         if is_main:
-            from jepa_policy.evaluate import evaluate
-            from jepa_policy.policy import Policy
             policy = Policy(ema.module, spec, device=device)
             policy.env_args = getattr(demos, "env_args", None)
             report = evaluate(policy, episodes=cfg.eval_episodes, seed=cfg.eval_seed, num_envs=cfg.eval_envs)

@@ -14,6 +14,8 @@ from prometheus_client.multiprocess import MultiProcessCollector
 from sqlalchemy import func, select
 from sqlalchemy.orm import sessionmaker
 
+from monitor_service.db import Alert, CalibrationRow
+
 NMSE_BUCKETS = (0.01, 0.02, 0.05, 0.1, 0.2, 0.3, 0.5, 0.75, 1.0, 1.5, 2.0, 3.0, 5.0, 10.0, 20.0, 50.0)
 LATENCY_BUCKETS = (0.0005, 0.001, 0.002, 0.005, 0.01, 0.02, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5, 5.0)
 
@@ -33,8 +35,6 @@ class DatabaseGauges:
         self.make_session = make_session
 
     def collect(self):
-        from monitor_service.db import Alert, CalibrationRow
-
         auroc = GaugeMetricFamily("jepa_monitor_task_auroc", "AUROC of the active task calibration", labels=["task"])
         thr = GaugeMetricFamily(
             "jepa_monitor_task_threshold", "Active alarm threshold (+Inf: too few successes)", labels=["task"]

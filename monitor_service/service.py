@@ -11,7 +11,7 @@ import numpy as np
 from sqlalchemy import insert, select, update
 from sqlalchemy.orm import Session
 
-from monitor_service import scoring, stats
+from monitor_service import metrics, scoring, stats
 from monitor_service.alerts import AlertState, step_alert
 from monitor_service.auth import Principal
 from monitor_service.db import Alert, CalibrationRow, Decision, Episode, Target, Task, WebhookDelivery, utcnow
@@ -361,8 +361,6 @@ def ingest(ctx: IngestContext, records: list[DecisionIn | TargetIn | OutcomeIn])
 
 def publish_metrics(ctx: IngestContext) -> None:
     """Turn the committed request's observations into Prometheus samples."""
-    from monitor_service import metrics
-
     counters = {"decision": metrics.DECISIONS, "target": metrics.TARGETS, "outcome": metrics.OUTCOMES, "alert": metrics.ALERTS}
     for kind, task, robot, value in ctx.observations:
         if kind == "nmse":

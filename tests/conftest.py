@@ -14,3 +14,14 @@ def pusht_demo_file(tmp_path_factory):
     path = tmp_path_factory.mktemp("pusht_demos") / "pusht_4.hdf5"
     write_dataset(path, episodes, env_args)
     return path
+
+
+@pytest.fixture(scope="module")
+def one_thread():
+    """One intra-op thread: on a shared 2-core machine more threads oversubscribe the cores and run slower."""
+    import torch
+
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)

@@ -14,6 +14,11 @@ import time
 
 import numpy as np
 
+import jepa_envs  # noqa: F401  (registers the simulation tasks the sim backend builds)
+from jepa_envs.real_robot.backends.sim import SimBackend
+from jepa_envs.real_robot.bridge import OperatorClient
+from jepa_envs.real_robot.proxy import RealRobotEnv
+
 
 def percentiles_ms(samples_s: list[float]) -> dict:
     """p50 / p99 / mean in milliseconds."""
@@ -84,11 +89,6 @@ def _time_bridge(env, actions: np.ndarray, steps: int, chunks: int, n: int, dead
 
 def run_bench(args) -> int:
     """Run the benchmark described in the module docstring and print its numbers."""
-    import jepa_envs  # noqa: F401
-    from jepa_envs.real_robot.backends.sim import SimBackend
-    from jepa_envs.real_robot.bridge import OperatorClient
-    from jepa_envs.real_robot.proxy import RealRobotEnv
-
     deadline = time.monotonic() + args.max_seconds
     backend = SimBackend(args.task, image_size=args.image_size, camera_replicas=args.cameras)
     try:

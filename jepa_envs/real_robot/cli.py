@@ -3,9 +3,10 @@
     jepa-robot-bridge --backend sim --task PushT                 # simulated robot on tcp://127.0.0.1:5555
     jepa-robot-bridge --backend arx5 --config deploy/robot/arx5_cabinet.toml
     jepa-robot-bridge bench                                      # loopback latency, three 128x128 cameras
-    jepa-robot-bridge run --address tcp://robot-pc:5555 --checkpoint ckpt.pt --episodes 10
     jepa-robot-bridge estop | clear-estop | home | status | shutdown [--operator tcp://host:5556]
     jepa-robot-bridge confirm success|failure [--operator ...]
+
+The policy side runs elsewhere: ``jepa-policy robot --address tcp://robot-pc:5555 --checkpoint ckpt.pt``.
 """
 from __future__ import annotations
 
@@ -19,7 +20,7 @@ from pathlib import Path
 
 from jepa_envs.real_robot.safety import SafetyConfig
 
-SUBCOMMANDS = ("serve", "bench", "run", "estop", "clear-estop", "confirm", "home", "status", "shutdown")
+SUBCOMMANDS = ("serve", "bench", "estop", "clear-estop", "confirm", "home", "status", "shutdown")
 DEFAULT_OPERATOR = "tcp://127.0.0.1:5556"
 
 
@@ -54,16 +55,6 @@ def _parser() -> argparse.ArgumentParser:
     bench.add_argument("--chunks", type=int, default=40)
     bench.add_argument("--max-seconds", type=float, default=120.0)
     bench.add_argument("--json", help="also write the numbers to this file")
-
-    run = sub.add_parser("run", help="task launcher: run a policy checkpoint for N episodes on a bridge")
-    run.add_argument("--address", default="tcp://127.0.0.1:5555", help="the bridge's control socket")
-    run.add_argument("--checkpoint", required=True, help="a `jepa-policy train` checkpoint")
-    run.add_argument("--episodes", type=int, default=10)
-    run.add_argument("--seed", type=int, default=0)
-    run.add_argument("--device", default="cpu")
-    run.add_argument("--method", default="JEPA Policy", help="recorded in every episode's manifest")
-    run.add_argument("--no-wait", action="store_true", help="do not wait for Enter before each episode")
-    run.add_argument("--json", help="also write the summary to this file")
 
     for name, text in (("estop", "latch the emergency stop (takes effect mid-chunk)"),
                        ("clear-estop", "release the emergency stop"), ("home", "drive the robot home"),
@@ -139,36 +130,6 @@ def serve(args) -> int:
     return 0
 
 
-def run(args) -> int:
-    """Load a checkpoint, connect to the bridge serving its task and run the episodes."""
-    from jepa_envs.real_robot.launcher import run_episodes
-    from jepa_envs.real_robot.proxy import RealRobotEnv
-
-    checkpoint = Path(args.checkpoint)
-    if not checkpoint.is_file():
-        raise SystemExit(f"checkpoint {checkpoint} not found; train one with `jepa-policy train`")
-    from jepa_policy.policy import Policy
-
-    policy = Policy.from_checkpoint(checkpoint, device=args.device)
-    env = RealRobotEnv(task=policy.spec.name, address=args.address, client_name=f"launcher:{checkpoint.name}")
-    try:
-        if env.task_spec.image_size != policy.spec.image_size:
-            raise SystemExit(f"the bridge serves {env.task_spec.image_size}px images, the checkpoint was trained "
-                             f"on {policy.spec.image_size}px; restart the bridge with --image-size "
-                             f"{policy.spec.image_size}")
-        manifest = {"checkpoint": str(checkpoint.resolve()), "checkpoint_step": policy.checkpoint_step,
-                    "method": args.method, "task": policy.spec.name}
-        wait = None if args.no_wait or not sys.stdin.isatty() else (
-            lambda i: input(f"Set up the scene for episode {i + 1}/{args.episodes}, then press Enter "))
-        summary = run_episodes(env, policy, args.episodes, args.seed, manifest, before_episode=wait)
-    finally:
-        env.close()
-    print(json.dumps(summary, indent=2, default=str))
-    if args.json:
-        Path(args.json).write_text(json.dumps(summary, indent=2, default=str))
-    return 0
-
-
 def _version() -> int:
     from jepa_envs.real_robot.protocol import PROTOCOL_VERSION
     return PROTOCOL_VERSION
@@ -214,8 +175,6 @@ def main(argv: list[str] | None = None) -> int:
     if args.command == "bench":
         from jepa_envs.real_robot.bench import run_bench
         return run_bench(args)
-    if args.command == "run":
-        return run(args)
     return operator(args)
 
 

@@ -14,7 +14,7 @@ from gymnasium.utils.env_checker import check_env
 pytest.importorskip("robosuite", reason="robosuite is part of the [sim] extra")
 
 import jepa_envs  # noqa: E402,F401  registers the ids
-from jepa_envs import abs_actions, rotations  # noqa: E402
+from jepa_envs import abs_actions, convert_abs_actions, rotations  # noqa: E402
 from jepa_envs.robomimic_env import (  # noqa: E402
     RobomimicEnv, env_args_from_hdf5, make_backend_from_env_args, robomimic_env_args)
 
@@ -247,7 +247,7 @@ def test_convert_abs_actions_replays_the_delta_trajectory(square_delta, square, 
         data.attrs["env_args"] = f_args["data"].attrs["env_args"]
         demo = data.create_group("demo_0")
         demo["states"], demo["actions"] = np.array(states), np.array(deltas, dtype=np.float32)
-    out = abs_actions.convert_abs_actions(src, tmp_path / "abs.hdf5", progress=False)
+    out = convert_abs_actions.convert_abs_actions(src, tmp_path / "abs.hdf5", progress=False)
     with h5py.File(out, "r") as f:
         abs_act = f["data/demo_0/actions"][()]
         np.testing.assert_array_equal(f["data/demo_0/actions_delta"][()], np.array(deltas, dtype=np.float32))
@@ -267,8 +267,8 @@ def test_convert_abs_actions_replays_the_delta_trajectory(square_delta, square, 
     err = np.linalg.norm(np.array(replay) - np.array(eef), axis=1)
     assert err.max() < 1e-5, err  # measured ~1e-8 m: the absolute goals reproduce the delta rollout
     with pytest.raises(ValueError, match="different env"):
-        abs_actions.delta_to_abs_by_replay(env.backend, np.zeros((2, 5)), np.zeros((2, 7)))
+        convert_abs_actions.delta_to_abs_by_replay(env.backend, np.zeros((2, 5)), np.zeros((2, 7)))
     with pytest.raises(ValueError, match="last dimension 7"):
-        abs_actions.delta_to_abs_by_replay(env.backend, np.array(states[:2]), np.zeros((2, 10)))
+        convert_abs_actions.delta_to_abs_by_replay(env.backend, np.array(states[:2]), np.zeros((2, 10)))
     with pytest.raises(ValueError, match="already holds absolute"):
-        abs_actions.convert_abs_actions(out, tmp_path / "again.hdf5", progress=False)
+        convert_abs_actions.convert_abs_actions(out, tmp_path / "again.hdf5", progress=False)

@@ -12,7 +12,8 @@ import torch.distributed as dist
 import torch.multiprocessing as mp
 
 from jepa_envs.data import load_dataset
-from jepa_policy.train import load_checkpoint, load_config, train
+from jepa_policy.checkpoint import load_checkpoint
+from jepa_policy.train import load_config, train
 
 OPTS = dict(steps=2, batch_size=8, warmup_steps=1, log_every=1, model={"dropout": 0.1})
 

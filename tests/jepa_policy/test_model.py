@@ -10,7 +10,9 @@ from _model_helpers import make_batch, tiny_config, tiny_model, unit_stats
 
 from jepa_policy.config import ARMS, ModelConfig
 from jepa_policy.losses import two_step_loss
-from jepa_policy.model import PolicyModel, build_model, crop_frames, to_chw_float
+from jepa_policy.blocks import crop_frames, to_chw_float
+from jepa_policy.checkpoint import build_model
+from jepa_policy.model import PolicyModel
 
 TWO_STEP_ARMS = [a for a in ARMS if a != "diffusion"]
 

@@ -6,7 +6,7 @@ import torch
 
 from jepa_policy.config import ARMS
 from jepa_policy.describe import PAPER_TOOLHANG_M, describe
-from jepa_policy.model import ResNet18GN
+from jepa_policy.blocks import ResNet18GN
 
 TOLERANCE = 0.02
 

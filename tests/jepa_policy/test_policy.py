@@ -7,9 +7,9 @@ from jepa_envs.data import load_dataset
 from jepa_envs.spec import get_task_spec
 from jepa_policy.config import ModelConfig
 from jepa_policy.dataset import normalizer_stats
-from jepa_policy.model import build_model
+from jepa_policy.checkpoint import build_model, load_checkpoint
 from jepa_policy.policy import Policy
-from jepa_policy.train import load_checkpoint, load_config, train
+from jepa_policy.train import load_config, train
 
 SPEC = get_task_spec("PushT").with_image_size(32)
 TINY = {"width": 32, "layers": 1, "heads": 2, "encoder_width": 8, "time_emb_dim": 16, "dropout": 0.0}

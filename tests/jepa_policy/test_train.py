@@ -9,7 +9,8 @@ import torch
 
 from jepa_envs.data import load_dataset
 from jepa_envs.spec import all_task_specs
-from jepa_policy.train import TrainConfig, cosine_with_warmup, load_checkpoint, load_config, train
+from jepa_policy.checkpoint import load_checkpoint
+from jepa_policy.train import TrainConfig, cosine_with_warmup, load_config, train
 
 
 @pytest.fixture(scope="module")

@@ -1,4 +1,4 @@
-"""Task launcher: a trained policy checkpoint driven through the bridge by `jepa-robot-bridge run`."""
+"""Task launcher: a trained policy checkpoint driven through the bridge by `jepa-policy robot`."""
 from __future__ import annotations
 
 import json
@@ -6,9 +6,9 @@ from pathlib import Path
 
 import pytest
 
-from jepa_envs.real_robot.cli import main
+from jepa_policy.cli import main
 from jepa_envs.real_robot.episodes import load_episode
-from jepa_envs.real_robot.launcher import run_episodes
+from jepa_policy.robot import run_episodes
 
 
 class ReplayPolicy:
@@ -51,10 +51,10 @@ def test_cli_run_with_a_trained_checkpoint(robot, pusht_demo_file, tmp_path, cap
     checkpoint = train(cfg, demos)["checkpoint"]
     wrong_size = robot.bridge(chunk_budget=1)
     with pytest.raises(SystemExit, match="--image-size 32"):
-        main(["run", "--address", wrong_size.control_endpoint, "--checkpoint", str(checkpoint), "--no-wait"])
+        main(["robot", "--address", wrong_size.control_endpoint, "--checkpoint", str(checkpoint), "--no-wait"])
     bridge = robot.bridge(chunk_budget=2, image_size=32)
     out_json = tmp_path / "summary.json"
-    assert main(["run", "--address", bridge.control_endpoint, "--checkpoint", str(checkpoint), "--episodes", "1",
+    assert main(["robot", "--address", bridge.control_endpoint, "--checkpoint", str(checkpoint), "--episodes", "1",
                  "--no-wait", "--json", str(out_json)]) == 0
     summary = json.loads(out_json.read_text())
     assert summary["episodes"][0]["steps"] == 16 and summary["episodes"][0]["chunks"] == 2
@@ -62,4 +62,4 @@ def test_cli_run_with_a_trained_checkpoint(robot, pusht_demo_file, tmp_path, cap
     assert manifest["manifest"]["checkpoint"] == str(Path(checkpoint).resolve())
     assert manifest["manifest"]["method"] == "JEPA Policy" and arrays["obs/top_image"].shape[1:] == (32, 32, 3)
     with pytest.raises(SystemExit, match="not found"):
-        main(["run", "--checkpoint", str(tmp_path / "missing.pt")])
+        main(["robot", "--checkpoint", str(tmp_path / "missing.pt")])

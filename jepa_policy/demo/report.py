@@ -11,6 +11,8 @@ from pathlib import Path
 import numpy as np
 from scipy import stats
 
+from jepa_envs.data import demo_names
+
 EARLY_DECISIONS = 5          # paper Sec. 4.10: median NMSE of the first five decisions
 SUCCESS_AIM = 0.60           # issue 6: the CPU config should reach a useful success rate
 MIN_CLASS_FOR_AUROC = 10     # below this many held-out successes (or failures) the AUROC is flagged as uninformative
@@ -349,8 +351,6 @@ def dataset_summary(path: Path) -> dict:
     the expert finished at.
     """
     import h5py
-
-    from jepa_envs.data import demo_names
 
     with h5py.File(path, "r") as f:
         data = f["data"]

@@ -26,8 +26,23 @@ from contextlib import contextmanager
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
+import gymnasium as gym
 import httpx
 import numpy as np
+import torch
+from tqdm import tqdm
+
+from jepa_envs.data import write_dataset
+from jepa_envs.pusht_expert import generate_demos
+from jepa_policy.bench import count_passes, time_calls
+from jepa_policy.checkpoint import load_checkpoint
+from jepa_policy.demo.ceiling import state_ceiling
+from jepa_policy.demo.report import write_report
+from jepa_policy.evaluate import env_kwargs_for, evaluate
+from jepa_policy.policy import Policy
+from jepa_policy.train import load_config, train
+from monitor_service.client import MonitorClient
+from monitor_service.server import provision, start_server
 
 TASK = "PushT"
 
@@ -98,9 +113,6 @@ def _digest(data) -> str:
 
 def make_demos(cfg: DemoConfig, out: Path, fresh: bool) -> Path:
     """Scripted expert demonstrations, reused when the same request was already written."""
-    from jepa_envs.data import write_dataset
-    from jepa_envs.pusht_expert import generate_demos
-
     path = out / "data" / f"pusht_{cfg.demos}demos_finish{cfg.finish_threshold:g}.hdf5"
     if path.exists() and not fresh:
         print(f"   reusing {path}")
@@ -120,10 +132,6 @@ def make_demos(cfg: DemoConfig, out: Path, fresh: bool) -> Path:
 def train_arm(cfg: DemoConfig, arm: str, seed: int, dataset: Path, out: Path, fresh: bool,
               threads: int | None = None) -> Path:
     """Train one arm with the shared preset; a finished run with the same config is reused."""
-    import torch
-
-    from jepa_policy.train import load_checkpoint, load_config, train
-
     if threads:
         torch.set_num_threads(threads)
     run_dir = out / "runs" / f"{arm}_seed{seed}"
@@ -170,8 +178,6 @@ class Monitor:
     """The monitor service for real: uvicorn subprocess, SQLite file, admin/robot/operator keys."""
 
     def __init__(self, out: Path, fresh: bool):
-        from monitor_service.server import start_server
-
         db = out / "monitor.db"
         if fresh or db.exists():  # a rerun re-measures its rollouts, so the monitor starts from an empty store
             for suffix in ("", "-wal", "-shm"):
@@ -191,13 +197,9 @@ class Monitor:
 
     def register_task(self, latent_dim: int) -> None:
         """Register PushT with the policy's latent size and create the robot's key."""
-        from monitor_service.server import provision
-
         self.robot_key = provision(self.url, self.admin_key, {TASK: latent_dim}, robot=ROBOT)
 
     def client(self):
-        from monitor_service.client import MonitorClient
-
         return MonitorClient(self.url, self.robot_key, robot=ROBOT)
 
     def calibrate(self, checkpoint: str, cfg: DemoConfig) -> dict:
@@ -229,10 +231,6 @@ class Monitor:
 def run_rollouts(policy, cfg: DemoConfig, *, arm: str, seed: int, phase: str, first_seed: int, episodes: int,
                  client=None, checkpoint_id: str | None = None, bar_desc: str = "") -> list[dict]:
     """Seeded rollouts in rounds of ``num_envs``, streaming each decision to the monitor when ``client`` is set."""
-    from tqdm import tqdm
-
-    from jepa_policy.evaluate import evaluate
-
     def episode_id(rollout_seed: int) -> str:
         return f"{arm}-s{seed}-{phase}-{rollout_seed}"
 
@@ -261,10 +259,6 @@ def run_rollouts(policy, cfg: DemoConfig, *, arm: str, seed: int, phase: str, fi
 
 
 def _first_observation(policy, seed: int) -> dict:
-    import gymnasium as gym
-
-    from jepa_policy.evaluate import env_kwargs_for
-
     env = gym.make(policy.spec.env_id, **env_kwargs_for(policy.spec, policy.env_args))
     try:
         return env.reset(seed=seed)[0]
@@ -278,8 +272,6 @@ def decision_latency(policies: dict, cfg: DemoConfig) -> dict:
     "jepa" is the control path (the second pass skips the future head); "jepa+monitor" also returns z_hat,
     which is what the monitored rollouts run.
     """
-    from jepa_policy.bench import count_passes, time_calls
-
     obs = _first_observation(policies["jepa"], LIVE_SEED)
     variants = {"mip": (policies["mip"], False), "jepa": (policies["jepa"], False),
                 "jepa+monitor": (policies["jepa"], True)}
@@ -293,15 +285,11 @@ def decision_latency(policies: dict, cfg: DemoConfig) -> dict:
         rows[label].update(network_passes=max(passes.values()), passes=passes,
                            params_m=sum(p.numel() for p in policy.model.parameters()) / 1e6)
     return {"arms": rows, "warmup": cfg.latency_warmup, "iters": cfg.latency_iters,
-            "threads": __import__("torch").get_num_threads()}
+            "threads": torch.get_num_threads()}
 
 
 def rollout_frames(policy, seed: int, count: int = 5) -> list[tuple[str, np.ndarray]]:
     """A few camera frames of one JEPA rollout, for the report."""
-    import gymnasium as gym
-
-    from jepa_policy.evaluate import env_kwargs_for
-
     env = gym.make(policy.spec.env_id, **env_kwargs_for(policy.spec, policy.env_args))
     key = policy.spec.image_keys[0]
     frames, success = [], False
@@ -327,11 +315,6 @@ def rollout_frames(policy, seed: int, count: int = 5) -> list[tuple[str, np.ndar
 
 def run(cfg: DemoConfig, out: Path, fresh: bool = False) -> dict:
     """Run the main job and return the summary (also written to ``out/summary.json``)."""
-    import torch
-
-    from jepa_policy.policy import Policy
-    from jepa_policy.report import write_report
-
     out.mkdir(parents=True, exist_ok=True)
     timer = Timer()
     with timer.step("1/5 scripted demonstrations"):
@@ -402,7 +385,20 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--steps", type=int, default=None,
                         help="training steps per arm instead of the preset's (beyond the 15-minute budget: more "
                              "steps, higher success); written to <out>/<mode>-steps<N>")
+    sub = parser.add_subparsers(dest="command", metavar="{ceiling}",
+                                help="optional: a study on its own instead of the main job")
+    p = sub.add_parser("ceiling", help="PushT imitation ceiling of a demo file: a true-state MLP trained and "
+                                       "rolled out with the image policies' chunking")
+    p.add_argument("--dataset", required=True, help="PushT demonstration file (jepa-envs make-demos)")
+    p.add_argument("--seed", type=int, default=0, help="training seed")
+    p.add_argument("--episodes", type=int, default=200, help="evaluation rollouts")
+    p.add_argument("--eval-seed", type=int, default=200_000, help="seed of the first evaluation rollout")
+    p.add_argument("--steps", type=int, default=4000, help="training steps of the state policy")
     args = parser.parse_args(argv)
+    if args.command == "ceiling":
+        print(json.dumps(state_ceiling(args.dataset, seed=args.seed, episodes=args.episodes, eval_seed=args.eval_seed,
+                                       steps=args.steps)))
+        return 0
     mode = "quick" if args.quick else "full" if args.full else "default"
     try:
         cfg, name = demo_config(mode, args.steps)

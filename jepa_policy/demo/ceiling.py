@@ -5,7 +5,7 @@ block angle; standardised) and regresses the same 16-action chunk as the image p
 window padding as ``dataset.window_indices``). Trained by MSE on [-1, 1] actions and rolled out in the
 environment the demonstrations were recorded in, it separates what the demonstrations teach from what the image
 encoder and the training budget let a policy learn of it (docs/training.md, "The ceiling re-measured").
-``jepa-policy ceiling --dataset FILE`` runs it.
+``jepa-demo ceiling --dataset FILE`` runs it.
 """
 from __future__ import annotations
 
@@ -13,10 +13,13 @@ import json
 import math
 from pathlib import Path
 
+import gymnasium as gym
+import h5py
 import numpy as np
 import torch
 from torch import nn
 
+import jepa_envs  # noqa: F401  (registers the environments)
 from jepa_envs.data import demo_names
 from jepa_envs.spec import get_task_spec
 from jepa_policy.dataset import window_indices
@@ -37,8 +40,6 @@ def state_features(states: np.ndarray) -> np.ndarray:
 
 def read_state_demos(path: str | Path) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict]:
     """(states (N, 5), actions (N, 2), episode_ends, env_args) of a PushT demonstration file, without its images."""
-    import h5py
-
     path = Path(path)
     if not path.exists():
         raise FileNotFoundError(f"demonstration file {path} does not exist; write one with "
@@ -133,10 +134,6 @@ def evaluate_state_policy(policy: StatePolicy, env_args: dict, episodes: int, se
                           n_action_steps: int | None = None) -> dict:
     """Seeded rollouts (episode i from seed + i) in the recorded environment, re-planning every
     ``n_action_steps`` (the task's 8 by default). Returns success rate, mean best coverage and mean length."""
-    import gymnasium as gym
-
-    import jepa_envs  # noqa: F401  (registers the environments)
-
     spec = get_task_spec(TASK)
     n_exec = n_action_steps or spec.n_action_steps
     if episodes < 1 or not 1 <= n_exec <= policy.horizon:

@@ -6,9 +6,10 @@ import numpy as np
 import pytest
 import torch
 
-from jepa_policy.ceiling import (evaluate_state_policy, read_state_demos, state_features,
-                                 train_state_policy)
-from jepa_policy.cli import main
+from jepa_policy.demo.ceiling import evaluate_state_policy, read_state_demos, state_features, train_state_policy
+from jepa_policy.demo.job import main
+
+pytestmark = pytest.mark.usefixtures("one_thread")
 
 
 def test_state_features_encode_the_angle_without_wrap_around():

@@ -11,9 +11,9 @@ import numpy as np
 import pytest
 from sklearn.metrics import roc_auc_score
 
-from jepa_policy import demo
-from jepa_policy.report import EARLY_DECISIONS, early_score, paired_comparison, wilson_ci
-from jepa_policy.train import load_checkpoint
+from jepa_policy.demo import job as demo
+from jepa_policy.demo.report import EARLY_DECISIONS, early_score, paired_comparison, wilson_ci
+from jepa_policy.checkpoint import load_checkpoint
 
 
 @pytest.fixture(scope="module")
@@ -128,7 +128,7 @@ def test_calibration_matches_sklearn(quick_run):
     scores = np.array([s for s, _ in scored])
     assert cal["result"]["auroc"] == pytest.approx(roc_auc_score(labels, scores))
     assert cal["result"]["n_failure"] == labels.sum()
-    from jepa_policy.report import MIN_CLASS_FOR_AUROC
+    from jepa_policy.demo.report import MIN_CLASS_FOR_AUROC
     small = min(cal["result"]["n_success"], cal["result"]["n_failure"]) < MIN_CLASS_FOR_AUROC
     assert ("**Caveat:**" in (out / "report.md").read_text()) == small
 
@@ -144,7 +144,7 @@ def test_paired_comparison_reference():
 
 
 def test_auroc_caveat_flags_small_classes():
-    from jepa_policy.report import MIN_CLASS_FOR_AUROC, auroc_caveat
+    from jepa_policy.demo.report import MIN_CLASS_FOR_AUROC, auroc_caveat
 
     assert auroc_caveat(MIN_CLASS_FOR_AUROC, 50) is None
     assert auroc_caveat(40, MIN_CLASS_FOR_AUROC) is None
@@ -155,7 +155,7 @@ def test_auroc_caveat_flags_small_classes():
 
 
 def test_report_summary_names_threshold_and_false_alarms():
-    from jepa_policy.report import render_markdown
+    from jepa_policy.demo.report import render_markdown
 
     rate = {"rate": 0.3, "ci95": [0.2, 0.4], "episodes": 10, "per_seed": {42: 0.3}, "mean_best_reward": 0.6,
             "mean_length": 100.0}
@@ -195,7 +195,7 @@ def test_report_describes_demonstrations_from_an_older_file(pusht_demo_file, tmp
     """A file written before the expert's finish coverage was recorded is described as ending at success."""
     import h5py
 
-    from jepa_policy.report import dataset_summary, render_markdown
+    from jepa_policy.demo.report import dataset_summary, render_markdown
 
     old = tmp_path / "old.hdf5"
     old.write_bytes(pusht_demo_file.read_bytes())

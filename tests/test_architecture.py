@@ -1,0 +1,217 @@
+"""The import graph keeps its shape (docs/architecture.md): one direction between packages, no circles.
+
+    jepa_envs  <-  jepa_policy  <-  jepa_policy.demo (the main job)
+    monitor_service stands alone; anyone may import its client, the main job also starts its server.
+
+Every import counts, at module level or inside a function. Imports of project modules inside functions are
+allowed only in command-line modules (``cli.py``), where they keep ``--help`` and small commands fast; anywhere
+else such an import would only hide a circle, so it must move to the top of the file.
+"""
+from __future__ import annotations
+
+import ast
+import textwrap
+from dataclasses import dataclass
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+PACKAGES = ("jepa_envs", "jepa_policy", "monitor_service")
+LAZY_IMPORTS_ALLOWED_IN = ("cli.py",)
+
+
+@dataclass(frozen=True)
+class Edge:
+    source: str       # importing module
+    target: str       # imported project module
+    nested: bool      # inside a function or class body
+    line: int
+
+
+def module_name(path: Path, root: Path) -> str:
+    parts = list(path.relative_to(root).with_suffix("").parts)
+    if parts[-1] == "__init__":
+        parts.pop()
+    return ".".join(parts)
+
+
+def project_modules(root: Path, packages=PACKAGES) -> dict[str, Path]:
+    return {module_name(p, root): p for pkg in packages for p in sorted((root / pkg).rglob("*.py"))}
+
+
+def _resolve(name: str, modules: dict[str, Path]) -> str | None:
+    """The longest project module that ``name`` names or lies inside (``pkg.mod.func`` -> ``pkg.mod``)."""
+    while name:
+        if name in modules:
+            return name
+        name = name.rpartition(".")[0]
+    return None
+
+
+def import_edges(root: Path, packages=PACKAGES) -> list[Edge]:
+    """Every import of one project module by another, read with ``ast`` (nothing is imported)."""
+    modules = project_modules(root, packages)
+    edges = []
+    for source, path in modules.items():
+        is_package = path.name == "__init__.py"
+        tree = ast.parse(path.read_text(), filename=str(path))
+        nested_nodes = {id(n) for top in tree.body if not isinstance(top, (ast.Import, ast.ImportFrom))
+                        for n in ast.walk(top)}
+        for node in ast.walk(tree):
+            if isinstance(node, ast.Import):
+                names = [a.name for a in node.names]
+            elif isinstance(node, ast.ImportFrom):
+                if node.level:
+                    base = source.split(".") if is_package else source.split(".")[:-1]
+                    base = base[: len(base) - (node.level - 1)]
+                    module = ".".join(base + ([node.module] if node.module else []))
+                else:
+                    module = node.module or ""
+                # ``from pkg import sub`` imports the submodule pkg.sub when there is one
+                names = [f"{module}.{a.name}" if f"{module}.{a.name}" in modules else module for a in node.names]
+            else:
+                continue
+            nested = id(node) in nested_nodes and not _is_type_checking_guard(tree, node)
+            for name in names:
+                target = _resolve(name, modules)
+                if target is None or target == source or source.startswith(target + "."):
+                    continue  # not ours, or the module's own parent package (already imported before it runs)
+                edges.append(Edge(source, target, nested, node.lineno))
+    return edges
+
+
+def _is_type_checking_guard(tree: ast.Module, node: ast.AST) -> bool:
+    return any(isinstance(top, ast.If) and "TYPE_CHECKING" in ast.unparse(top.test) and node in ast.walk(top)
+               for top in tree.body)
+
+
+def circles(edges: list[Edge]) -> list[list[str]]:
+    """Strongly connected components with more than one module (Tarjan)."""
+    graph: dict[str, set[str]] = {}
+    for e in edges:
+        graph.setdefault(e.source, set()).add(e.target)
+        graph.setdefault(e.target, set())
+    index, low, stack, on_stack, out = {}, {}, [], set(), []
+
+    def visit(v: str) -> None:
+        index[v] = low[v] = len(index)
+        stack.append(v)
+        on_stack.add(v)
+        for w in sorted(graph[v]):
+            if w not in index:
+                visit(w)
+                low[v] = min(low[v], low[w])
+            elif w in on_stack:
+                low[v] = min(low[v], index[w])
+        if low[v] == index[v]:
+            component = []
+            while True:
+                w = stack.pop()
+                on_stack.discard(w)
+                component.append(w)
+                if w == v:
+                    break
+            if len(component) > 1:
+                out.append(sorted(component))
+
+    for v in sorted(graph):
+        if v not in index:
+            visit(v)
+    return out
+
+
+def layer_violations(edges: list[Edge]) -> list[str]:
+    """Imports that point up the layers or out of a package that must stand alone."""
+    bad = []
+    for e in edges:
+        src, dst = e.source, e.target
+        where = f"{src} imports {dst} (line {e.line})"
+        if src.startswith("jepa_envs") and not dst.startswith("jepa_envs"):
+            bad.append(f"{where}: jepa_envs imports nothing outside itself")
+        elif src.startswith("monitor_service") and not dst.startswith("monitor_service"):
+            bad.append(f"{where}: monitor_service stands alone")
+        elif src.startswith("jepa_policy") and not src.startswith("jepa_policy.demo"):
+            if dst.startswith("jepa_policy.demo"):
+                bad.append(f"{where}: the policy package never imports the main job")
+            elif dst.startswith("monitor_service") and dst != "monitor_service.client":
+                bad.append(f"{where}: only the main job runs the monitor; the policy may use its client")
+        elif src.startswith("jepa_policy.demo") and dst.startswith("monitor_service") and \
+                dst not in ("monitor_service.client", "monitor_service.server"):
+            bad.append(f"{where}: the main job talks to the monitor through its client and server only")
+    return bad
+
+
+def hidden_imports(edges: list[Edge]) -> list[str]:
+    return [f"{e.source} line {e.line}: imports {e.target} inside a function; move it to the top of the file"
+            for e in edges if e.nested and not e.source.endswith(tuple(n[:-3] for n in LAZY_IMPORTS_ALLOWED_IN))]
+
+
+# ----------------------------------------------------------------------------- the project itself
+
+@pytest.fixture(scope="module")
+def edges() -> list[Edge]:
+    return import_edges(ROOT)
+
+
+def test_no_import_circles(edges):
+    assert circles(edges) == []
+
+
+def test_imports_point_down_the_layers(edges):
+    assert layer_violations(edges) == []
+
+
+def test_no_project_import_hides_inside_a_function(edges):
+    assert hidden_imports(edges) == []
+
+
+def test_main_job_lives_in_its_own_subpackage():
+    top = {p.stem for p in (ROOT / "jepa_policy").glob("*.py")}
+    assert not top & {"demo", "report", "ceiling"}
+    assert (ROOT / "jepa_policy" / "demo" / "__init__.py").is_file()
+
+
+# ----------------------------------------------------------------------------- the checker can fail
+
+def _write_package(root: Path, files: dict[str, str]) -> None:
+    for rel, text in files.items():
+        path = root / rel
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text(textwrap.dedent(text))
+
+
+def test_checker_finds_a_circle_hidden_in_a_function(tmp_path):
+    _write_package(tmp_path, {
+        "jepa_policy/__init__.py": "",
+        "jepa_policy/train.py": "from jepa_policy.policy import Policy\n",
+        "jepa_policy/policy.py": "def load():\n    from jepa_policy.train import load_checkpoint\n",
+    })
+    found = import_edges(tmp_path, ("jepa_policy",))
+    assert circles(found) == [["jepa_policy.policy", "jepa_policy.train"]]
+    assert hidden_imports(found) == ["jepa_policy.policy line 2: imports jepa_policy.train inside a function; "
+                                     "move it to the top of the file"]
+
+
+def test_checker_finds_upward_imports(tmp_path):
+    _write_package(tmp_path, {
+        "jepa_envs/__init__.py": "",
+        "jepa_envs/real_robot/__init__.py": "",
+        "jepa_envs/real_robot/cli.py": "def run():\n    from jepa_policy.policy import Policy\n",
+        "jepa_policy/__init__.py": "",
+        "jepa_policy/policy.py": "from jepa_envs import real_robot\n",
+        "jepa_policy/train.py": "from jepa_policy.demo import report\nfrom monitor_service import service\n",
+        "jepa_policy/demo/__init__.py": "",
+        "jepa_policy/demo/report.py": "from monitor_service.client import MonitorClient\n",
+        "monitor_service/__init__.py": "",
+        "monitor_service/client.py": "",
+        "monitor_service/service.py": "import jepa_envs\n",
+    })
+    found = import_edges(tmp_path)
+    bad = layer_violations(found)
+    assert any("jepa_envs.real_robot.cli imports jepa_policy.policy" in b for b in bad)
+    assert any("jepa_policy.train imports jepa_policy.demo.report" in b for b in bad)
+    assert any("jepa_policy.train imports monitor_service.service" in b for b in bad)
+    assert any("monitor_service.service imports jepa_envs" in b for b in bad)
+    assert len(bad) == 4   # the policy importing envs and the main job importing the client are the allowed shape
+    assert hidden_imports(found) == []   # the one nested import sits in a cli.py
