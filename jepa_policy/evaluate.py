@@ -2,7 +2,9 @@
 
 Per decision t the policy predicts z_hat for frame t+k; when that frame arrives the same encoder gives
 z_real = E_rgb(o_{t+k}) and the record stores e_fc = d_NMSE(z_hat, z_real) (paper Sec. 3.6). A decision whose
-episode ends before t+k has no valid target and is recorded with ``nmse: null``.
+episode ends before t+k has no valid target and is recorded with ``nmse: null``. The record also stores the
+persistence baseline d_NMSE(z_t, z_real), the present latent E_rgb(o_t) taken as the prediction (a control of
+Sec. 4.10; ``jepa-monitor study`` and the monitor's calibration compare the two).
 """
 from __future__ import annotations
 
@@ -38,6 +40,7 @@ class DecisionEvent:
     z_hat: np.ndarray
     z_real: np.ndarray | None = None
     nmse: float | None = None
+    z_now: np.ndarray | None = None   # E_rgb(o_t) at the decision (the persistence baseline's prediction)
 
 
 def reporting_protocols(curve: list[dict]) -> dict:
@@ -124,7 +127,7 @@ def _run_round(envs, policy, ids, seed, video_dir, on_decision, keep_latents) ->
     success, length = np.zeros(n, bool), np.zeros(n, int)
     max_reward = np.full(n, -np.inf)
     decisions = [[] for _ in range(n)]
-    pending: list = []          # decisions whose target frame has not arrived
+    pending: list = []          # (decision, z_now) pairs whose target frame has not arrived
     frames = [[] for _ in range(n)]
     want_video = video_dir is not None
 
@@ -139,11 +142,12 @@ def _run_round(envs, policy, ids, seed, video_dir, on_decision, keep_latents) ->
         action = policy.act(obs)
         decision = policy.last_decision
         if decision is not before and decision.z_hat is not None:
-            pending.append(decision)
+            z_now = policy.encode_future(obs)
+            pending.append((decision, z_now))
             if on_decision:
                 for j in np.flatnonzero(live):
                     on_decision(DecisionEvent("prediction", ids[j], seeds[j], decision.step,
-                                              decision.target_step, decision.z_hat[j]))
+                                              decision.target_step, decision.z_hat[j], z_now=z_now[j]))
         elif decision is not before:
             for j in np.flatnonzero(live):
                 decisions[j].append({"step": decision.step, "target_step": decision.target_step, "nmse": None})
@@ -154,23 +158,24 @@ def _run_round(envs, policy, ids, seed, video_dir, on_decision, keep_latents) ->
         max_reward = np.where(live, np.maximum(max_reward, reward), max_reward)
         if "is_success" in infos:
             success |= live & np.asarray(infos["is_success"], bool)
-        due = [d for d in pending if d.target_step == t_new]
+        due = [p for p in pending if p[0].target_step == t_new]
+        pending = [p for p in pending if p[0].target_step != t_new]
         if due:
             z_real = policy.encode_future(obs)
-            for d in due:
-                err = nmse(d.z_hat, z_real)
+            for d, z_now in due:
+                err, err_persistence = nmse(d.z_hat, z_real), nmse(z_now, z_real)
                 for j in np.flatnonzero(live):
-                    rec = {"step": d.step, "target_step": d.target_step, "nmse": float(err[j])}
+                    rec = {"step": d.step, "target_step": d.target_step, "nmse": float(err[j]),
+                           "nmse_persistence": float(err_persistence[j])}
                     if keep_latents:
                         rec.update(z_hat=d.z_hat[j].tolist(), z_real=z_real[j].tolist())
                     decisions[j].append(rec)
                     if on_decision:
                         on_decision(DecisionEvent("realized", ids[j], seeds[j], d.step, d.target_step,
                                                   d.z_hat[j], z_real[j], float(err[j])))
-                pending.remove(d)
         ended = live & (np.asarray(terminated) | np.asarray(truncated))
         for j in np.flatnonzero(ended):  # decisions still waiting for a frame that never comes
-            for d in pending:
+            for d, _ in pending:
                 decisions[j].append({"step": d.step, "target_step": d.target_step, "nmse": None})
         live &= ~ended
 

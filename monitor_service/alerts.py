@@ -25,20 +25,22 @@ class AlertState:
     raised: bool = False
 
 
-def step_alert(state: AlertState, score: float, threshold: float, debounce: int, clear_ratio: float) -> tuple[AlertState, str | None]:
-    """Advance the alert state by one evaluation of the running score.
+def step_alert(state: AlertState, score: float, threshold: float, debounce: int,
+               clear_level: float) -> tuple[AlertState, str | None]:
+    """Advance the alert state by one evaluation of the running statistic.
 
     Raise after ``debounce`` consecutive scores above ``threshold``; once raised, clear only after ``debounce``
-    consecutive scores below ``clear_ratio * threshold``. Scores inside the band reset the opposite counter,
-    so a score wobbling around the threshold cannot flap the alert. Returns the new state and "raise",
-    "clear" or None.
+    consecutive scores below ``clear_level`` (hysteresis, ``rules.clear_level``). Scores inside the band reset
+    the opposite counter, so a score wobbling around the threshold cannot flap the alert. Returns the new state
+    and "raise", "clear" or None. Whether an episode ever raises depends only on threshold and debounce, which
+    is what ``rules.alert_statistic`` calibrates.
     """
     if not state.raised:
         over = state.over + 1 if score > threshold else 0
         if over >= debounce:
             return AlertState(0, 0, True), "raise"
         return AlertState(over, 0, False), None
-    under = state.under + 1 if score < clear_ratio * threshold else 0
+    under = state.under + 1 if score < clear_level else 0
     if under >= debounce:
         return AlertState(0, 0, False), "clear"
     return AlertState(0, under, True), None

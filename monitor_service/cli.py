@@ -105,23 +105,29 @@ def cmd_tasks(args) -> int:
 
 def cmd_calibrate(args) -> int:
     from monitor_service.service import calibrate_task
+    from monitor_service.study import study_table
 
     settings, make_session = _sessionmaker(args)
     row = calibrate_task(
         make_session, settings, args.task, args.checkpoint, args.alpha, args.rule, args.n_bootstrap,
-        args.n_permutation, args.seed,
+        args.n_permutation, args.seed, args.folds,
     )
     r = row.result
     print(f"calibration #{row.id} task={row.task} checkpoint={row.checkpoint or '-'} "
           f"(n_success={r['n_success']}, n_failure={r['n_failure']}, skipped={r['skipped_episodes']})")
-    print(f"  AUROC {r['auroc']:.3f} [95% CI {r['auroc_ci_low']:.3f}, {r['auroc_ci_high']:.3f}]  "
+    print(f"  early score: AUROC {r['auroc']:.3f} [95% CI {r['auroc_ci_low']:.3f}, {r['auroc_ci_high']:.3f}]  "
           f"PR-AUC {r['average_precision']:.3f}  permutation p {r['permutation_p']:.4f}")
     held = "n/a" if r["youden_bacc_held_out"] is None else f"{r['youden_bacc_held_out']:.3f}"
     print(f"  Youden threshold {r['youden_threshold']:.4g}: balanced accuracy in-sample "
           f"{r['youden_bacc_in_sample']:.3f}, held-out {held} ({r['held_out_method']})")
-    conf = "inf" if r["conformal_threshold"] is None else f"{r['conformal_threshold']:.4g}"
-    print(f"  conformal threshold at alpha={r['alpha']}: {conf} ({r['conformal_note']})")
-    print(f"  active threshold ({row.threshold_rule}): {'inf' if row.threshold is None else f'{row.threshold:.4g}'}")
+    rule = r["rule"]
+    print(f"  alert rule {row.rule} (window {rule['params']['window']}, debounce {rule['params']['debounce']}): "
+          f"threshold {row.threshold:.4g} at alpha={r['alpha']} ({rule['note']})")
+    print(study_table(r["detection"]))
+    for name, c in r["controls"].items():
+        value = "n/a: " + c["reason"] if c["auroc"] is None else \
+            f"AUROC {c['auroc']:.3f} [{c['ci'][0]:.3f}, {c['ci'][1]:.3f}] over {c['n']} episodes"
+        print(f"  control {name}: {value}")
     return 0
 
 
@@ -134,7 +140,7 @@ def cmd_report(args) -> int:
         rows = [
             {"task": r.task, "checkpoint": r.checkpoint, "auroc": r.auroc, "ci": [r.result["auroc_ci_low"], r.result["auroc_ci_high"]],
              "pr_auc": r.result["average_precision"], "p": r.result["permutation_p"], "threshold": r.threshold,
-             "rule": r.threshold_rule, "n_success": r.result["n_success"], "n_failure": r.result["n_failure"]}
+             "rule": r.rule, "n_success": r.result["n_success"], "n_failure": r.result["n_failure"]}
             for r in rep["tasks"]
         ]
     if args.json:
@@ -150,6 +156,42 @@ def cmd_report(args) -> int:
     pooled = rep["pooled"]
     if pooled["auroc"] is not None:
         print(f"\npooled AUROC {pooled['auroc']:.3f} over {pooled['n_episodes']} episodes -- {pooled['warning']}")
+    return 0
+
+
+def cmd_study(args) -> int:
+    from monitor_service.rules import RuleParams
+    from monitor_service.study import load_episodes, run_study, study_table, synthetic_study
+
+    settings = _settings(args)
+    params = RuleParams("running", args.window or settings.running_window, args.debounce or settings.alert_debounce,
+                        settings.alert_clear_ratio)
+    alpha = args.alpha or settings.alpha
+    if args.synthetic:
+        if args.records:
+            raise ValueError("give either a records file or --synthetic N, not both")
+        n_success, n_failure = (int(x) for x in args.episodes.split(","))
+        result = synthetic_study(args.synthetic, n_success, n_failure, params, alpha, args.folds, args.seed)
+        source = f"synthetic task, {args.synthetic} decisions per episode (monitor_service/synthetic.py)"
+    else:
+        if not args.records:
+            raise ValueError("give a records file (JSONL) or --synthetic N")
+        where = dict(w.split("=", 1) for w in args.where or [])
+        episodes, skipped = load_episodes(args.records, where)
+        if not episodes:
+            raise ValueError(f"{args.records} holds no labelled episode with a scored decision ({skipped})")
+        result = run_study(episodes, params, alpha, args.folds, args.seed)
+        result["skipped"] = skipped
+        source = args.records
+    if args.json:
+        print(json.dumps(result, indent=2))
+        return 0
+    r = result["early_score_auroc"]
+    ranking = "n/a" if r["auroc"] is None else f"{r['auroc']:.3f} [{r['ci'][0]:.3f}, {r['ci'][1]:.3f}]"
+    print(f"{source}: {result['episodes']} episodes ({result['successes']} successes, {result['failures']} "
+          f"failures), median {result['scored_decisions_per_episode']['median']:g} scored decisions per episode; "
+          f"early-score AUROC {ranking}")
+    print(study_table(result["rules"]))
     return 0
 
 
@@ -201,14 +243,31 @@ def build_parser() -> argparse.ArgumentParser:
     s.set_defaults(func=cmd_tasks)
 
     s = sub.add_parser("calibrate", help="calibrate one task from its stored held-out episodes")
-    s.add_argument("--task", required=True)
-    s.add_argument("--checkpoint")
-    s.add_argument("--alpha", type=float)
-    s.add_argument("--rule", choices=["conformal", "youden"])
-    s.add_argument("--n-bootstrap", type=int)
-    s.add_argument("--n-permutation", type=int)
-    s.add_argument("--seed", type=int)
+    s.add_argument("--task", required=True, help="registered task name")
+    s.add_argument("--checkpoint", help="calibrate only this checkpoint's episodes")
+    s.add_argument("--alpha", type=float, help="guaranteed false-alert rate per successful episode (default 0.1)")
+    s.add_argument("--rule", choices=["running", "band"], help="alert rule (default: JEPA_MONITOR_ALERT_RULE)")
+    s.add_argument("--folds", type=int, help="folds of the cross-fitted detection figures (default 5)")
+    s.add_argument("--n-bootstrap", type=int, help="AUROC bootstrap resamples (default 10000)")
+    s.add_argument("--n-permutation", type=int, help="label permutations of the p-value (default 10000)")
+    s.add_argument("--seed", type=int, help="seed of the resampling and the band split")
     s.set_defaults(func=cmd_calibrate)
+
+    s = sub.add_parser("study", help="replay recorded episodes through each alert rule (detection at the same alpha)")
+    s.add_argument("records", nargs="?", help="JSONL of episode records (jepa-demo, jepa-policy eval --out) or of "
+                                              "ingest records (decision/target/outcome)")
+    s.add_argument("--synthetic", type=int, metavar="DECISIONS",
+                   help="instead of a file: a synthetic task with this many decisions per episode")
+    s.add_argument("--episodes", default="100,100", help="--synthetic: successes,failures (default 100,100)")
+    s.add_argument("--where", action="append", metavar="KEY=VALUE",
+                   help="keep only episode records with this field value, e.g. --where arm=jepa (repeatable)")
+    s.add_argument("--alpha", type=float, help="guaranteed false-alert rate (default: the service's alpha)")
+    s.add_argument("--window", type=int, help="running-median window (default: the service's)")
+    s.add_argument("--debounce", type=int, help="consecutive values over the threshold (default: the service's)")
+    s.add_argument("--folds", type=int, default=5, help="cross-fitting folds within each checkpoint")
+    s.add_argument("--seed", type=int, default=0, help="seed of the folds and the band split")
+    s.add_argument("--json", action="store_true", help="print every figure as JSON")
+    s.set_defaults(func=cmd_study)
 
     s = sub.add_parser("report", help="per-task calibrations (pooled figure only as a warning)")
     s.add_argument("--json", action="store_true")
@@ -228,7 +287,7 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
         return args.func(args)
-    except (ValueError, LookupError) as exc:
+    except (ValueError, LookupError, FileNotFoundError) as exc:
         print(f"jepa-monitor: error: {exc}", file=sys.stderr)
         return 2
 

@@ -63,11 +63,16 @@ class _Records:
 
     def decision(
         self, task: str, episode: str, step: int, horizon: int, z_hat: Any, *, checkpoint: str | None = None,
-        held_out: bool = False, group: str | None = None,
+        held_out: bool = False, group: str | None = None, z_now: Any = None,
     ) -> bool:
-        """Queue one decision's predicted latent z_hat for step + horizon; False if the buffer was full."""
+        """Queue one decision's predicted latent z_hat for step + horizon; False if the buffer was full.
+
+        ``z_now``: the current latent E_rgb(o_step), optional; the service then also scores the persistence
+        baseline (the paper's control, Sec. 4.10)."""
         rec = {"kind": "decision", "task": task, "episode": episode, "step": int(step), "horizon": int(horizon),
                "z_hat": _latent(z_hat, "z_hat"), "held_out": bool(held_out)}
+        if z_now is not None:
+            rec["z_now"] = _latent(z_now, "z_now")
         if self.robot:
             rec["robot"] = self.robot
         if checkpoint is not None:
@@ -80,9 +85,13 @@ class _Records:
         """Queue the realized latent E_rgb(o_step); False if the buffer was full."""
         return self._put({"kind": "target", "episode": episode, "step": int(step), "z": _latent(z, "z")})
 
-    def outcome(self, episode: str, success: bool, *, held_out: bool | None = None, group: str | None = None) -> bool:
-        """Queue the episode's outcome; False if the buffer was full."""
+    def outcome(self, episode: str, success: bool, *, held_out: bool | None = None, group: str | None = None,
+                length: int | None = None) -> bool:
+        """Queue the episode's outcome (``length``: its env steps, for detection lead times); False if the
+        buffer was full."""
         rec: dict[str, Any] = {"kind": "outcome", "episode": episode, "success": bool(success)}
+        if length is not None:
+            rec["length"] = int(length)
         if held_out is not None:
             rec["held_out"] = held_out
         if group is not None:

@@ -74,6 +74,8 @@ class Episode(Base):
     started_at: Mapped[dt.datetime] = mapped_column(DateTime, default=utcnow)
     updated_at: Mapped[dt.datetime] = mapped_column(DateTime, default=utcnow, index=True)
     ended_at: Mapped[dt.datetime | None] = mapped_column(DateTime, nullable=True)
+    length: Mapped[int | None] = mapped_column(Integer, nullable=True)  # env steps, from the outcome
+    risk_score: Mapped[float | None] = mapped_column(Float, nullable=True)  # the calibrated rule's latest statistic
 
 
 class Decision(Base):
@@ -90,6 +92,9 @@ class Decision(Base):
     target_step: Mapped[int] = mapped_column(Integer)
     z_hat: Mapped[bytes] = mapped_column(LargeBinary)
     nmse: Mapped[float | None] = mapped_column(Float, nullable=True)
+    # the current latent z_t, when the client sends it: the persistence baseline NMSE(z_t, z_{t+k}) (Sec. 4.10)
+    z_now: Mapped[bytes | None] = mapped_column(LargeBinary, nullable=True)
+    nmse_persistence: Mapped[float | None] = mapped_column(Float, nullable=True)
     created_at: Mapped[dt.datetime] = mapped_column(DateTime, default=utcnow)
 
 
@@ -109,7 +114,7 @@ class CalibrationRow(Base):
     task: Mapped[str] = mapped_column(ForeignKey("tasks.name"), index=True)
     checkpoint: Mapped[str | None] = mapped_column(String(256), nullable=True)
     active: Mapped[bool] = mapped_column(Boolean, default=True)
-    threshold_rule: Mapped[str] = mapped_column(String(16))
+    rule: Mapped[str] = mapped_column("threshold_rule", String(16))  # running | band (monitor_service/rules.py)
     threshold: Mapped[float | None] = mapped_column(Float, nullable=True)
     auroc: Mapped[float] = mapped_column(Float)
     result: Mapped[dict] = mapped_column(JSON)

@@ -11,10 +11,10 @@ import os
 from prometheus_client import CollectorRegistry, Counter, Histogram, generate_latest
 from prometheus_client.core import GaugeMetricFamily
 from prometheus_client.multiprocess import MultiProcessCollector
-from sqlalchemy import func, select
+from sqlalchemy import distinct, func, select
 from sqlalchemy.orm import sessionmaker
 
-from monitor_service.db import Alert, CalibrationRow
+from monitor_service.db import Alert, CalibrationRow, Episode
 
 NMSE_BUCKETS = (0.01, 0.02, 0.05, 0.1, 0.2, 0.3, 0.5, 0.75, 1.0, 1.5, 2.0, 3.0, 5.0, 10.0, 20.0, 50.0)
 LATENCY_BUCKETS = (0.0005, 0.001, 0.002, 0.005, 0.01, 0.02, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5, 5.0)
@@ -29,10 +29,15 @@ WEBHOOK_FAILURES = Counter("jepa_monitor_webhook_failures", "Failed webhook deli
 
 
 class DatabaseGauges:
-    """Custom collector: per-task calibration gauges and open alerts, queried at scrape time."""
+    """Custom collector: per-task calibration gauges, open alerts and live alert rates, queried at scrape time.
 
-    def __init__(self, make_session: sessionmaker):
+    ``rule_params`` is the alert rule the service runs (window, debounce, clear ratio); a calibration made for
+    other values is reported stale (it raises no alerts until recalibrated).
+    """
+
+    def __init__(self, make_session: sessionmaker, rule_params: tuple[int, int, float] | None = None):
         self.make_session = make_session
+        self.rule_params = rule_params
 
     def collect(self):
         auroc = GaugeMetricFamily("jepa_monitor_task_auroc", "AUROC of the active task calibration", labels=["task"])
@@ -40,6 +45,21 @@ class DatabaseGauges:
             "jepa_monitor_task_threshold", "Active alarm threshold (+Inf: too few successes)", labels=["task"]
         )
         open_alerts = GaugeMetricFamily("jepa_monitor_open_alerts", "Alerts raised and not yet cleared", labels=["task"])
+        target = GaugeMetricFamily(
+            "jepa_monitor_calibration_false_alert_target",
+            "Calibrated bound on the share of successful episodes that raise any alert (alpha)",
+            labels=["task", "checkpoint", "rule"])
+        stale = GaugeMetricFamily(
+            "jepa_monitor_calibration_stale",
+            "1 when the active calibration was made for another window/debounce/hysteresis (no alerts)",
+            labels=["task", "checkpoint"])
+        live_rate = GaugeMetricFamily(
+            "jepa_monitor_task_live_alert_rate", "Share of live (not held-out) episodes that raised an alert",
+            labels=["task"])
+        live_false = GaugeMetricFamily(
+            "jepa_monitor_task_live_false_alert_rate",
+            "Share of live successful episodes that raised an alert (compare with the false-alert target)",
+            labels=["task"])
         with self.make_session() as session:
             rows = session.scalars(
                 select(CalibrationRow).where(CalibrationRow.active.is_(True), CalibrationRow.checkpoint.is_(None))
@@ -47,20 +67,43 @@ class DatabaseGauges:
             for row in rows:
                 auroc.add_metric([row.task], row.auroc)
                 thr.add_metric([row.task], row.threshold if row.threshold is not None else float("inf"))
+            for row in session.scalars(select(CalibrationRow).where(CalibrationRow.active.is_(True))):
+                rule = row.result.get("rule")   # None: made before episode-level rules existed, raises no alert
+                labels = [row.task, row.checkpoint or ""]
+                if rule is not None:
+                    target.add_metric([*labels, row.rule], float(rule["alpha"]))
+                if self.rule_params is not None:
+                    params = (rule or {}).get("params", {})
+                    made_for = (params.get("window"), params.get("debounce"), params.get("clear_ratio"))
+                    stale.add_metric(labels, float(made_for != self.rule_params))
+            live = Episode.held_out.is_(False)
+            episodes = dict(session.execute(select(Episode.task, func.count()).where(live).group_by(Episode.task)).all())
+            alerted = dict(session.execute(
+                select(Episode.task, func.count(distinct(Alert.episode_id))).join(Alert, Alert.episode_id == Episode.id)
+                .where(live).group_by(Episode.task)).all())
+            successes = dict(session.execute(select(Episode.task, func.count()).where(
+                live, Episode.success.is_(True)).group_by(Episode.task)).all())
+            alerted_successes = dict(session.execute(
+                select(Episode.task, func.count(distinct(Alert.episode_id))).join(Alert, Alert.episode_id == Episode.id)
+                .where(live, Episode.success.is_(True)).group_by(Episode.task)).all())
+            for task, n in episodes.items():
+                live_rate.add_metric([task], alerted.get(task, 0) / n)
+            for task, n in successes.items():
+                live_false.add_metric([task], alerted_successes.get(task, 0) / n)
             for task, n in session.execute(
                 select(Alert.task, func.count()).where(Alert.state == "open").group_by(Alert.task)
             ):
                 open_alerts.add_metric([task], n)
             session.rollback()
-        yield from (auroc, thr, open_alerts)
+        yield from (auroc, thr, open_alerts, target, stale, live_rate, live_false)
 
 
-def exposition(make_session: sessionmaker) -> bytes:
+def exposition(make_session: sessionmaker, rule_params: tuple[int, int, float] | None = None) -> bytes:
     """The /metrics body: process metrics (aggregated across workers in multiprocess mode) plus database gauges."""
     from prometheus_client import REGISTRY
 
     db_registry = CollectorRegistry()
-    db_registry.register(DatabaseGauges(make_session))
+    db_registry.register(DatabaseGauges(make_session, rule_params))
     if os.environ.get("PROMETHEUS_MULTIPROC_DIR"):
         registry = CollectorRegistry()
         MultiProcessCollector(registry)

@@ -52,6 +52,9 @@ class DecisionIn(_Strict):
     step: int = Field(ge=0, description="decision step t")
     horizon: int = Field(ge=1, description="prediction horizon k")
     z_hat: Latent
+    z_now: Latent | None = Field(
+        None, description="the current latent z_t = E_rgb(o_t), optional: scores the persistence baseline "
+        "z_hat = z_t against the same realized target (a control of the paper's Sec. 4.10)")
     robot: Name | None = Field(None, description="defaults to the robot of the API key")
     checkpoint: str | None = Field(None, max_length=256)
     held_out: bool = Field(False, description="a labelled calibration episode")
@@ -75,6 +78,7 @@ class OutcomeIn(_Strict):
     success: bool
     held_out: bool | None = None
     group: Name | None = None
+    length: int | None = Field(None, ge=1, description="episode length in env steps (detection lead times)")
 
 
 Record = Annotated[DecisionIn | TargetIn | OutcomeIn, Field(discriminator="kind")]
@@ -112,6 +116,7 @@ class DecisionOut(BaseModel):
     horizon: int
     target_step: int
     nmse: float | None
+    nmse_persistence: float | None = Field(description="NMSE of z_t against the same target, when z_now was sent")
 
 
 class EpisodeOut(BaseModel):
@@ -123,7 +128,9 @@ class EpisodeOut(BaseModel):
     held_out: bool
     success: bool | None
     early_score: float | None
-    running_score: float | None
+    running_score: float | None = Field(description="median NMSE of the last running_window scored decisions")
+    risk_score: float | None = Field(description="latest value of the calibrated alert rule's statistic")
+    length: int | None = Field(description="episode length in env steps, from its outcome")
     n_decisions: int
     n_scored: int
     open_alert_id: int | None
@@ -133,15 +140,27 @@ class EpisodeOut(BaseModel):
     updated_at: dt.datetime
 
 
+class RiskPoint(BaseModel):
+    step: int = Field(description="decision step t")
+    known_at: int = Field(description="env step t + k at which its NMSE became known")
+    value: float = Field(description="the alert rule's running statistic after this decision")
+
+
 class EpisodeDetail(EpisodeOut):
     decisions: list[DecisionOut]
+    rule: str | None = Field(description="the active calibration's alert rule (null: no usable calibration)")
+    threshold: float | None = Field(description="its threshold; an alert needs `debounce` values above it")
+    risk: list[RiskPoint] = Field(description="the rule's statistic over the episode (the dashboard's trajectory)")
 
 
 class CalibrateIn(_Strict):
     task: Name
     checkpoint: str | None = None
-    alpha: float | None = Field(None, gt=0.0, lt=1.0)
-    threshold_rule: Literal["conformal", "youden"] | None = None
+    alpha: float | None = Field(None, gt=0.0, lt=1.0, description="guaranteed false-alert rate per successful episode")
+    rule: Literal["running", "band"] | None = Field(
+        None, description="the alert rule to calibrate (default: the service's alert_rule); window, debounce and "
+        "hysteresis are the service's settings and become part of the calibration")
+    folds: int | None = Field(None, ge=2, le=20, description="folds of the cross-fitted detection figures")
     n_bootstrap: int | None = Field(None, ge=100, le=200_000)
     n_permutation: int | None = Field(None, ge=100, le=200_000)
     seed: int | None = None
@@ -152,8 +171,8 @@ class CalibrationOut(BaseModel):
     task: str
     checkpoint: str | None
     active: bool
-    threshold_rule: str
-    threshold: float | None = Field(description="active alarm threshold; null means infinite (never alarm)")
+    rule: str = Field(description="the calibrated alert rule: running or band (monitor_service/rules.py)")
+    threshold: float | None = Field(description="alarm threshold of the rule's statistic")
     auroc: float
     result: dict
     created_at: dt.datetime

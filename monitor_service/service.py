@@ -11,7 +11,7 @@ import numpy as np
 from sqlalchemy import insert, select, update
 from sqlalchemy.orm import Session
 
-from monitor_service import metrics, scoring, stats
+from monitor_service import calibration, metrics, rules, scoring, stats
 from monitor_service.alerts import AlertState, step_alert
 from monitor_service.auth import Principal
 from monitor_service.db import Alert, CalibrationRow, Decision, Episode, Target, Task, WebhookDelivery, utcnow
@@ -39,6 +39,8 @@ class _Dec:
     nmse: float | None
     id: int | None = None
     changed: bool = False
+    z_now: bytes | None = None
+    nmse_persistence: float | None = None
 
 
 @dataclass
@@ -68,6 +70,8 @@ class IngestContext:
     alerts_raised: list[int] = field(default_factory=list)
     calibrations: dict[tuple[str, str | None], CalibrationRow | None] = field(default_factory=dict)
     newly_scored: dict[str, int] = field(default_factory=dict)
+    new_decision_episodes: set[str] = field(default_factory=set)
+    calibrated_rules: dict[int, rules.CalibratedRule] = field(default_factory=dict)
     scored: int = 0
 
     def preload(self, records: list) -> None:
@@ -83,12 +87,13 @@ class IngestContext:
             return
         steps = {r.step for r in records if r.kind == "decision"}
         tsteps = {r.step + r.horizon for r in records if r.kind == "decision"} | {r.step for r in records if r.kind == "target"}
-        cols = Decision.id, Decision.episode_id, Decision.step, Decision.horizon, Decision.z_hat, Decision.nmse
+        cols = (Decision.id, Decision.episode_id, Decision.step, Decision.horizon, Decision.z_hat, Decision.nmse,
+                Decision.z_now)
         # Two indexed lookups: decisions at the batch's steps, and decisions aimed at its target steps.
         for cond in (Decision.step.in_(steps), Decision.target_step.in_(tsteps)):
             for r in s.execute(select(*cols).where(Decision.episode_id.in_(known), cond)):
                 if (r.episode_id, r.step) not in self.decisions:
-                    self._remember(_Dec(r.episode_id, r.step, r.horizon, r.z_hat, r.nmse, r.id))
+                    self._remember(_Dec(r.episode_id, r.step, r.horizon, r.z_hat, r.nmse, r.id, z_now=r.z_now))
         for r in s.execute(
             select(Target.episode_id, Target.step, Target.z).where(Target.episode_id.in_(known), Target.step.in_(tsteps))
         ):
@@ -104,11 +109,13 @@ class IngestContext:
         if self.new_decisions:
             s.execute(insert(Decision), [
                 {"episode_id": d.episode, "step": d.step, "horizon": d.horizon, "target_step": d.step + d.horizon,
-                 "z_hat": d.z_hat, "nmse": d.nmse, "created_at": utcnow()} for d in self.new_decisions
+                 "z_hat": d.z_hat, "nmse": d.nmse, "z_now": d.z_now, "nmse_persistence": d.nmse_persistence,
+                 "created_at": utcnow()} for d in self.new_decisions
             ])
         if self.new_targets:
             s.execute(insert(Target), self.new_targets)
-        updates = [{"id": d.id, "nmse": d.nmse} for d in self.decisions.values() if d.id is not None and d.changed]
+        updates = [{"id": d.id, "nmse": d.nmse, "nmse_persistence": d.nmse_persistence}
+                   for d in self.decisions.values() if d.id is not None and d.changed]
         if updates:
             s.execute(update(Decision), updates)
 
@@ -144,7 +151,10 @@ def _check_owner(ctx: IngestContext, ep: Episode) -> None:
 
 
 def _score(ctx: IngestContext, ep: Episode, d: _Dec, z: bytes) -> None:
-    d.nmse = scoring.nmse(np.frombuffer(d.z_hat, dtype="<f4"), np.frombuffer(z, dtype="<f4"))
+    target = np.frombuffer(z, dtype="<f4")
+    d.nmse = scoring.nmse(np.frombuffer(d.z_hat, dtype="<f4"), target)
+    if d.z_now is not None:   # the persistence baseline z_hat = z_t against the same target (Sec. 4.10)
+        d.nmse_persistence = scoring.nmse(np.frombuffer(d.z_now, dtype="<f4"), target)
     d.changed = True
     ctx.scored += 1
     ctx.newly_scored[ep.id] = ctx.newly_scored.get(ep.id, 0) + 1
@@ -153,6 +163,8 @@ def _score(ctx: IngestContext, ep: Episode, d: _Dec, z: bytes) -> None:
 
 def _ingest_decision(ctx: IngestContext, rec: DecisionIn) -> None:
     _check_dim(ctx, rec.task, rec.z_hat.shape[0], "z_hat")
+    if rec.z_now is not None:
+        _check_dim(ctx, rec.task, rec.z_now.shape[0], "z_now")
     p = ctx.principal
     robot = rec.robot or p.robot
     if robot is None:
@@ -177,17 +189,19 @@ def _ingest_decision(ctx: IngestContext, rec: DecisionIn) -> None:
         if ep.success is not None:
             raise IngestError(409, f"episode {ep.id!r} has ended (outcome recorded); start a new episode id")
     z_hat = rec.z_hat.astype("<f4").tobytes()
+    z_now = None if rec.z_now is None else rec.z_now.astype("<f4").tobytes()
     existing = ctx.decisions.get((ep.id, rec.step))
     if existing is not None:
         if existing.z_hat == z_hat and existing.horizon == rec.horizon:
             return  # the same record again: nothing to change, nothing double-counted
         raise IngestError(409, f"episode {ep.id!r} already has a different decision at step {rec.step}")
-    d = _Dec(ep.id, rec.step, rec.horizon, z_hat, None)
+    d = _Dec(ep.id, rec.step, rec.horizon, z_hat, None, z_now=z_now)
     target = ctx.targets.get((ep.id, rec.step + rec.horizon))
     if target is not None:
         _score(ctx, ep, d, target)
     ctx._remember(d)
     ctx.new_decisions.append(d)
+    ctx.new_decision_episodes.add(ep.id)
     ep.n_decisions += 1
     ep.updated_at = utcnow()
     ctx.dirty[ep.id] = ep
@@ -234,6 +248,8 @@ def _ingest_outcome(ctx: IngestContext, rec: OutcomeIn) -> None:
         ep.held_out = rec.held_out
     if rec.group is not None:
         ep.group = rec.group
+    if rec.length is not None:
+        ep.length = rec.length
     ep.ended_at = ep.updated_at = utcnow()
     ctx.dirty[ep.id] = ep
     ctx.counts["outcome"] += 1
@@ -257,11 +273,12 @@ def active_calibration(session: Session, task: str, checkpoint: str | None) -> C
     )
 
 
-def _history(s: Session, ep: Episode, settings: MonitorSettings) -> tuple[list, list]:
-    """What a refresh needs, in bounded queries: the first decisions (until the early score is fixed) and the
-    scored decisions after the last evaluated step, preceded by the window of scored ones before it."""
+def _history(s: Session, ep: Episode, settings: MonitorSettings, early: bool) -> tuple[list, list]:
+    """What a refresh needs, in bounded queries: the first decisions by step (when ``early``: the early score is
+    not fixed yet, or an earlier decision may have arrived) and the scored decisions after the last evaluated
+    step, preceded by the window of scored ones before it."""
     first = []
-    if ep.early_score is None:
+    if early:
         first = s.execute(
             select(Decision.step, Decision.nmse).where(Decision.episode_id == ep.id)
             .order_by(Decision.step).limit(settings.early_decisions)
@@ -277,15 +294,48 @@ def _history(s: Session, ep: Episode, settings: MonitorSettings) -> tuple[list, 
     return [(r.step, r.nmse) for r in first], [(r.step, r.nmse) for r in before + after]
 
 
-def refresh_episode(ctx: IngestContext, ep: Episode) -> None:
-    """Update the early and running scores and step the alert state over the newly scored decisions.
+def rule_params(settings: MonitorSettings, kind: str | None = None) -> rules.RuleParams:
+    """The alert rule the service runs now (its kind: the calibration's, or the settings' for a new one)."""
+    return rules.RuleParams(kind or settings.alert_rule, settings.running_window, settings.alert_debounce,
+                            settings.alert_clear_ratio)
 
-    Every scored decision is considered once, in step order (``last_evaluated_step``); a task without a usable
-    calibration consumes them without evaluation and the episode's ``alert_note`` says why.
+
+def usable_rule(ctx: IngestContext, cal: CalibrationRow | None, task: str) -> tuple[rules.CalibratedRule | None, str]:
+    """The calibrated rule to alert with, or None and the reason no alert can be raised (the episode's note)."""
+    fix = f"`jepa-monitor calibrate --task {task}` (or POST /v1/calibrations)"
+    if cal is None:
+        return None, (f"no alerts: task {task!r} has no active calibration; record held-out labelled episodes "
+                      f"and run {fix}")
+    if "rule" not in cal.result:
+        return None, (f"no alerts: calibration #{cal.id} predates episode-level alert rules (its threshold covered "
+                      f"the early score only); recalibrate with {fix}")
+    if cal.id not in ctx.calibrated_rules:
+        ctx.calibrated_rules[cal.id] = rules.CalibratedRule.from_dict(cal.result["rule"])
+    rule = ctx.calibrated_rules[cal.id]
+    now = rule_params(ctx.settings, rule.params.kind)
+    if rule.params != now:
+        return None, (f"no alerts: calibration #{cal.id} holds for window={rule.params.window}, "
+                      f"debounce={rule.params.debounce}, clear ratio={rule.params.clear_ratio}, but the service "
+                      f"runs window={now.window}, debounce={now.debounce}, clear ratio={now.clear_ratio}; its "
+                      f"false-alert guarantee does not cover that rule, so recalibrate with {fix}")
+    return rule, (f"alerting when {rule.params.debounce} consecutive values of the {rule.params.kind} statistic "
+                  f"(median of {rule.params.window}) exceed {rule.threshold:.6g}: calibration #{cal.id}, at most "
+                  f"{rule.alpha:g} of successful episodes alert")
+
+
+def refresh_episode(ctx: IngestContext, ep: Episode) -> None:
+    """Update the early score, the running NMSE and the rule's statistic; step the alert state over the newly
+    scored decisions.
+
+    Every scored decision is considered once, in step order (``last_evaluated_step``); a decision scored after
+    a later one was evaluated (out-of-order delivery) counts for the scores but is not evaluated for alerts.
+    A task without a usable calibration consumes them without evaluation and the episode's ``alert_note`` says
+    why (no calibration, or one made for other window / debounce / hysteresis settings).
     """
     s, settings = ctx.session, ctx.settings
-    first, scored = _history(s, ep, settings)
-    if ep.early_score is None:
+    early = ep.early_score is None or ep.id in ctx.new_decision_episodes
+    first, scored = _history(s, ep, settings, early)
+    if early:   # the first decisions *by step*, whatever order they arrived in
         ep.early_score = scoring.early_score([v for _, v in first], settings.early_decisions)
     ep.n_scored += ctx.newly_scored.get(ep.id, 0)
     running = scoring.running_score([v for _, v in scored], settings.running_window)
@@ -294,38 +344,28 @@ def refresh_episode(ctx: IngestContext, ep: Episode) -> None:
     if (ep.task, ep.checkpoint) not in ctx.calibrations:
         ctx.calibrations[(ep.task, ep.checkpoint)] = active_calibration(s, ep.task, ep.checkpoint)
     cal = ctx.calibrations[(ep.task, ep.checkpoint)]
-    if cal is None or cal.threshold is None:
-        if cal is None:
-            ep.alert_note = (
-                f"no alerts: task {ep.task!r} has no active calibration; record held-out labelled episodes and run "
-                f"`jepa-monitor calibrate --task {ep.task}` (or POST /v1/calibrations)"
-            )
-        else:
-            ep.alert_note = (
-                f"no alerts: calibration #{cal.id} of task {ep.task!r} has an infinite threshold "
-                f"({cal.result.get('conformal_note', '')})"
-            )
+    rule, ep.alert_note = usable_rule(ctx, cal, ep.task)
+    if rule is None:
         if scored:
             ep.last_evaluated_step = max(ep.last_evaluated_step, scored[-1][0])
         return
-    ep.alert_note = (
-        f"alerting when the running median of {settings.running_window} NMSE exceeds {cal.threshold:.6g} "
-        f"({cal.threshold_rule}, calibration #{cal.id})"
-    )
+    steps = np.array([st for st, _ in scored], dtype=np.int64)
+    values = rules.decision_values(rule.params, rules.EpisodeScores(steps, np.array([v for _, v in scored]), steps),
+                                   rule.band)
     state = AlertState(ep.over_count, ep.under_count, ep.open_alert_id is not None)
-    values = [v for _, v in scored]
-    for i, (step, _) in enumerate(scored):
+    clear = rules.clear_level(rule.params, rule.threshold)
+    window = rule.params.window
+    for i, step in enumerate(steps.tolist()):
         if step <= ep.last_evaluated_step:
             continue
         ep.last_evaluated_step = step
-        if i + 1 < settings.running_window:
-            continue
-        window_score = float(np.median(values[i + 1 - settings.running_window : i + 1]))
-        state, event = step_alert(state, window_score, cal.threshold, settings.alert_debounce, settings.alert_clear_ratio)
+        value = float(np.median(values[max(0, i + 1 - window): i + 1]))
+        ep.risk_score = value
+        state, event = step_alert(state, value, rule.threshold, rule.params.debounce, clear)
         if event == "raise":
             alert = Alert(
-                episode_id=ep.id, task=ep.task, robot=ep.robot, step=step, score=window_score,
-                threshold=cal.threshold, calibration_id=cal.id, state="open", note="",
+                episode_id=ep.id, task=ep.task, robot=ep.robot, step=step, score=value, threshold=rule.threshold,
+                calibration_id=cal.id, state="open", note=f"{rule.params.kind} rule",
             )
             s.add(alert)
             s.flush()
@@ -369,59 +409,52 @@ def publish_metrics(ctx: IngestContext) -> None:
             counters[kind].labels(task, robot).inc(value)
 
 
-def calibration_data(session: Session, task: str, checkpoint: str | None) -> tuple[np.ndarray, np.ndarray, list, int]:
-    """Early scores, failure labels and groups of a task's held-out labelled episodes, plus how many were skipped."""
+def calibration_data(session: Session, task: str, checkpoint: str | None) -> list[calibration.LabelledEpisode]:
+    """A task's held-out labelled episodes (optionally of one checkpoint) with every decision, in two queries."""
     q = select(Episode).where(Episode.task == task, Episode.held_out.is_(True), Episode.success.is_not(None))
     if checkpoint is not None:
         q = q.where(Episode.checkpoint == checkpoint)
-    eps = session.scalars(q.order_by(Episode.id)).all()
-    usable = [e for e in eps if e.early_score is not None]
-    scores = np.array([e.early_score for e in usable], dtype=np.float64)
-    labels = np.array([0 if e.success else 1 for e in usable], dtype=np.int64)
-    groups = [e.group for e in usable]
-    return scores, labels, groups, len(eps) - len(usable)
+    eps = {e.id: calibration.LabelledEpisode(e.id, bool(e.success), [], e.group, e.length)
+           for e in session.scalars(q.order_by(Episode.id))}
+    ids = list(eps)
+    cols = Decision.episode_id, Decision.step, Decision.target_step, Decision.nmse, Decision.nmse_persistence
+    for start in range(0, len(ids), 500):   # bounded IN lists
+        for r in session.execute(select(*cols).where(Decision.episode_id.in_(ids[start:start + 500]))
+                                 .order_by(Decision.episode_id, Decision.step)):
+            eps[r.episode_id].decisions.append({"step": r.step, "target_step": r.target_step, "nmse": r.nmse,
+                                                "nmse_persistence": r.nmse_persistence})
+    return list(eps.values())
 
 
 def calibrate_task(
     make_session, settings: MonitorSettings, task: str, checkpoint: str | None = None, alpha: float | None = None,
-    threshold_rule: str | None = None, n_bootstrap: int | None = None, n_permutation: int | None = None,
-    seed: int | None = None,
+    rule: str | None = None, n_bootstrap: int | None = None, n_permutation: int | None = None,
+    seed: int | None = None, folds: int | None = None,
 ) -> CalibrationRow:
     """Calibrate one task (optionally one checkpoint) from its held-out episodes and make it the active one.
 
+    The alert rule is the service's (window, debounce, hysteresis) with ``rule`` or the settings' kind.
     Raises LookupError for an unknown task and ValueError when the data cannot support a calibration.
     """
     alpha = settings.alpha if alpha is None else alpha
-    rule = threshold_rule or settings.threshold_rule
+    params = rule_params(settings, rule)
     with make_session() as session:
         if session.get(Task, task) is None:
             raise LookupError(f"task {task!r} is not registered; register it with PUT /v1/tasks/{task}")
-        scores, labels, groups, skipped = calibration_data(session, task, checkpoint)
+        episodes = calibration_data(session, task, checkpoint)
         session.rollback()  # release the database while the resampling runs
-    if scores.size == 0:
-        raise ValueError(
-            f"task {task!r} has no held-out episode with an outcome and {settings.early_decisions} scored decisions; "
-            "record held-out labelled rollouts first"
-        )
-    groups_arr = None if any(g is None for g in groups) else np.array(groups, dtype=object)
-    result = stats.calibrate(
-        scores, labels, groups_arr, alpha,
-        settings.n_bootstrap if n_bootstrap is None else n_bootstrap,
-        settings.n_permutation if n_permutation is None else n_permutation,
-        settings.stats_seed if seed is None else seed,
-    ).to_dict()
-    result["skipped_episodes"] = skipped
-    result["skipped_reason"] = f"held-out episodes whose first {settings.early_decisions} decisions lack a valid target"
-    result["n_bootstrap"] = settings.n_bootstrap if n_bootstrap is None else n_bootstrap
-    result["n_permutation"] = settings.n_permutation if n_permutation is None else n_permutation
-    threshold = result["conformal_threshold"] if rule == "conformal" else result["youden_threshold"]
+    result = calibration.calibrate(
+        episodes, params, alpha, folds=settings.detection_folds if folds is None else folds,
+        early_decisions=settings.early_decisions,
+        n_bootstrap=settings.n_bootstrap if n_bootstrap is None else n_bootstrap,
+        n_permutation=settings.n_permutation if n_permutation is None else n_permutation,
+        seed=settings.stats_seed if seed is None else seed,
+    )
     with make_session() as session:
         cond = CalibrationRow.checkpoint.is_(None) if checkpoint is None else CalibrationRow.checkpoint == checkpoint
         session.execute(update(CalibrationRow).where(CalibrationRow.task == task, cond).values(active=False))
-        row = CalibrationRow(
-            task=task, checkpoint=checkpoint, active=True, threshold_rule=rule, threshold=threshold,
-            auroc=result["auroc"], result=result,
-        )
+        row = CalibrationRow(task=task, checkpoint=checkpoint, active=True, rule=params.kind,
+                             threshold=result["rule"]["threshold"], auroc=result["auroc"], result=result)
         session.add(row)
         session.commit()
         return row
@@ -441,13 +474,10 @@ def report(session: Session) -> dict:
     ).all()
     calibrated = {r.task for r in rows}
     tasks = session.scalars(select(Task.name).order_by(Task.name)).all()
-    all_scores, all_labels = [], []
-    for t in tasks:
-        s, y, _, _ = calibration_data(session, t, None)
-        all_scores.append(s)
-        all_labels.append(y)
-    scores = np.concatenate(all_scores) if all_scores else np.zeros(0)
-    labels = np.concatenate(all_labels) if all_labels else np.zeros(0, dtype=np.int64)
+    held = session.execute(select(Episode.early_score, Episode.success).where(
+        Episode.held_out.is_(True), Episode.success.is_not(None), Episode.early_score.is_not(None))).all()
+    scores = np.array([r.early_score for r in held], dtype=np.float64)
+    labels = np.array([0 if r.success else 1 for r in held], dtype=np.int64)
     pooled = None
     if labels.size and 0 < labels.sum() < labels.size:
         pooled = stats.auroc(scores, labels)

@@ -17,10 +17,15 @@ class MonitorSettings(BaseSettings):
     max_body_bytes: int = Field(8 * 1024 * 1024, gt=0, description="larger request bodies get 413")
     # Paper Sec. 4.10: the early score is the median NMSE of the first five decisions.
     early_decisions: int = Field(5, ge=1)
-    # The running score is the median of the most recent `running_window` scored decisions (Sec. 3.6 sliding window).
+    # The running statistic is the median of the most recent `running_window` values (Sec. 3.6 sliding window).
+    # Window, debounce and clear ratio are part of every calibrated rule: change them and recalibrate.
     running_window: int = Field(5, ge=1)
-    alpha: float = Field(0.1, gt=0.0, lt=1.0, description="target false-alarm rate of the conformal threshold")
-    threshold_rule: Literal["conformal", "youden"] = "conformal"
+    alpha: float = Field(0.1, gt=0.0, lt=1.0,
+                         description="guaranteed rate of successful episodes that raise any alert (rules.py)")
+    alert_rule: Literal["running", "band"] = Field(
+        "band", description="alert rule of new calibrations: running median of NMSE, or NMSE judged against the "
+        "successes' band at the same decision step (docs/monitor.md)")
+    detection_folds: int = Field(5, ge=2, le=20, description="folds of the cross-fitted detection figures")
     n_bootstrap: int = Field(10_000, ge=100)
     n_permutation: int = Field(10_000, ge=100)
     stats_seed: int = 0

@@ -5,7 +5,6 @@ episodes: raw NMSE scales differ across tasks, so pooling them destroys the rank
 """
 from __future__ import annotations
 
-import math
 from dataclasses import asdict, dataclass, field
 
 import numpy as np
@@ -172,31 +171,6 @@ def held_out_balanced_accuracy(
     return float((np.mean(p[y == 1]) + np.mean(~p[y == 0])) / 2), method
 
 
-def conformal_threshold(success_scores: np.ndarray, alpha: float) -> float:
-    """Split-conformal alarm threshold at false-alarm rate ``alpha`` over held-out success scores.
-
-    The threshold is the r-th smallest success score with r = ceil((n+1)(1-alpha)); a new success exceeds it
-    with probability <= alpha. When r > n the data cannot support alpha and the threshold is +inf (never alarm).
-    """
-    s = np.sort(np.asarray(success_scores, dtype=np.float64))
-    if not 0.0 < alpha < 1.0:
-        raise ValueError(f"alpha must lie in (0, 1), got {alpha}")
-    if not np.all(np.isfinite(s)):
-        raise ValueError("success scores contain NaN or inf")
-    r = math.ceil((s.size + 1) * (1.0 - alpha) - 1e-12)
-    if r > s.size:
-        return math.inf
-    return float(s[r - 1])
-
-
-def min_successes_for_alpha(alpha: float) -> int:
-    """Smallest number of success episodes for which the conformal threshold at ``alpha`` is finite."""
-    n = 1
-    while math.ceil((n + 1) * (1.0 - alpha) - 1e-12) > n:
-        n += 1
-    return n
-
-
 @dataclass
 class Calibration:
     """All per-task figures of Sec. 4.10 for one set of labelled held-out episodes."""
@@ -212,9 +186,6 @@ class Calibration:
     youden_bacc_in_sample: float
     youden_bacc_held_out: float | None
     held_out_method: str
-    alpha: float
-    conformal_threshold: float | None  # None stands for +inf (JSON has no inf)
-    conformal_note: str
     roc: dict = field(default_factory=dict)
     histogram: dict = field(default_factory=dict)
 
@@ -239,11 +210,29 @@ def score_histogram(scores: np.ndarray, labels: np.ndarray, bins: int = 20) -> d
     }
 
 
+def auroc_with_ci(scores: np.ndarray, labels: np.ndarray, n_bootstrap: int = 10_000, seed: int = 0) -> dict:
+    """AUROC and its bootstrap 95 % CI, or the reason it cannot be computed (a class missing)."""
+    try:
+        scores, labels = _check(scores, labels)
+    except ValueError as exc:
+        return {"auroc": None, "ci": None, "n": int(np.size(labels)), "reason": str(exc)}
+    return {"auroc": auroc(scores, labels), "ci": list(bootstrap_auroc_ci(scores, labels, n_bootstrap, seed)),
+            "n": int(labels.size), "n_failure": int(labels.sum())}
+
+
+def residualise(y: np.ndarray, x: np.ndarray) -> tuple[np.ndarray, float, float]:
+    """Residuals of the least-squares line y = a + b x, with (a, b)."""
+    y, x = np.asarray(y, dtype=np.float64), np.asarray(x, dtype=np.float64)
+    if y.shape != x.shape or y.ndim != 1 or y.size < 3:
+        raise ValueError(f"need two 1-D arrays of equal length >= 3, got {y.shape} and {x.shape}")
+    b, a = np.polyfit(x, y, 1)
+    return y - (a + b * x), float(a), float(b)
+
+
 def calibrate(
     scores: np.ndarray,
     labels: np.ndarray,
     groups: np.ndarray | None = None,
-    alpha: float = 0.1,
     n_bootstrap: int = 10_000,
     n_permutation: int = 10_000,
     seed: int = 0,
@@ -253,15 +242,6 @@ def calibrate(
     low, high = bootstrap_auroc_ci(scores, labels, n_bootstrap, seed)
     thr = youden_threshold(scores, labels)
     bacc_out, method = held_out_balanced_accuracy(scores, labels, groups, seed)
-    success = scores[labels == 0]
-    conf = conformal_threshold(success, alpha)
-    if math.isinf(conf):
-        note = (
-            f"infinite: {success.size} success episodes cannot support alpha={alpha} "
-            f"(needs at least {min_successes_for_alpha(alpha)}); no alarms until more are recorded"
-        )
-    else:
-        note = f"rank ceil((n+1)(1-alpha)) = {math.ceil((success.size + 1) * (1 - alpha) - 1e-12)} of n={success.size}"
     return Calibration(
         n_success=int((labels == 0).sum()),
         n_failure=int(labels.sum()),
@@ -274,9 +254,6 @@ def calibrate(
         youden_bacc_in_sample=balanced_accuracy(scores, labels, thr),
         youden_bacc_held_out=bacc_out,
         held_out_method=method,
-        alpha=alpha,
-        conformal_threshold=None if math.isinf(conf) else conf,
-        conformal_note=note,
         roc=roc_points(scores, labels),
         histogram=score_histogram(scores, labels),
     )

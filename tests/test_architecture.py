@@ -1,7 +1,8 @@
 """The import graph keeps its shape (docs/architecture.md): one direction between packages, no circles.
 
     jepa_envs  <-  jepa_policy  <-  jepa_policy.demo (the main job)
-    monitor_service stands alone; anyone may import its client, the main job also starts its server.
+    monitor_service stands alone; anyone may import its client; the main job also starts its server and runs
+    its study of alert rules on the rollouts.
 
 Every import counts, at module level or inside a function. Imports of project modules inside functions are
 allowed only in command-line modules (``cli.py``), where they keep ``--help`` and small commands fast; anywhere
@@ -137,8 +138,8 @@ def layer_violations(edges: list[Edge]) -> list[str]:
             elif dst.startswith("monitor_service") and dst != "monitor_service.client":
                 bad.append(f"{where}: only the main job runs the monitor; the policy may use its client")
         elif src.startswith("jepa_policy.demo") and dst.startswith("monitor_service") and \
-                dst not in ("monitor_service.client", "monitor_service.server"):
-            bad.append(f"{where}: the main job talks to the monitor through its client and server only")
+                dst not in ("monitor_service.client", "monitor_service.server", "monitor_service.study"):
+            bad.append(f"{where}: the main job uses the monitor's client, server and study only")
     return bad
 
 

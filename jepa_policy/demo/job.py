@@ -238,7 +238,7 @@ def run_rollouts(policy, cfg: DemoConfig, *, arm: str, seed: int, phase: str, fi
         eid = episode_id(ev.seed)
         if ev.kind == "prediction":
             client.decision(TASK, eid, ev.step, ev.target_step - ev.step, ev.z_hat, checkpoint=checkpoint_id,
-                            held_out=phase == "calibration", group=f"seed{seed}")
+                            held_out=phase == "calibration", group=f"seed{seed}", z_now=ev.z_now)
         else:
             client.target(eid, ev.target_step, ev.z_real)
 
@@ -252,7 +252,7 @@ def run_rollouts(policy, cfg: DemoConfig, *, arm: str, seed: int, phase: str, fi
                 rec.update(arm=arm, train_seed=seed, phase=phase, episode_id=episode_id(rec["seed"]))
                 if client is not None:
                     client.outcome(rec["episode_id"], rec["success"], held_out=phase == "calibration",
-                                   group=f"seed{seed}")
+                                   group=f"seed{seed}", length=rec["length"])
                 records.append(rec)
             bar.update(n)
     return records

@@ -12,6 +12,7 @@ import numpy as np
 from scipy import stats
 
 from jepa_envs.data import demo_names
+from monitor_service.study import study_episode_records
 
 EARLY_DECISIONS = 5          # paper Sec. 4.10: median NMSE of the first five decisions
 SUCCESS_AIM = 0.60           # issue 6: the CPU config should reach a useful success rate
@@ -70,8 +71,36 @@ def paired_comparison(diffs: np.ndarray, n_boot: int = 20_000, seed: int = 0) ->
     return out
 
 
+def _first(rows: dict) -> dict:
+    return next(iter(rows.values()))
+
+
+def _folds(rows: dict) -> str:
+    return f"{_first(rows)['folds']} folds"
+
+
+def _rate_cell(k: int, n: int, ci: list | None) -> str:
+    return "n/a" if not n else f"{k}/{n} = {k / n:.2f} [{ci[0]:.2f}, {ci[1]:.2f}]"
+
+
+def _quartile_cell(q: dict | None) -> str:
+    return "-" if q is None else f"{q['median']:g} ({q['q1']:g}-{q['q3']:g})"
+
+
+def detection_table(rows: dict) -> list[str]:
+    """Markdown rows: rule x (false alerts on successes, true alerts on failures, first alert, lead)."""
+    out = ["| rule | false alerts on successes [95% CI] | true alerts on failures [95% CI] | decision of the "
+           "first alert, median (IQR) | lead before the end, env steps |", "|---|---|---|---|---|"]
+    for name, r in rows.items():
+        skipped = f" ({r['skipped_episodes']} not judged)" if r["skipped_episodes"] else ""
+        out.append(f"| {name} | {_rate_cell(r['false_alerts'], r['successes'], r['false_alert_ci'])} | "
+                   f"{_rate_cell(r['true_alerts'], r['failures'], r['true_alert_ci'])} | "
+                   f"{_quartile_cell(r['detection_decision'])} | {_quartile_cell(r['lead_steps'])} |{skipped}")
+    return out
+
+
 def summarize(records: list[dict], calibrations: dict, alerts: list[dict], latency: dict,
-              monitor_episodes: list[dict] = ()) -> dict:
+              monitor_episodes: list[dict] = (), study: dict | None = None) -> dict:
     """Numbers of the report from the rollout records and the monitor's answers."""
     arms = sorted({r["arm"] for r in records}, key=lambda a: (a != "jepa", a))
     success = {}
@@ -99,7 +128,7 @@ def summarize(records: list[dict], calibrations: dict, alerts: list[dict], laten
         "alerted_successes": sum(r["episode_id"] in alerted for r in jepa_live if r["success"]),
         "alert_notes": sorted({e["alert_note"] for e in monitor_episodes if not e["held_out"] and e["alert_note"]}),
     }
-    summary = {"success": success, "calibrations": calibrations, "live": live, "latency": latency}
+    summary = {"success": success, "calibrations": calibrations, "live": live, "latency": latency, "study": study}
     seeds = sorted({r["train_seed"] for r in records})
     if len(seeds) > 1 and {"jepa", "mip"} <= set(arms):
         diffs = np.array([success["jepa"]["per_seed"][s] - success["mip"]["per_seed"][s] for s in seeds]) * 100
@@ -161,7 +190,8 @@ def plot_roc(calibrations: dict, path: Path) -> None:
     plt.close(fig)
 
 
-def plot_nmse_distributions(records: list[dict], thresholds: dict, path: Path) -> None:
+def plot_nmse_distributions(records: list[dict], path: Path) -> None:
+    """Early scores of successes and failures (the ranking figure; the alert rules threshold another statistic)."""
     plt = _plt()
     fig, ax = plt.subplots(figsize=(6, 3.6))
     jepa = [r for r in records if r["arm"] == "jepa" and r.get("early_score") is not None]
@@ -173,9 +203,6 @@ def plot_nmse_distributions(records: list[dict], thresholds: dict, path: Path) -
         ax.hist(ok, bins=edges, alpha=0.6, label=f"successes (n={len(ok)})", color="tab:green")
         ax.hist(bad, bins=edges, alpha=0.6, label=f"failures (n={len(bad)})", color="tab:red")
         ax.set_xscale("log")
-    for seed, thr in thresholds.items():
-        if thr is not None:
-            ax.axvline(thr, color="black", ls=":", label=f"alarm threshold (seed {seed})")
     ax.set(xlabel="early score: median NMSE of the first 5 decisions", ylabel="episodes",
            title="JEPA Policy future-consistency error")
     ax.legend(fontsize=8)
@@ -202,9 +229,9 @@ def _num(x: float | None) -> str:
     return "n/a" if x is None else f"{x:.3f}"
 
 
-def _thr(x: float | None) -> str:
-    """An alarm threshold: four significant digits, or what no threshold means."""
-    return "infinite (no alarms)" if x is None else f"{x:.4g}"
+def _thr(x: float) -> str:
+    """An alarm threshold, four significant digits."""
+    return f"{x:.4g}"
 
 
 def _interval(iv: list[float] | None) -> str:
@@ -292,22 +319,33 @@ def render_markdown(summary: dict, cfg: dict, figures: dict[str, str]) -> tuple[
             text.append(f"calibration seed {seed}: none ({cal['error']})")
             continue
         r = cal["result"]
-        thr = cal["threshold"]
+        thr, rule = cal["threshold"], r["rule"]
         lines += [
             f"- seed {seed} (checkpoint `{cal['checkpoint']}`): {r['n_failure']} failures / {r['n_success']} "
-            f"successes held out; AUROC **{r['auroc']:.3f}** (95% bootstrap CI [{r['auroc_ci_low']:.3f}, "
+            f"successes held out. Early score (median NMSE of the first five decisions, the paper's ranking figure): "
+            f"AUROC **{r['auroc']:.3f}** (95% bootstrap CI [{r['auroc_ci_low']:.3f}, "
             f"{r['auroc_ci_high']:.3f}], {r['n_bootstrap']} resamples), PR-AUC {r['average_precision']:.3f}, "
-            f"permutation p = {r['permutation_p']:.4f} ({r['n_permutation']} permutations).",
-            f"  Youden threshold {r['youden_threshold']:.4g} (balanced accuracy in-sample "
-            f"{r['youden_bacc_in_sample']:.3f}, held-out {_num(r['youden_bacc_held_out'])} by {r['held_out_method']}); "
-            f"conformal threshold at alpha={r['alpha']}: {_thr(r['conformal_threshold'])} ({r['conformal_note']}).",
-            f"  Active alarm threshold ({cal['threshold_rule']}): {_thr(thr)}.",
+            f"permutation p = {r['permutation_p']:.4f} ({r['n_permutation']} permutations); Youden threshold "
+            f"{r['youden_threshold']:.4g} (balanced accuracy in-sample {r['youden_bacc_in_sample']:.3f}, held-out "
+            f"{_num(r['youden_bacc_held_out'])} by {r['held_out_method']}).",
+            f"  Alert rule **{cal['rule']}** (window {rule['params']['window']}, debounce {rule['params']['debounce']}): "
+            f"threshold {_thr(thr)}, so at most {r['alpha']:g} of successful episodes of this checkpoint raise any "
+            f"alert ({rule['note']}).",
         ]
         text.append(f"AUROC seed {seed}: {r['auroc']:.3f} [{r['auroc_ci_low']:.3f}, {r['auroc_ci_high']:.3f}], "
-                    f"permutation p={r['permutation_p']:.4f}; threshold {_thr(thr)}")
+                    f"permutation p={r['permutation_p']:.4f}; {cal['rule']} rule threshold {_thr(thr)}")
         if (caveat := auroc_caveat(r["n_success"], r["n_failure"])) is not None:
             lines.append(f"  **Caveat:** {caveat}.")
             text.append(f"  caveat: {caveat}")
+        if r.get("detection"):
+            lines += ["", f"  Cross-fitted detection on these held-out episodes ({_folds(r['detection'])}):", ""]
+            lines += ["  " + row for row in detection_table(r["detection"])]
+        controls = r.get("controls", {})
+        if controls:
+            lines += ["", "  Controls (Sec. 4.10): " + "; ".join(
+                f"{name} AUROC " + ("n/a (" + c["reason"] + ")" if c["auroc"] is None else
+                                    f"{c['auroc']:.3f} [{c['ci'][0]:.3f}, {c['ci'][1]:.3f}]")
+                for name, c in controls.items()) + f", beside the early score's {r['auroc']:.3f}.", ""]
     lv = summary["live"]
     calibrated = any("error" not in cal for cal in summary["calibrations"].values())
     lead = ("Live rollouts scored against that calibration" if calibrated else
@@ -319,6 +357,19 @@ def render_markdown(summary: dict, cfg: dict, figures: dict[str, str]) -> tuple[
               f"{_count(lv['alerted_successes'], 'success', 'successes')})."]
     if lv.get("alert_notes"):
         lines += [f"Monitor's note on the live episodes: \"{note}\"" for note in lv["alert_notes"]]
+    if summary.get("study"):
+        st = summary["study"]
+        lines += ["", f"### Alert rules compared on every JEPA rollout of this run ({st['episodes']} episodes: "
+                  f"{st['successes']} successes, {st['failures']} failures; median "
+                  f"{st['scored_decisions_per_episode']['median']:g} scored decisions per episode)", "",
+                  f"`jepa-monitor study records.jsonl --where arm=jepa`: each rule calibrated at alpha = "
+                  f"{_first(st['rules'])['alpha']:g} on the other folds of the same checkpoint "
+                  f"({_folds(st['rules'])}). The former rule's alpha covered the early score, not its alerts.", ""]
+        lines += detection_table(st["rules"])
+        for name, row in st["rules"].items():
+            if row["successes"]:
+                text.append(f"study {name}: false alerts {row['false_alerts']}/{row['successes']} successes, "
+                            f"true alerts {row['true_alerts']}/{row['failures']} failures")
     text.append(f"live: {_count(lv['alerts'], 'alert', 'alerts')} on {lv['alerted_episodes']} of {lv['episodes']} "
                 f"episodes ({lv['alerted_failures']}/{lv['failures']} failures and {lv['alerted_successes']}/"
                 f"{lv['episodes'] - lv['failures']} successes flagged)")
@@ -376,7 +427,12 @@ def write_report(out: Path, *, cfg: dict, dataset: Path, checkpoints: dict, reco
     with open(out / "records.jsonl", "w") as f:
         for rec in records:
             f.write(json.dumps(rec) + "\n")
-    summary = summarize(records, calibrations, alerts, latency, monitor_episodes)
+    # the rule's settings of the run's calibration (the service's defaults when none could be made)
+    cal = next((c["result"] for c in calibrations.values() if "error" not in c), None)
+    rule = cal["rule"]["params"] if cal else {"window": 5, "debounce": 2, "clear_ratio": 0.8}
+    study = study_episode_records([r for r in records if r["arm"] == "jepa"], cal["alpha"] if cal else 0.1,
+                                  rule["window"], rule["debounce"], rule["clear_ratio"])
+    summary = summarize(records, calibrations, alerts, latency, monitor_episodes, study)
     summary["demonstrations"] = dataset_summary(dataset)
     run_dirs = {f"{arm} seed {seed}": Path(p).parent.parent for (arm, seed), p in checkpoints.items()}
     starts = {label: json.loads((d / "init_selection.json").read_text()) for label, d in run_dirs.items()
@@ -387,8 +443,7 @@ def write_report(out: Path, *, cfg: dict, dataset: Path, checkpoints: dict, reco
                "NMSE distributions": "nmse_distributions.png", "Rollout frames": "frames.png"}
     plot_learning_curves(run_dirs, out / figures["Learning curves"])
     plot_roc(calibrations, out / figures["ROC of the early NMSE score"])
-    thresholds = {seed: cal.get("threshold") for seed, cal in calibrations.items() if "error" not in cal}
-    plot_nmse_distributions(records, thresholds, out / figures["NMSE distributions"])
+    plot_nmse_distributions(records, out / figures["NMSE distributions"])
     save_frames(frames, out / figures["Rollout frames"])
     page, text = render_markdown(summary, cfg, figures)
     (out / "report.md").write_text(page)

@@ -17,19 +17,20 @@ router = APIRouter(prefix="/v1", tags=["calibrations"])
 
 def calibration_out(r: CalibrationRow) -> CalibrationOut:
     return CalibrationOut(
-        id=r.id, task=r.task, checkpoint=r.checkpoint, active=r.active, threshold_rule=r.threshold_rule,
+        id=r.id, task=r.task, checkpoint=r.checkpoint, active=r.active, rule=r.rule,
         threshold=r.threshold, auroc=r.auroc, result=r.result, created_at=r.created_at,
     )
 
 
 @router.post("/calibrations", response_model=CalibrationOut, status_code=201)
 async def create_calibration(request: Request, body: CalibrateIn, _: Principal = Depends(require("admin"))) -> CalibrationOut:
-    """Calibrate a task (or one checkpoint of it) and make it the active threshold source."""
+    """Calibrate a task (or one checkpoint of it) from its held-out labelled episodes and make it the active one:
+    the alert rule's threshold (at most alpha of successful episodes alert), detection figures, controls."""
     app = request.app
     try:
         row = await run_in_threadpool(
             calibrate_task, app.state.sessionmaker, app.state.settings, body.task, body.checkpoint, body.alpha,
-            body.threshold_rule, body.n_bootstrap, body.n_permutation, body.seed,
+            body.rule, body.n_bootstrap, body.n_permutation, body.seed, body.folds,
         )
     except LookupError as exc:
         raise HTTPException(404, str(exc)) from None

@@ -10,7 +10,9 @@ from sqlalchemy.orm import Session
 from monitor_service.auth import Principal, require
 from monitor_service.db import Decision, Episode, utcnow
 from monitor_service.deps import get_read_session, get_settings
-from monitor_service.schemas import DecisionOut, EpisodeDetail, EpisodeOut
+from monitor_service import rules
+from monitor_service.schemas import DecisionOut, EpisodeDetail, EpisodeOut, RiskPoint
+from monitor_service.service import active_calibration, rule_params
 from monitor_service.settings import MonitorSettings
 
 router = APIRouter(prefix="/v1/episodes", tags=["episodes"])
@@ -20,7 +22,8 @@ def episode_out(e: Episode, live_s: float) -> dict:
     live = e.success is None and (utcnow() - e.updated_at) < dt.timedelta(seconds=live_s)
     return dict(
         id=e.id, task=e.task, robot=e.robot, checkpoint=e.checkpoint, group=e.group, held_out=e.held_out,
-        success=e.success, early_score=e.early_score, running_score=e.running_score, n_decisions=e.n_decisions,
+        success=e.success, early_score=e.early_score, running_score=e.running_score, risk_score=e.risk_score,
+        length=e.length, n_decisions=e.n_decisions,
         n_scored=e.n_scored, open_alert_id=e.open_alert_id, alert_note=e.alert_note, live=live,
         started_at=e.started_at, updated_at=e.updated_at,
     )
@@ -53,12 +56,28 @@ def get_episode(
     settings: MonitorSettings = Depends(get_settings),
     _: Principal = Depends(require("operator")),
 ) -> EpisodeDetail:
-    """One episode with every decision's NMSE (null until its realized target arrives)."""
+    """One episode with every decision's NMSE (null until its realized target arrives) and, when its task has a
+    usable calibration, the alert rule's statistic over the episode against the rule's threshold."""
     e = session.get(Episode, episode_id)
     if e is None:
         raise HTTPException(404, f"episode {episode_id!r} is unknown; list episodes with GET /v1/episodes")
-    decisions = session.scalars(select(Decision).where(Decision.episode_id == e.id).order_by(Decision.step))
+    decisions = session.scalars(select(Decision).where(Decision.episode_id == e.id).order_by(Decision.step)).all()
+    rule = None
+    cal = active_calibration(session, e.task, e.checkpoint)
+    if cal is not None and "rule" in cal.result:
+        candidate = rules.CalibratedRule.from_dict(cal.result["rule"])
+        if candidate.params == rule_params(settings, candidate.params.kind):
+            rule = candidate
+    risk = []
+    if rule is not None:
+        scores = rules.EpisodeScores.from_decisions(
+            [{"step": d.step, "target_step": d.target_step, "nmse": d.nmse} for d in decisions])
+        risk = [RiskPoint(step=int(s), known_at=int(k), value=float(v))
+                for s, k, v in zip(scores.steps, scores.known_at, rule.running(scores))]
     return EpisodeDetail(
         **episode_out(e, settings.live_episode_s),
-        decisions=[DecisionOut(step=d.step, horizon=d.horizon, target_step=d.target_step, nmse=d.nmse) for d in decisions],
+        decisions=[DecisionOut(step=d.step, horizon=d.horizon, target_step=d.target_step, nmse=d.nmse,
+                               nmse_persistence=d.nmse_persistence) for d in decisions],
+        rule=None if rule is None else rule.params.kind, threshold=None if rule is None else rule.threshold,
+        risk=risk,
     )

@@ -38,5 +38,7 @@ def readyz(request: Request):
 @router.get("/metrics")
 async def metrics(request: Request, _: Principal = Depends(require("operator"))) -> Response:
     """Prometheus exposition (needs an operator key: configure the scrape job's bearer token)."""
-    body = await run_in_threadpool(exposition, request.app.state.read_sessionmaker)
+    s = request.app.state.settings
+    body = await run_in_threadpool(exposition, request.app.state.read_sessionmaker,
+                                   (s.running_window, s.alert_debounce, s.alert_clear_ratio))
     return Response(body, media_type=CONTENT_TYPE_LATEST)

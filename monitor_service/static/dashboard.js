@@ -1,8 +1,10 @@
-// Operator dashboard: reads the monitor's API with the operator key kept in localStorage.
-// No external scripts (the deployment network may be closed): charts are drawn as inline SVG.
+// Operator dashboard: reads the monitor's API with the operator key kept in sessionStorage (this tab only,
+// gone when it closes; docs/monitor.md). No external scripts (the deployment network may be closed): charts
+// are drawn as inline SVG.
 "use strict";
 
-const state = { key: localStorage.getItem("jepaMonitorKey") || "", streamAbort: null };
+const state = { key: sessionStorage.getItem("jepaMonitorKey") || "", streamAbort: null };
+const TRAJECTORIES = 12;  // live episodes drawn, most recently active first
 
 function h(tag, attrs = {}, ...children) {
   const el = document.createElement(tag);
@@ -32,37 +34,80 @@ function svg(tag, attrs) {
   return el;
 }
 
+function text(x, y, content, attrs = {}) {
+  const el = svg("text", { x, y, "font-size": 11, ...attrs });
+  el.textContent = content;
+  return el;
+}
+
+// A framed plot area with a title above it and labelled axes; returns [root, x(frac), y(frac)].
+function frame(cls, data, title, xlabel, ylabel, W = 320, H = 240) {
+  const L = 48, R = 12, T = 30, B = 40;
+  const root = svg("svg", { width: W, height: H, class: cls, ...data });
+  root.append(svg("rect", { x: L, y: T, width: W - L - R, height: H - T - B, fill: "none", stroke: "#999" }));
+  root.append(text(6, 16, title, { class: "title", "font-weight": "bold" }));
+  root.append(text(L + (W - L - R) / 2, H - 8, xlabel, { "text-anchor": "middle", class: "xlabel" }));
+  const y = text(14, T + (H - T - B) / 2, ylabel, { "text-anchor": "middle", class: "ylabel" });
+  y.setAttribute("transform", `rotate(-90 14 ${T + (H - T - B) / 2})`);
+  root.append(y);
+  return [root, (f) => L + f * (W - L - R), (f) => H - B - f * (H - T - B)];
+}
+
+function ticks(root, X, Y, lo, hi, axis, format) {
+  for (const f of [0, 0.5, 1]) {
+    const v = lo + f * (hi - lo);
+    if (axis === "x") root.append(text(X(f), Y(0) + 13, format(v), { "text-anchor": "middle" }));
+    else root.append(text(X(0) - 4, Y(f) + 4, format(v), { "text-anchor": "end" }));
+  }
+}
+
 function rocChart(task, roc, auroc) {
-  const W = 220, P = 25, S = W - 2 * P;
-  const root = svg("svg", { width: W, height: W, "data-task": task, class: "roc" });
-  root.append(svg("rect", { x: P, y: P, width: S, height: S, fill: "none", stroke: "#999" }));
-  root.append(svg("line", { x1: P, y1: P + S, x2: P + S, y2: P, stroke: "#ccc", "stroke-dasharray": "4" }));
-  const pts = roc.fpr.map((f, i) => `${P + f * S},${P + S - roc.tpr[i] * S}`).join(" ");
+  const [root, X, Y] = frame("roc", { "data-task": task }, `ROC ${task} (AUROC ${fmt(auroc)})`,
+    "false-positive rate", "true-positive rate", 280, 260);
+  root.append(svg("line", { x1: X(0), y1: Y(0), x2: X(1), y2: Y(1), stroke: "#ccc", "stroke-dasharray": "4" }));
+  const pts = roc.fpr.map((f, i) => `${X(f)},${Y(roc.tpr[i])}`).join(" ");
   root.append(svg("polyline", { points: pts, fill: "none", stroke: "#1f3b57", "stroke-width": 2 }));
-  const label = svg("text", { x: P, y: 15, "font-size": 11 });
-  label.textContent = `ROC ${task} (AUROC ${fmt(auroc)})`;
-  root.append(label);
+  ticks(root, X, Y, 0, 1, "x", (v) => v.toFixed(1));
+  ticks(root, X, Y, 0, 1, "y", (v) => v.toFixed(1));
   return root;
 }
 
-function histogramChart(task, hist, threshold) {
-  const W = 300, H = 220, P = 25;
-  const root = svg("svg", { width: W, height: H, "data-task": task, class: "histogram" });
+function histogramChart(task, hist) {
+  const [root, X, Y] = frame("histogram", { "data-task": task }, `Early score ${task}: successes / failures`,
+    "early score: median NMSE of the first 5 decisions (log scale)", "episodes", 380, 260);
   const n = hist.success.length;
   const max = Math.max(1, ...hist.success, ...hist.failure);
-  const bw = (W - 2 * P) / n;
-  hist.success.forEach((c, i) => root.append(svg("rect", { x: P + i * bw, y: H - P - (c / max) * (H - 2 * P), width: bw / 2, height: (c / max) * (H - 2 * P), fill: "#4caf50" })));
-  hist.failure.forEach((c, i) => root.append(svg("rect", { x: P + i * bw + bw / 2, y: H - P - (c / max) * (H - 2 * P), width: bw / 2, height: (c / max) * (H - 2 * P), fill: "#e53935" })));
-  if (threshold !== null && threshold !== undefined) {
-    const lo = Math.log(hist.edges[0]), hi = Math.log(hist.edges[hist.edges.length - 1]);
-    if (hi > lo && threshold > 0) {
-      const x = P + ((Math.log(threshold) - lo) / (hi - lo)) * (W - 2 * P);
-      root.append(svg("line", { x1: x, y1: P, x2: x, y2: H - P, stroke: "#000", "stroke-dasharray": "3" }));
-    }
+  const bw = 1 / n;
+  hist.success.forEach((c, i) => root.append(svg("rect", { x: X(i * bw), y: Y(c / max), width: X(bw / 2) - X(0), height: Y(0) - Y(c / max), fill: "#4caf50" })));
+  hist.failure.forEach((c, i) => root.append(svg("rect", { x: X(i * bw + bw / 2), y: Y(c / max), width: X(bw / 2) - X(0), height: Y(0) - Y(c / max), fill: "#e53935" })));
+  ticks(root, X, Y, Math.log10(hist.edges[0]), Math.log10(hist.edges[hist.edges.length - 1]), "x", (v) => `1e${v.toFixed(1)}`);
+  ticks(root, X, Y, 0, max, "y", (v) => v.toFixed(0));
+  return root;
+}
+
+// One live episode: the rule's statistic after each scored decision (by the env step at which it became
+// known) against the calibrated threshold; red points are above it.
+function trajectoryChart(detail) {
+  const pts = detail.risk;
+  const values = pts.map((p) => p.value).concat([detail.threshold]);
+  let lo = Math.min(...values), hi = Math.max(...values);
+  if (hi - lo < 1e-9) { lo -= 1; hi += 1; }
+  const pad = 0.08 * (hi - lo);
+  lo -= pad; hi += pad;
+  const x0 = 0, x1 = Math.max(1, ...pts.map((p) => p.known_at));
+  const title = `${detail.id} (${detail.task}, ${detail.rule} rule)`;
+  const [root, X, Y] = frame("trajectory", { "data-episode": detail.id }, title, "env step",
+    detail.rule === "band" ? "band z-score, running median" : "NMSE, running median", 320, 220);
+  const fx = (s) => X((s - x0) / (x1 - x0)), fy = (v) => Y((v - lo) / (hi - lo));
+  root.append(svg("line", { x1: X(0), x2: X(1), y1: fy(detail.threshold), y2: fy(detail.threshold), stroke: "#b00020",
+    "stroke-dasharray": "5", class: "threshold" }));
+  root.append(svg("polyline", { points: pts.map((p) => `${fx(p.known_at)},${fy(p.value)}`).join(" "), fill: "none",
+    stroke: "#1f3b57", "stroke-width": 2 }));
+  for (const p of pts) {
+    root.append(svg("circle", { cx: fx(p.known_at), cy: fy(p.value), r: 2.5, fill: p.value > detail.threshold ? "#b00020" : "#1f3b57" }));
   }
-  const label = svg("text", { x: P, y: 15, "font-size": 11 });
-  label.textContent = `early NMSE ${task}: success (green) / failure (red), log bins`;
-  root.append(label);
+  ticks(root, X, Y, x0, x1, "x", (v) => v.toFixed(0));
+  ticks(root, X, Y, lo, hi, "y", (v) => v.toPrecision(2));
   return root;
 }
 
@@ -79,17 +124,17 @@ async function refresh() {
     if (c.checkpoint) continue;
     thresholds[c.task] = c.threshold;
     const live = episodes.filter((e) => e.task === c.task);
-    const risks = live.map((e) => (e.running_score !== null && c.threshold ? e.running_score / c.threshold : null)).filter((r) => r !== null);
+    const over = live.filter((e) => e.risk_score !== null && e.risk_score > c.threshold).length;
     const openAlerts = alerts.filter((a) => a.task === c.task && a.state === "open").length;
     const r = c.result;
     tbody.append(h("tr", { "data-task": c.task },
       h("td", {}, c.task), h("td", {}, `${fmt(r.auroc)} [${fmt(r.auroc_ci_low)}, ${fmt(r.auroc_ci_high)}]`),
       h("td", {}, fmt(r.average_precision)), h("td", {}, fmt(r.permutation_p, 4)),
-      h("td", {}, `${fmt(c.threshold, 4)} (${c.threshold_rule})`), h("td", {}, String(live.length)),
-      h("td", { class: risks.some((x) => x > 1) ? "risk-high" : "" }, risks.length ? fmt(Math.max(...risks), 2) : "-"),
+      h("td", {}, `${c.rule}: ${fmt(c.threshold, 4)}`), h("td", {}, r.alpha === undefined ? "-" : String(r.alpha)),
+      h("td", {}, String(live.length)), h("td", { class: over ? "risk-high" : "" }, String(over)),
       h("td", {}, String(openAlerts))));
     const box = h("div", { class: "chart" });
-    box.append(rocChart(c.task, r.roc, r.auroc), histogramChart(c.task, r.histogram, c.threshold));
+    box.append(rocChart(c.task, r.roc, r.auroc), histogramChart(c.task, r.histogram));
     charts.append(box);
   }
   document.getElementById("pooled").textContent = report.pooled.auroc === null ? "" :
@@ -112,13 +157,25 @@ async function refresh() {
   ebody.replaceChildren();
   for (const e of episodes) {
     const thr = thresholds[e.task];
-    const risk = e.running_score !== null && thr ? e.running_score / thr : null;
+    const known = e.risk_score !== null && thr !== undefined;
     ebody.append(h("tr", { "data-episode": e.id },
       h("td", {}, e.id), h("td", {}, e.task), h("td", {}, e.robot), h("td", {}, `${e.n_decisions} (${e.n_scored})`),
       h("td", {}, e.early_score === null ? "-" : fmt(e.early_score, 4)),
       h("td", {}, e.running_score === null ? "-" : fmt(e.running_score, 4)),
-      h("td", { class: risk > 1 ? "risk-high" : "" }, risk === null ? "-" : fmt(risk, 2)), h("td", {}, e.alert_note)));
+      h("td", { class: known && e.risk_score > thr ? "risk-high" : "" }, known ? `${fmt(e.risk_score, 3)} / ${fmt(thr, 3)}` : "-"),
+      h("td", {}, e.alert_note)));
   }
+
+  const details = await Promise.all(episodes.slice(0, TRAJECTORIES).map((e) => api(`/v1/episodes/${encodeURIComponent(e.id)}`)));
+  const traj = document.getElementById("trajectories");
+  traj.replaceChildren();
+  for (const d of details) {
+    if (d.rule === null || d.risk.length === 0) continue;
+    const box = h("div", { class: "chart" });
+    box.append(trajectoryChart(d));
+    traj.append(box);
+  }
+  if (!traj.children.length) traj.append(h("p", {}, "No live episode has a scored decision under a usable calibration."));
 }
 
 async function acknowledge(id) {
@@ -158,7 +215,7 @@ async function stream() {
 async function connect(ev) {
   if (ev) ev.preventDefault();
   state.key = document.getElementById("api-key").value || state.key;
-  localStorage.setItem("jepaMonitorKey", state.key);
+  sessionStorage.setItem("jepaMonitorKey", state.key);
   try {
     await refresh();
     setStatus("connected");

@@ -162,17 +162,19 @@ def test_report_summary_names_threshold_and_false_alarms():
     result = {"n_failure": 20, "n_success": 12, "auroc": 0.7, "auroc_ci_low": 0.5, "auroc_ci_high": 0.85,
               "n_bootstrap": 100, "average_precision": 0.8, "permutation_p": 0.04, "n_permutation": 100,
               "youden_threshold": 0.1234567, "youden_bacc_in_sample": 0.7, "youden_bacc_held_out": 0.6,
-              "held_out_method": "2-fold", "alpha": 0.1, "conformal_threshold": 0.17552496612009205,
-              "conformal_note": "rank 12 of 12"}
+              "held_out_method": "2-fold", "alpha": 0.1,
+              "rule": {"params": {"kind": "band", "window": 5, "debounce": 2, "clear_ratio": 0.8},
+                       "threshold": 0.17552496612009205, "note": "threshold = 10-th smallest of 10"}}
     live = {"episodes": 24, "failures": 14, "alerts": 8, "alerted_episodes": 8, "alerted_failures": 7,
             "alerted_successes": 1}
     summary = {"success": {"jepa": rate, "mip": rate}, "latency": {"arms": {}},
                "calibrations": {42: {"result": result, "threshold": 0.17552496612009205, "checkpoint": "c",
-                                     "threshold_rule": "conformal"}},
+                                     "rule": "band"}},
                "live": live}
     page, text = render_markdown(summary, {"mode": "default"}, {})
     assert page.startswith("# JEPA Policy on PushT: main job report (default mode)\n")
-    assert "threshold 0.1755" in text and "0.175524" not in page
+    assert "band rule threshold 0.1755" in text and "0.175524" not in page
+    assert "Alert rule **band** (window 5, debounce 2): threshold 0.1755, so at most 0.1 of successful" in page
     assert "7/14 failures and 1/10 successes flagged" in text
     assert "8 intervention alerts on 8 episodes (7 failures, 1 success)." in page
     assert "below the 60.0% aim for the default budget" in text
@@ -185,10 +187,8 @@ def test_report_summary_names_threshold_and_false_alarms():
     page, text = render_markdown(summary, {"mode": "default"}, {})
     assert "1 intervention alert on 1 episode (1 failure, 0 successes)." in page
     assert "live: 1 alert on 1 of 24 episodes" in text
-    summary["calibrations"][42]["threshold"] = result["conformal_threshold"] = None
     page, text = render_markdown(summary, {"mode": "default", "train_overrides": {"steps": 6000}}, {})
     assert page.startswith("# JEPA Policy on PushT: main job report (default mode, 6000 training steps per arm)")
-    assert "threshold infinite (no alarms)" in text and "Active alarm threshold (conformal): infinite" in page
 
 
 def test_report_describes_demonstrations_from_an_older_file(pusht_demo_file, tmp_path):

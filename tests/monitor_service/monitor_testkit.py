@@ -53,3 +53,31 @@ def post_batch(client, headers, records, key=None):
     if key:
         h["Idempotency-Key"] = key
     return client.post("/v1/batch", json={"records": records}, headers=h)
+
+
+def records_for_nmse(episode, task, rng, nmse_values, steps=None, horizon=4, dim=DIM, held_out=True, success=None,
+                     length=None, persistence=None):
+    """Records of one episode whose decision t has (up to float32 rounding) the given NMSE: z_hat is the target
+    moved by rms(z) * sqrt(nmse * dim) along a random unit direction. ``persistence``: NMSE values of a z_now
+    sent with each decision (the persistence control), built the same way."""
+    steps = list(range(0, 8 * len(nmse_values), 8)) if steps is None else list(steps)
+    recs = []
+
+    def moved(z, value):
+        direction = rng.normal(size=dim)
+        direction /= np.linalg.norm(direction)
+        return (z + direction * np.sqrt(np.mean(z * z)) * np.sqrt(value * dim)).astype(np.float32).tolist()
+
+    for i, (t, value) in enumerate(zip(steps, nmse_values)):
+        z = rng.normal(size=dim)
+        dec = {"kind": "decision", "task": task, "episode": episode, "step": t, "horizon": horizon,
+               "z_hat": moved(z, value), "held_out": held_out}
+        if persistence is not None:
+            dec["z_now"] = moved(z, persistence[i])
+        recs += [dec, {"kind": "target", "episode": episode, "step": t + horizon, "z": z.astype(np.float32).tolist()}]
+    if success is not None:
+        out = {"kind": "outcome", "episode": episode, "success": success}
+        if length is not None:
+            out["length"] = length
+        recs.append(out)
+    return recs

@@ -19,7 +19,7 @@ from monitor_service.db import WebhookDelivery
 def run(scores, threshold=1.0, debounce=2, clear_ratio=0.8):
     state, events = AlertState(), []
     for s in scores:
-        state, event = step_alert(state, s, threshold, debounce, clear_ratio)
+        state, event = step_alert(state, s, threshold, debounce, clear_ratio * threshold)
         events.append(event)
     return state, events
 

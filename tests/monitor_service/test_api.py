@@ -11,6 +11,7 @@ from monitor_service import scoring
 from monitor_service.app import create_app
 from monitor_service.db import Decision, Episode, IdempotencyKey
 from monitor_service.encoding import MSGPACK_CONTENT_TYPE, pack
+from monitor_service.rules import alert_statistic, running_statistic
 
 from monitor_testkit import DIM, episode_records, make_settings, new_key, post_batch, register_task
 
@@ -28,7 +29,7 @@ def _alerts_total(metrics: str) -> float:
 def test_health_and_readiness(client):
     assert client.get("/healthz").json()["status"] == "ok"
     r = client.get("/readyz")
-    assert r.status_code == 200 and r.json()["detail"] == "schema 0001"
+    assert r.status_code == 200 and r.json()["detail"] == "schema 0002"
     paths = client.get("/openapi.json").json()["paths"]
     assert "application/x-msgpack" in paths["/v1/batch"]["post"]["requestBody"]["content"]
 
@@ -229,17 +230,27 @@ def test_calibration_report_and_alerts_end_to_end(client, robot, operator, admin
     assert client.get("/v1/alerts", headers=operator).json() == []
 
     _ingest_calibration_set(client, robot, "Square", rng, 30, 12, 0.3, 0.6)
-    r = client.post("/v1/calibrations", json={"task": "Square", "alpha": 0.1, "seed": 1}, headers=admin)
+    r = client.post("/v1/calibrations", json={"task": "Square", "alpha": 0.1, "seed": 1, "rule": "running"},
+                    headers=admin)
     assert r.status_code == 201, r.text
     cal = r.json()
     res = cal["result"]
     assert res["n_success"] == 30 and res["n_failure"] == 12 and res["skipped_episodes"] == 0
     assert res["auroc"] > 0.9 and res["auroc_ci_low"] <= res["auroc"] <= res["auroc_ci_high"]
     assert res["held_out_method"] == "leave-one-group-out over 2 groups"
-    # The conformal threshold is the ceil(31 * 0.9) = 28th smallest success early score.
+    # The threshold is the ceil(31 * 0.9) = 28th smallest of the successes' alert statistics: per episode the
+    # largest min over 2 consecutive running medians (window 5) of its NMSE, recomputed here from the stored rows.
     with client.app.state.sessionmaker() as s:
-        succ = sorted(e.early_score for e in s.scalars(select(Episode).where(Episode.held_out.is_(True), Episode.success.is_(True))))
-    assert cal["threshold"] == pytest.approx(succ[27]) and cal["threshold_rule"] == "conformal"
+        ids = s.scalars(select(Episode.id).where(Episode.held_out.is_(True), Episode.success.is_(True))).all()
+        stat = sorted(alert_statistic(running_statistic(np.array(s.scalars(
+            select(Decision.nmse).where(Decision.episode_id == i).order_by(Decision.step)).all()), 5), 2) for i in ids)
+    assert cal["threshold"] == pytest.approx(stat[27]) and cal["rule"] == "running"
+    assert res["rule"]["rank"] == 28 and res["rule"]["n_conformal"] == 30
+    for kind in ("running", "band"):   # cross-fitted detection figures of both rules
+        d = res["detection"][kind]
+        assert d["successes"] + d["failures"] + d["skipped_episodes"] == 42
+        assert d["false_alert_ci"][0] <= d["false_alert_rate"] <= d["false_alert_ci"][1]
+    assert res["controls"]["persistence"]["auroc"] is None and "z_now" in res["controls"]["persistence"]["reason"]
 
     # A bad live episode now raises exactly one alert (debounce 2, hysteresis), visible everywhere.
     alerts_before = _alerts_total(client.get("/metrics", headers=operator).text)
@@ -268,7 +279,7 @@ def test_alert_hysteresis_clears_and_does_not_flap(client, robot, operator, admi
     register_task(client, "Square")
     rng = np.random.default_rng(8)
     _ingest_calibration_set(client, robot, "Square", rng, 20, 10, 0.3, 0.6)
-    thr = client.post("/v1/calibrations", json={"task": "Square", "threshold_rule": "youden"}, headers=admin).json()["threshold"]
+    thr = client.post("/v1/calibrations", json={"task": "Square", "rule": "running"}, headers=admin).json()["threshold"]
     z = rng.normal(size=DIM)
     rms = np.sqrt(np.mean(z**2))
 
@@ -290,16 +301,19 @@ def test_alert_hysteresis_clears_and_does_not_flap(client, robot, operator, admi
     assert client.get("/v1/episodes/hyst", headers=operator).json()["open_alert_id"] is None
 
 
-def test_infinite_conformal_threshold_says_so(client, robot, operator, admin):
+def test_too_few_successes_for_alpha_says_how_many(client, robot, operator, admin):
     register_task(client, "Square")
     rng = np.random.default_rng(9)
     _ingest_calibration_set(client, robot, "Square", rng, 5, 5, 0.3, 0.6)
-    cal = client.post("/v1/calibrations", json={"task": "Square", "alpha": 0.1}, headers=admin).json()
-    assert cal["threshold"] is None and "infinite: 5 success episodes" in cal["result"]["conformal_note"]
+    for rule, need in (("running", 9), ("band", 17)):
+        r = client.post("/v1/calibrations", json={"task": "Square", "alpha": 0.1, "rule": rule}, headers=admin)
+        assert r.status_code == 422 and f"needs at least {need} successful held-out episodes" in r.json()["detail"]
+        assert f"got 5; record {need - 5} more" in r.json()["detail"]
+    assert client.get("/v1/calibrations", headers=operator).json() == []
     recs, _ = episode_records("after", "Square", rng, 2.0, n_steps=8, held_out=False)
     post_batch(client, robot, recs)
     ep = client.get("/v1/episodes/after", headers=operator).json()
-    assert ep["open_alert_id"] is None and "infinite threshold" in ep["alert_note"]
+    assert ep["open_alert_id"] is None and "no active calibration" in ep["alert_note"]
 
 
 def test_calibration_refusals(client, robot, admin):
@@ -316,7 +330,7 @@ def test_calibration_refusals(client, robot, admin):
 def test_per_checkpoint_calibration_takes_precedence(client, robot, operator, admin):
     register_task(client, "Square")
     rng = np.random.default_rng(11)
-    for i in range(24):
+    for i in range(27):   # 18 successes: the band rule needs 17 at alpha 0.1
         fail = i % 3 == 0
         recs, _ = episode_records(f"ck-{i}", "Square", rng, 0.6 if fail else 0.3, n_steps=6, success=not fail)
         recs[0]["checkpoint"] = "ckpt-A"
@@ -324,8 +338,8 @@ def test_per_checkpoint_calibration_takes_precedence(client, robot, operator, ad
     _ingest_calibration_set(client, robot, "Square", rng, 20, 10, 0.3, 0.6)
     task_cal = client.post("/v1/calibrations", json={"task": "Square"}, headers=admin).json()
     ck_cal = client.post("/v1/calibrations", json={"task": "Square", "checkpoint": "ckpt-A"}, headers=admin).json()
-    assert ck_cal["result"]["n_success"] + ck_cal["result"]["n_failure"] == 24
-    assert task_cal["result"]["n_success"] + task_cal["result"]["n_failure"] == 54
+    assert ck_cal["result"]["n_success"] + ck_cal["result"]["n_failure"] == 27
+    assert task_cal["result"]["n_success"] + task_cal["result"]["n_failure"] == 57
     recs, _ = episode_records("ck-live", "Square", rng, 0.3, n_steps=6, held_out=False)
     recs[0]["checkpoint"] = "ckpt-A"
     post_batch(client, robot, recs)
@@ -343,7 +357,8 @@ def test_simpson_two_tasks_through_the_service(client, robot, operator, admin):
     # "Low": small errors, mostly failures; "High": large errors, mostly successes (NMSE ~ noise^2).
     _ingest_calibration_set(client, robot, "Low", rng, 12, 36, 0.40, 0.60)
     _ingest_calibration_set(client, robot, "High", rng, 36, 12, 0.75, 1.10)
-    per_task = {t: client.post("/v1/calibrations", json={"task": t}, headers=admin).json()["auroc"] for t in ("Low", "High")}
+    per_task = {t: client.post("/v1/calibrations", json={"task": t, "rule": "running"}, headers=admin).json()["auroc"]
+                for t in ("Low", "High")}
     assert min(per_task.values()) > 0.85, per_task
     rep = client.get("/v1/report", headers=operator).json()
     assert rep["pooled"]["n_episodes"] == 96

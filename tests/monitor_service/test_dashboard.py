@@ -1,4 +1,5 @@
-"""The dashboard in headless Debian Chromium against a real uvicorn server: data shown, acknowledge clicked."""
+"""The dashboard in headless Debian Chromium against a real uvicorn server: data and risk trajectories shown,
+charts labelled, acknowledge clicked, the key kept in sessionStorage."""
 import os
 
 import httpx
@@ -50,6 +51,23 @@ def test_dashboard_shows_risk_roc_and_acknowledges(tmp_path):
                 page.wait_for_selector("svg.roc[data-task='Square'] polyline")
                 assert page.locator("svg.histogram[data-task='Square'] rect").count() > 0
                 assert "live-bad" in page.inner_text("#episodes")
+                # the live episode's risk trajectory against the band threshold, points above it in red
+                traj = page.locator("svg.trajectory[data-episode='live-bad']")
+                traj.locator("polyline").wait_for()
+                assert traj.locator("line.threshold").count() == 1
+                assert traj.locator("circle[fill='#b00020']").count() >= 2
+                assert "band" in traj.locator("text.title").text_content()
+                # every chart has its axis labels, and its title fits inside it
+                for chart in ("svg.histogram[data-task='Square']", "svg.roc[data-task='Square']",
+                              "svg.trajectory[data-episode='live-bad']"):
+                    loc = page.locator(chart)
+                    assert loc.locator("text.xlabel").text_content() and loc.locator("text.ylabel").text_content()
+                    title, outer = loc.locator("text.title").bounding_box(), loc.bounding_box()
+                    assert title["x"] >= outer["x"] and title["x"] + title["width"] <= outer["x"] + outer["width"]
+                assert "median NMSE" in page.locator("svg.histogram text.xlabel").text_content()
+                # the key lives in this tab's sessionStorage only
+                assert page.evaluate("sessionStorage.getItem('jepaMonitorKey')") == op_key
+                assert page.evaluate("localStorage.getItem('jepaMonitorKey')") is None
                 assert "WARNING" in page.inner_text("#pooled")
                 row = page.locator(f"#alerts tr[data-alert='{alert_id}']")
                 assert row.count() == 1 and "open" in row.inner_text()

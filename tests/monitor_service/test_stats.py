@@ -1,6 +1,5 @@
 """Calibration statistics against scikit-learn and scipy references and constructed cases (paper Sec. 4.10)."""
 import itertools
-import math
 
 import numpy as np
 import pytest
@@ -102,29 +101,6 @@ def test_bootstrap_ci_constructed_cases():
     assert low < stats.auroc(scores, labels) < high
 
 
-def test_conformal_threshold_rank_and_infinite_case():
-    s = np.arange(1.0, 10.0)  # n = 9 successes
-    assert stats.conformal_threshold(s, 0.1) == 9.0  # r = ceil(10 * 0.9) = 9
-    assert stats.conformal_threshold(s, 0.2) == 8.0  # r = ceil(10 * 0.8) = 8
-    assert math.isinf(stats.conformal_threshold(np.arange(1.0, 9.0), 0.1))  # n = 8: r = 9 > n
-    assert stats.min_successes_for_alpha(0.1) == 9
-    assert stats.min_successes_for_alpha(0.05) == 19
-    with pytest.raises(ValueError, match="alpha"):
-        stats.conformal_threshold(s, 1.5)
-
-
-def test_conformal_false_alarm_rate_is_at_most_alpha():
-    rng = np.random.default_rng(0)
-    alpha, n, trials = 0.1, 39, 4000
-    alarms = 0
-    for _ in range(trials):
-        thr = stats.conformal_threshold(rng.exponential(size=n), alpha)
-        alarms += rng.exponential() > thr
-    rate = alarms / trials
-    # Exact for continuous scores: 1 - r/(n+1) = 1 - 36/40 = 0.1; allow Monte Carlo error.
-    assert rate <= alpha + 3 * math.sqrt(alpha * (1 - alpha) / trials)
-
-
 def test_held_out_balanced_accuracy_leave_one_group_out():
     rng = np.random.default_rng(2)
     labels = np.tile([0, 0, 1], 30)
@@ -168,7 +144,7 @@ def test_simpson_two_tasks_pooled_chance_per_task_good():
 
 def test_calibrate_bundles_everything(data):
     scores, labels = data
-    cal = stats.calibrate(np.abs(scores) + 0.01, labels, alpha=0.1, n_bootstrap=500, n_permutation=500)
+    cal = stats.calibrate(np.abs(scores) + 0.01, labels, n_bootstrap=500, n_permutation=500)
     d = cal.to_dict()
     assert d["auroc"] == pytest.approx(roc_auc_score(labels, np.abs(scores)))
     assert d["n_success"] + d["n_failure"] == labels.size
@@ -176,3 +152,21 @@ def test_calibrate_bundles_everything(data):
     assert len(d["histogram"]["success"]) == len(d["histogram"]["edges"]) - 1
     assert sum(d["histogram"]["success"]) == d["n_success"]
     assert sum(d["histogram"]["failure"]) == d["n_failure"]
+
+
+def test_auroc_with_ci_and_residualise():
+    rng = np.random.default_rng(3)
+    labels = np.r_[np.zeros(40, int), np.ones(20, int)]
+    scores = rng.normal(size=60) + labels
+    out = stats.auroc_with_ci(scores, labels, n_bootstrap=500, seed=0)
+    assert out["auroc"] == pytest.approx(roc_auc_score(labels, scores))
+    assert out["ci"][0] <= out["auroc"] <= out["ci"][1] and out["n"] == 60 and out["n_failure"] == 20
+    missing = stats.auroc_with_ci(scores[:40], labels[:40])
+    assert missing["auroc"] is None and "both successes and failures" in missing["reason"]
+    x = rng.normal(size=50)
+    y = 2.0 + 3.0 * x + rng.normal(scale=0.1, size=50)
+    resid, a, b = stats.residualise(y, x)
+    ref = np.polyfit(x, y, 1)
+    assert (b, a) == pytest.approx(tuple(ref)) and abs(resid.mean()) < 1e-9 and abs(np.dot(resid, x)) < 1e-8
+    with pytest.raises(ValueError, match="equal length"):
+        stats.residualise(y, x[:10])

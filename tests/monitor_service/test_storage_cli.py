@@ -20,7 +20,7 @@ def test_migrations_reach_head_idempotently_and_match_models(tmp_path):
     assert db.current_revision(engine) is None
     db.upgrade(engine)
     db.upgrade(engine)
-    assert db.current_revision(engine) == db.head_revision() == "0001"
+    assert db.current_revision(engine) == db.head_revision() == "0002"
     with engine.connect() as conn:
         assert compare_metadata(MigrationContext.configure(conn), db.Base.metadata) == []
         assert conn.execute(text("PRAGMA journal_mode")).scalar() == "wal"
@@ -43,7 +43,7 @@ def test_cli_offline_calibrate_report_keys_tasks(tmp_path, capsys):
     settings = make_settings(tmp_path)
     url = ["--database-url", settings.database_url]
     assert main(url + ["db", "upgrade"]) == 0
-    assert "revision 0001" in capsys.readouterr().out
+    assert "revision 0002" in capsys.readouterr().out
     assert main(url + ["tasks", "add", "Square", "Coffee", "--latent-dim", "16"]) == 0
     assert main(url + ["keys", "create", "--name", "arm9", "--role", "robot", "--robot", "arm9"]) == 0
     key = json.loads(capsys.readouterr().out.strip().splitlines()[-1])["key"]
@@ -55,7 +55,8 @@ def test_cli_offline_calibrate_report_keys_tasks(tmp_path, capsys):
             post_batch(c, robot, episode_records(f"e{i}", "Square", rng, 0.6 if fail else 0.3, n_steps=5, success=not fail)[0], key=f"k{i}")
     assert main(url + ["calibrate", "--task", "Square", "--n-bootstrap", "300", "--n-permutation", "300"]) == 0
     out = capsys.readouterr().out
-    assert "AUROC" in out and "n_success=20, n_failure=10" in out and "conformal threshold at alpha=0.1" in out
+    assert "AUROC" in out and "n_success=20, n_failure=10" in out and "alert rule band (window 5, debounce 2)" in out
+    assert "at alpha=0.1" in out and "false alerts on successes" in out and "control persistence: n/a" in out
     assert main(url + ["report"]) == 0
     out = capsys.readouterr().out
     assert "Square" in out and "uncalibrated (no alerts): Coffee" in out and "WARNING" in out

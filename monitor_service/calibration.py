@@ -1,0 +1,134 @@
+"""One task's calibration from its held-out labelled episodes, as a pure function of their decisions.
+
+A calibration has four parts (docs/monitor.md):
+1. the early-score figures of the paper (Sec. 4.10): AUROC with a bootstrap CI, PR-AUC, permutation p, Youden
+   thresholds held out across groups; the ranking figure, not an alarm;
+2. the alert rule that alarms (``rules.py``): its threshold, calibrated on the successes so that at most alpha
+   of new successful episodes raise any alert;
+3. cross-fitted detection figures of both rules at that alpha: false-alert rate on successes and true-alert
+   rate on failures with binomial intervals, detection time and lead;
+4. the paper's controls: the persistence baseline z_hat = z_t and NMSE residualised on the magnitude of latent
+   change (log NMSE regressed on log persistence NMSE), each with its AUROC and CI beside the main score.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from monitor_service import rules, scoring, stats
+
+ASSUMPTIONS = (
+    "The false-alert guarantee P(a successful episode raises any alert) <= alpha holds for new episodes "
+    "exchangeable with the held-out successes: the same task, checkpoint and robot set-up, episodes of the same "
+    "length regime, scored with the same window, debounce and hysteresis. It is marginal over the calibration "
+    "set (finite-sample, split conformal over whole episodes), not a per-episode failure probability."
+)
+
+
+@dataclass
+class LabelledEpisode:
+    """A held-out episode: its decisions in step order ({"step", "target_step", "nmse", "nmse_persistence"},
+    NMSE null where the target never arrived), outcome, group and length (env steps) when known."""
+
+    episode: str
+    success: bool
+    decisions: list[dict] = field(default_factory=list)
+    group: str | None = None
+    length: int | None = None
+
+    def scores(self) -> rules.EpisodeScores:
+        return rules.EpisodeScores.from_decisions(self.decisions, self.success, self.length, self.group, self.episode)
+
+    def early(self, key: str = "nmse", n_first: int = 5) -> float | None:
+        """Median of the first ``n_first`` decisions' ``key``; None unless all of them have it (Sec. 4.10)."""
+        ordered = sorted(self.decisions, key=lambda d: d["step"])
+        return scoring.early_score([d.get(key) for d in ordered], n_first)
+
+
+def _labels(episodes: list[LabelledEpisode]) -> np.ndarray:
+    """Failure = 1, the positive class of every statistic."""
+    return np.array([0 if e.success else 1 for e in episodes], dtype=np.int64)
+
+
+def early_figures(episodes: list[LabelledEpisode], early_decisions: int, n_bootstrap: int, n_permutation: int,
+                  seed: int) -> tuple[dict, int]:
+    """The paper's early-score figures over the episodes whose first decisions are all scored, and how many
+    episodes were left out."""
+    usable = [(e, e.early(n_first=early_decisions)) for e in episodes]
+    usable = [(e, s) for e, s in usable if s is not None]
+    scores = np.array([s for _, s in usable], dtype=np.float64)
+    labels = _labels([e for e, _ in usable])
+    groups = [e.group for e, _ in usable]
+    if scores.size == 0:
+        raise ValueError(f"no held-out episode has an outcome and {early_decisions} scored decisions; record "
+                         "held-out labelled rollouts first")
+    groups_arr = None if any(g is None for g in groups) else np.array(groups, dtype=object)
+    figures = stats.calibrate(scores, labels, groups_arr, n_bootstrap, n_permutation, seed).to_dict()
+    return figures, len(episodes) - len(usable)
+
+
+def control_figures(episodes: list[LabelledEpisode], early_decisions: int, n_bootstrap: int, seed: int) -> dict:
+    """Persistence baseline and residualised NMSE (Sec. 4.10), or why they cannot be computed here."""
+    persistence = [(e, e.early("nmse_persistence", early_decisions)) for e in episodes]
+    persistence = [(e, s) for e, s in persistence if s is not None]
+    out = {"persistence": {"auroc": None, "ci": None, "n": len(persistence),
+                           "reason": "no held-out episode sent z_now (the current latent) with its first decisions"},
+           "residualised": {"auroc": None, "ci": None, "n": 0, "reason": "needs the persistence scores"}}
+    if not persistence:
+        return out
+    out["persistence"] = {**stats.auroc_with_ci(np.array([s for _, s in persistence]),
+                                                _labels([e for e, _ in persistence]), n_bootstrap, seed),
+                          "what": "early score of NMSE(z_t, z_{t+k}): the future predicted as the present"}
+    pairs = [(d["nmse"], d["nmse_persistence"]) for e in episodes for d in e.decisions
+             if d.get("nmse") is not None and d.get("nmse_persistence") is not None]
+    if len(pairs) < 3:
+        out["residualised"]["reason"] = "fewer than 3 decisions with both scores"
+        return out
+    y = np.log(np.maximum([p[0] for p in pairs], rules.LOG_FLOOR))
+    x = np.log(np.maximum([p[1] for p in pairs], rules.LOG_FLOOR))
+    _, a, b = stats.residualise(y, x)
+    resid = []
+    for e in episodes:
+        values = []
+        for d in sorted(e.decisions, key=lambda d: d["step"])[:early_decisions]:
+            if d.get("nmse") is None or d.get("nmse_persistence") is None:
+                break
+            values.append(math.log(max(d["nmse"], rules.LOG_FLOOR)) - a -
+                          b * math.log(max(d["nmse_persistence"], rules.LOG_FLOOR)))
+        if len(values) == early_decisions:
+            resid.append((e, float(np.median(values))))
+    out["residualised"] = {**stats.auroc_with_ci(np.array([s for _, s in resid]), _labels([e for e, _ in resid]),
+                                                 n_bootstrap, seed),
+                           "fit": {"intercept": a, "slope": b, "decisions": len(pairs)},
+                           "what": "early score of log NMSE minus its least-squares line on log persistence NMSE"}
+    return out
+
+
+def calibrate(episodes: list[LabelledEpisode], params: rules.RuleParams, alpha: float, *, folds: int = 5,
+              early_decisions: int = 5, n_bootstrap: int = 10_000, n_permutation: int = 10_000,
+              seed: int = 0) -> dict:
+    """Every figure of one calibration (JSON-ready). Raises ValueError with the fix when the data cannot
+    support it: no usable early scores, one outcome class only, or too few successes for the rule at alpha."""
+    figures, skipped = early_figures(episodes, early_decisions, n_bootstrap, n_permutation, seed)
+    scored = [e.scores() for e in episodes]
+    successes = [s for s in scored if s.success and s.steps.size]
+    rule = rules.calibrate_rule(successes, params, alpha, seed)
+    judged = [s for s in scored if s.steps.size]
+    detection = {kind: rules.cross_fit(judged, rules.RuleParams(kind, params.window, params.debounce,
+                                                                params.clear_ratio), alpha, folds, seed)
+                 for kind in rules.RULE_KINDS}
+    return {
+        **figures,
+        "alpha": alpha,
+        "rule": rule.to_dict(),
+        "detection": detection,
+        "controls": control_figures(episodes, early_decisions, n_bootstrap, seed),
+        "assumptions": ASSUMPTIONS,
+        "skipped_episodes": skipped,
+        "skipped_reason": f"held-out episodes whose first {early_decisions} decisions lack a valid target "
+                          "(left out of the early-score figures only)",
+        "n_bootstrap": n_bootstrap,
+        "n_permutation": n_permutation,
+    }

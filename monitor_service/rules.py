@@ -1,0 +1,375 @@
+"""Alert rules whose false-alarm guarantee covers the alerts actually raised, as pure functions.
+
+An alert rule turns an episode's scored decisions (NMSE in decision-step order) into a *running statistic*
+r_1, r_2, ... and raises an alert when ``debounce`` consecutive values exceed the threshold (``alerts.step_alert``).
+Two rules:
+
+- ``running``: r_i = median of the last ``window`` NMSE values (fewer at the start of the episode).
+- ``band``: each NMSE is first judged against the successful episodes *at the same decision step*
+  (time-varying band, as in FAIL-Detect): z = (log NMSE - m(step)) / s(step), with m and s the median and the
+  MAD-scale of log NMSE of calibration successes at that step; r_i = median of the last ``window`` z values.
+
+Episode-level guarantee. For a whole episode let A = max_i min(r_{i-d+1}, ..., r_i) (d = debounce): the smallest
+threshold at which the episode would never have alerted (-inf when it has fewer than d scored decisions). The
+threshold is the split-conformal quantile of A over held-out successful episodes, the r-th smallest with
+r = ceil((n+1)(1-alpha)). A new successful episode exchangeable with those n then raises *any* alert with
+probability <= alpha, finite-sample, however long it runs. For ``band`` the successes are split once (seeded):
+one part fits the band, the other gives the conformal quantile, so the new episode stays exchangeable with
+the quantile's episodes. Assumptions: episodes of the same task, checkpoint and length regime, run the same
+way; window, debounce and the band belong to the calibrated rule (change them and recalibrate).
+
+Detection figures are cross-fitted: every held-out episode is judged by a rule calibrated without it.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass
+from typing import Literal
+
+import numpy as np
+from scipy.stats import binomtest
+
+RuleKind = Literal["running", "band"]
+RULE_KINDS: tuple[str, ...] = ("running", "band")
+BAND_MIN_EPISODES = 3        # successes needed at a decision step before the band has a point there
+BAND_SCALE_FLOOR = 0.1       # per-step scale >= this fraction of the pooled scale (a step of identical values)
+LOG_FLOOR = 1e-12            # NMSE is >= 0; log of an exact match is floored
+
+
+@dataclass(frozen=True)
+class RuleParams:
+    """What defines an alert rule; a calibration holds for exactly these values."""
+
+    kind: str = "running"
+    window: int = 5
+    debounce: int = 2
+    clear_ratio: float = 0.8
+
+    def __post_init__(self):
+        if self.kind not in RULE_KINDS:
+            raise ValueError(f"unknown alert rule {self.kind!r}; choose one of {list(RULE_KINDS)}")
+        if self.window < 1 or self.debounce < 1:
+            raise ValueError(f"window and debounce must be >= 1, got {self.window} and {self.debounce}")
+        if not 0.0 < self.clear_ratio <= 1.0:
+            raise ValueError(f"clear_ratio must lie in (0, 1], got {self.clear_ratio}")
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+@dataclass
+class EpisodeScores:
+    """One episode's scored decisions in step order, its outcome and where it ended (env steps)."""
+
+    steps: np.ndarray                 # decision step t of each scored decision, increasing
+    nmse: np.ndarray                  # its NMSE
+    known_at: np.ndarray              # env step at which that NMSE became known (the target step t + k)
+    success: bool | None = None
+    end_step: int | None = None       # episode length in env steps, when known
+    group: str | None = None
+    episode: str = ""
+
+    @classmethod
+    def from_decisions(cls, decisions: list[dict], success: bool | None = None, end_step: int | None = None,
+                       group: str | None = None, episode: str = "") -> "EpisodeScores":
+        """From [{"step", "target_step", "nmse"}, ...]; decisions without an NMSE are left out."""
+        rows = sorted((int(d["step"]), int(d.get("target_step", d["step"])), float(d["nmse"]))
+                      for d in decisions if d.get("nmse") is not None)
+        steps = np.array([r[0] for r in rows], dtype=np.int64)
+        return cls(steps, np.array([r[2] for r in rows], dtype=np.float64),
+                   np.array([r[1] for r in rows], dtype=np.int64), success, end_step, group, episode)
+
+
+# ----------------------------------------------------------------------------------------------------------
+# The time-indexed band
+# ----------------------------------------------------------------------------------------------------------
+
+@dataclass
+class Band:
+    """Median and scale of log NMSE of successful episodes at each decision step (knots), piecewise constant:
+    a step between knots takes the knot at or before it; a step before the first knot takes the first."""
+
+    steps: list[int]
+    center: list[float]
+    scale: list[float]
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+    @classmethod
+    def from_dict(cls, data: dict) -> "Band":
+        band = cls([int(s) for s in data["steps"]], [float(c) for c in data["center"]],
+                   [float(s) for s in data["scale"]])
+        if not band.steps or not len(band.steps) == len(band.center) == len(band.scale):
+            raise ValueError("a band needs equally long, non-empty steps, center and scale lists")
+        return band
+
+    def standardise(self, steps: np.ndarray, nmse: np.ndarray) -> np.ndarray:
+        """z = (log NMSE - center) / scale at each decision's step."""
+        knots = np.asarray(self.steps)
+        i = np.clip(np.searchsorted(knots, np.asarray(steps), side="right") - 1, 0, len(knots) - 1)
+        logs = np.log(np.maximum(np.asarray(nmse, dtype=np.float64), LOG_FLOOR))
+        return (logs - np.asarray(self.center)[i]) / np.asarray(self.scale)[i]
+
+
+def fit_band(episodes: list[EpisodeScores], min_episodes: int = BAND_MIN_EPISODES) -> Band:
+    """The band of successful episodes: per decision step with >= ``min_episodes`` values, the median of log
+    NMSE and 1.4826 x its median absolute deviation (floored at BAND_SCALE_FLOOR x the pooled scale)."""
+    all_steps = np.concatenate([np.asarray(ep.steps, dtype=np.int64) for ep in episodes]) if episodes else \
+        np.zeros(0, dtype=np.int64)
+    if all_steps.size == 0:
+        raise ValueError("no scored decisions to fit a band to")
+    logs = np.log(np.maximum(np.concatenate([np.asarray(ep.nmse, dtype=np.float64) for ep in episodes]), LOG_FLOOR))
+    pooled_scale = 1.4826 * float(np.median(np.abs(logs - np.median(logs))))
+    floor = max(BAND_SCALE_FLOOR * pooled_scale, 1e-6)
+    order = np.argsort(all_steps, kind="stable")
+    knots, starts, counts = np.unique(all_steps[order], return_index=True, return_counts=True)
+    steps, center, scale = [], [], []
+    for s, start, count in zip(knots, starts, counts):
+        if count < min_episodes:
+            continue
+        vals = logs[order[start:start + count]]
+        med = float(np.median(vals))
+        steps.append(int(s))
+        center.append(med)
+        scale.append(max(1.4826 * float(np.median(np.abs(vals - med))), floor))
+    if not steps:   # every step is sparse (very few episodes): one knot from all values
+        steps, center, scale = [int(knots[0])], [float(np.median(logs))], [max(pooled_scale, floor)]
+    return Band(steps, center, scale)
+
+
+# ----------------------------------------------------------------------------------------------------------
+# The running statistic, the alert statistic and the first alert
+# ----------------------------------------------------------------------------------------------------------
+
+def decision_values(params: RuleParams, episode: EpisodeScores, band: Band | None) -> np.ndarray:
+    """What the rule takes a running median of: NMSE (``running``) or its band z-score (``band``)."""
+    if params.kind == "band":
+        if band is None:
+            raise ValueError("the band rule needs a fitted band")
+        return band.standardise(episode.steps, episode.nmse)
+    return np.asarray(episode.nmse, dtype=np.float64)
+
+
+def running_statistic(values: np.ndarray, window: int) -> np.ndarray:
+    """r_i = median of values[max(0, i - window + 1) .. i] for every i (a shorter window at the start)."""
+    values = np.asarray(values, dtype=np.float64)
+    head = [np.median(values[: i + 1]) for i in range(min(window - 1, values.size))]
+    if values.size < window:
+        return np.array(head, dtype=np.float64)
+    full = np.median(np.lib.stride_tricks.sliding_window_view(values, window), axis=1)
+    return np.concatenate([np.asarray(head, dtype=np.float64), full])
+
+
+def alert_statistic(running: np.ndarray, debounce: int) -> float:
+    """A = max_i min(r_{i-d+1..i}): the episode alerts at threshold T exactly when A > T; -inf if too short."""
+    running = np.asarray(running, dtype=np.float64)
+    if running.size < debounce:
+        return -math.inf
+    windows = np.lib.stride_tricks.sliding_window_view(running, debounce)
+    return float(windows.min(axis=1).max())
+
+
+def first_alert(running: np.ndarray, threshold: float, debounce: int) -> int | None:
+    """Index of the decision at which ``debounce`` consecutive values above ``threshold`` first complete."""
+    over = 0
+    for i, r in enumerate(np.asarray(running, dtype=np.float64)):
+        over = over + 1 if r > threshold else 0
+        if over >= debounce:
+            return i
+    return None
+
+
+def alert_timing(episode: EpisodeScores, index: int | None) -> dict:
+    """Where the first alert fell: decision index, its step, the env step at which it was known (its target
+    step) and the lead before the episode's end (env steps; None when the end is unknown)."""
+    if index is None:
+        return {"alerted": False, "decision_index": None, "step": None, "known_at": None, "lead": None}
+    known = int(episode.known_at[index])
+    return {"alerted": True, "decision_index": index, "step": int(episode.steps[index]), "known_at": known,
+            "lead": None if episode.end_step is None else int(episode.end_step) - known}
+
+
+def clear_level(params: RuleParams, threshold: float) -> float:
+    """Hysteresis: a raised alert clears after ``debounce`` values below this level. ``running``: clear_ratio x
+    threshold (NMSE is positive); ``band``: threshold + ln(clear_ratio) (z-scores of log NMSE may be negative,
+    and a ratio on NMSE is a shift of its log)."""
+    if params.kind == "band":
+        return threshold + math.log(params.clear_ratio)
+    return params.clear_ratio * threshold
+
+
+# ----------------------------------------------------------------------------------------------------------
+# Calibration
+# ----------------------------------------------------------------------------------------------------------
+
+def conformal_rank(n: int, alpha: float) -> int:
+    """r = ceil((n+1)(1-alpha)): the threshold is the r-th smallest of n calibration statistics."""
+    if not 0.0 < alpha < 1.0:
+        raise ValueError(f"alpha must lie in (0, 1), got {alpha}")
+    return math.ceil((n + 1) * (1.0 - alpha) - 1e-12)
+
+
+def min_conformal_episodes(alpha: float) -> int:
+    """Smallest n with r <= n, i.e. a finite threshold at ``alpha``."""
+    n = 1
+    while conformal_rank(n, alpha) > n:
+        n += 1
+    return n
+
+
+def min_successes(kind: str, alpha: float) -> int:
+    """Successful held-out episodes a calibration of ``kind`` needs at ``alpha`` (band: half fit the band)."""
+    m = min_conformal_episodes(alpha)
+    return m if kind == "running" else 2 * m - 1
+
+
+def band_split(n: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """Seeded split of n successes: (indices that fit the band, indices that give the conformal quantile)."""
+    order = np.random.default_rng(seed).permutation(n)
+    n_band = n // 2
+    return np.sort(order[:n_band]), np.sort(order[n_band:])
+
+
+@dataclass
+class CalibratedRule:
+    params: RuleParams
+    alpha: float
+    threshold: float
+    band: Band | None
+    n_successes: int        # successes the calibration was given
+    n_conformal: int        # of which the conformal quantile used (the rest fit the band)
+    rank: int
+    note: str
+
+    def to_dict(self) -> dict:
+        return {"params": self.params.to_dict(), "alpha": self.alpha, "threshold": self.threshold,
+                "band": None if self.band is None else self.band.to_dict(), "n_successes": self.n_successes,
+                "n_conformal": self.n_conformal, "rank": self.rank, "note": self.note}
+
+    @classmethod
+    def from_dict(cls, data: dict) -> "CalibratedRule":
+        return cls(RuleParams(**data["params"]), float(data["alpha"]), float(data["threshold"]),
+                   None if data.get("band") is None else Band.from_dict(data["band"]), int(data["n_successes"]),
+                   int(data["n_conformal"]), int(data["rank"]), str(data.get("note", "")))
+
+    def running(self, episode: EpisodeScores) -> np.ndarray:
+        return running_statistic(decision_values(self.params, episode, self.band), self.params.window)
+
+    def judge(self, episode: EpisodeScores) -> dict:
+        """Whether the episode alerts, and when (``alert_timing``)."""
+        return alert_timing(episode, first_alert(self.running(episode), self.threshold, self.params.debounce))
+
+
+def calibrate_rule(successes: list[EpisodeScores], params: RuleParams, alpha: float, seed: int = 0) -> CalibratedRule:
+    """The threshold of ``params`` at false-alert rate ``alpha`` from held-out successful episodes.
+
+    Raises ValueError naming how many successes are needed when there are too few, and when most successes are
+    too short to be judged at all (fewer scored decisions than ``debounce``).
+    """
+    n = len(successes)
+    need = min_successes(params.kind, alpha)
+    if n < need:
+        raise ValueError(
+            f"the {params.kind} rule at alpha={alpha} needs at least {need} successful held-out episodes with scored "
+            f"decisions, got {n}; record {need - n} more (or raise alpha)")
+    band, conformal = None, list(range(n))
+    if params.kind == "band":
+        fit_idx, conf_idx = band_split(n, seed)
+        band = fit_band([successes[i] for i in fit_idx])
+        conformal = list(conf_idx)
+    stats = np.sort([alert_statistic(running_statistic(decision_values(params, successes[i], band), params.window),
+                                     params.debounce) for i in conformal])
+    rank = conformal_rank(len(stats), alpha)
+    threshold = float(stats[rank - 1])
+    if not math.isfinite(threshold):
+        raise ValueError(
+            f"most successful episodes have fewer than {params.debounce} scored decisions, too few to be judged by a "
+            f"rule with debounce {params.debounce}; lower the debounce or record longer episodes")
+    note = (f"threshold = {rank}-th smallest of {len(stats)} successes' alert statistics "
+            f"(rank ceil((n+1)(1-alpha)))" + (f"; band fitted on the other {n - len(stats)}" if band else ""))
+    return CalibratedRule(params, alpha, threshold, band, n, len(stats), rank, note)
+
+
+# ----------------------------------------------------------------------------------------------------------
+# Cross-fitted detection figures
+# ----------------------------------------------------------------------------------------------------------
+
+def binomial_ci(k: int, n: int, level: float = 0.95) -> list[float] | None:
+    """Clopper-Pearson interval of a rate k / n (None when n = 0)."""
+    if n == 0:
+        return None
+    ci = binomtest(k, n).proportion_ci(confidence_level=level, method="exact")
+    return [float(ci.low), float(ci.high)]
+
+
+def _quartiles(values: list[float]) -> dict | None:
+    if not values:
+        return None
+    q1, med, q3 = np.percentile(np.asarray(values, dtype=np.float64), [25, 50, 75])
+    return {"median": float(med), "q1": float(q1), "q3": float(q3), "n": len(values)}
+
+
+def folds_of(episodes: list[EpisodeScores], k: int, seed: int) -> list[np.ndarray]:
+    """k folds stratified by group and outcome (each group's successes and failures spread over the folds)."""
+    rng = np.random.default_rng(seed)
+    fold_of = np.empty(len(episodes), dtype=np.int64)
+    keys = sorted({(str(e.group), bool(e.success)) for e in episodes})
+    for key in keys:
+        idx = np.array([i for i, e in enumerate(episodes) if (str(e.group), bool(e.success)) == key])
+        fold_of[rng.permutation(idx)] = np.arange(idx.size) % k
+    return [np.flatnonzero(fold_of == f) for f in range(k)]
+
+
+def cross_fit(episodes: list[EpisodeScores], params: RuleParams, alpha: float, k: int = 5, seed: int = 0,
+              within_groups: bool = False) -> dict:
+    """Detection figures of a rule, each episode judged by the rule calibrated on the successes of the other
+    folds: of all groups (as a calibration pools what it is given), or with ``within_groups`` of its own group
+    only (one calibration per checkpoint, as the main job calibrates).
+
+    Returns the false-alert rate on successes and the true-alert rate on failures (with Clopper-Pearson 95 %
+    intervals), detection time (decision index and the env step at which the alert was known) and lead before
+    the episode's end as median and quartiles, and how many episodes no fold could judge (too few successes).
+    """
+    figures = cross_fit_with(episodes, lambda train: calibrate_rule(train, params, alpha, seed), k, seed,
+                             within_groups)
+    return {"rule": params.to_dict(), "alpha": alpha, **figures}
+
+
+def cross_fit_with(episodes: list[EpisodeScores], fit, k: int = 5, seed: int = 0, within_groups: bool = False) -> dict:
+    """``cross_fit`` for any ``fit(train_successes) -> object with judge(episode)`` that raises ValueError when
+    the training successes cannot support it (those episodes are counted as skipped)."""
+    judged = {True: [], False: []}
+    skipped = 0
+    group_of = (lambda e: str(e.group)) if within_groups else (lambda e: "")
+    for test in folds_of(episodes, k, seed):
+        test_set = set(test.tolist())
+        for group in sorted({group_of(episodes[i]) for i in test}):
+            train = [e for i, e in enumerate(episodes)
+                     if i not in test_set and group_of(e) == group and e.success]
+            members = [episodes[i] for i in test if group_of(episodes[i]) == group]
+            try:
+                rule = fit(train)
+            except ValueError:
+                skipped += len(members)
+                continue
+            for e in members:
+                judged[bool(e.success)].append(rule.judge(e))
+    fa = sum(j["alerted"] for j in judged[True])
+    ta = sum(j["alerted"] for j in judged[False])
+    hits = [j for j in judged[False] if j["alerted"]]
+    return {
+        "folds": k,
+        "successes": len(judged[True]),
+        "failures": len(judged[False]),
+        "false_alerts": fa,
+        "false_alert_rate": fa / len(judged[True]) if judged[True] else None,
+        "false_alert_ci": binomial_ci(fa, len(judged[True])),
+        "true_alerts": ta,
+        "true_alert_rate": ta / len(judged[False]) if judged[False] else None,
+        "true_alert_ci": binomial_ci(ta, len(judged[False])),
+        "detection_decision": _quartiles([j["decision_index"] for j in hits]),
+        "detection_step": _quartiles([j["known_at"] for j in hits]),
+        "lead_steps": _quartiles([j["lead"] for j in hits if j["lead"] is not None]),
+        "skipped_episodes": skipped,
+    }

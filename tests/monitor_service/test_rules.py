@@ -1,0 +1,144 @@
+"""Alert rules: the episode-level false-alert guarantee on fresh episodes from a known distribution, detection of
+drifting failures, the former rule's excess, and the pure pieces against brute-force references."""
+import math
+
+import numpy as np
+import pytest
+from scipy.stats import binom, binomtest
+
+from monitor_service import rules
+from monitor_service.alerts import AlertState, step_alert
+from monitor_service.study import EarlyScoreRule
+from monitor_service.synthetic import SyntheticTask, synthetic_episodes
+
+ALPHA = 0.1
+N_CAL = 20          # successes per calibration: running uses all 20, band fits on 10 and ranks 10
+PAIRS = 500         # independent (calibration set, fresh episode) pairs per configuration
+
+
+def exact_false_alert_rate(kind: str) -> float:
+    """1 - r / (n + 1) for the conformal rank r over the n episodes the quantile is taken from."""
+    n = N_CAL if kind == "running" else N_CAL - N_CAL // 2
+    return 1 - rules.conformal_rank(n, ALPHA) / (n + 1)
+
+
+@pytest.mark.parametrize("decisions", [6, 40, 100])
+@pytest.mark.parametrize("kind", ["running", "band"])
+def test_fresh_successes_alert_at_most_alpha_whatever_the_length(kind, decisions):
+    """Each pair: a fresh calibration set and one fresh successful episode of the same law, so the count of
+    alerted episodes is Binomial(PAIRS, p) with p = 1 - r/(n+1) <= alpha (continuous statistics)."""
+    params = rules.RuleParams(kind)
+    alerts = 0
+    for i in range(PAIRS):
+        cal = synthetic_episodes(N_CAL, 0, decisions, seed=1_000_000 * decisions + 2 * i)
+        rule = rules.calibrate_rule(cal, params, ALPHA, seed=i)
+        fresh = synthetic_episodes(1, 0, decisions, seed=1_000_000 * decisions + 2 * i + 1)[0]
+        alerts += rule.judge(fresh)["alerted"]
+    p = exact_false_alert_rate(kind)
+    assert p <= ALPHA
+    # not above the promise: a one-sided binomial test against alpha does not reject at 0.001
+    assert binomtest(alerts, PAIRS, ALPHA, alternative="greater").pvalue > 1e-3, alerts
+    # and not a rule that never fires: inside the two-sided 99.8 % binomial range of the exact rate
+    assert binom.ppf(0.001, PAIRS, p) <= alerts <= binom.ppf(0.999, PAIRS, p), (alerts, p * PAIRS)
+
+
+def test_former_early_score_rule_exceeds_alpha_on_long_episodes():
+    """Conformal on the early score, alerting on the running median at every later decision: far above alpha."""
+    params, alerts = rules.RuleParams("running"), 0
+    for i in range(200):
+        cal = synthetic_episodes(N_CAL, 0, 40, seed=7_000 + 2 * i)
+        fresh = synthetic_episodes(1, 0, 40, seed=7_000 + 2 * i + 1)[0]
+        alerts += EarlyScoreRule(cal, params, ALPHA).judge(fresh)["alerted"]
+    assert binomtest(alerts, 200, ALPHA, alternative="greater").pvalue < 1e-6, alerts
+    assert alerts / 200 > 0.3
+
+
+@pytest.mark.parametrize("kind, least", [("running", 0.5), ("band", 0.9)])
+def test_failures_drifting_in_their_second_half_are_detected(kind, least):
+    cal = synthetic_episodes(40, 0, 40, seed=11)
+    rule = rules.calibrate_rule(cal, rules.RuleParams(kind), ALPHA, seed=0)
+    failures = synthetic_episodes(0, 100, 40, seed=12)
+    judged = [rule.judge(f) for f in failures]
+    assert np.mean([j["alerted"] for j in judged]) >= least
+    # the drift starts at decision 20: detections come after it, each known at its target step
+    hits = [j for j in judged if j["alerted"]]
+    assert np.median([j["decision_index"] for j in hits]) >= 20
+    assert all(j["known_at"] == 8 * j["decision_index"] + 4 and j["lead"] == 320 - j["known_at"] for j in hits)
+
+
+def test_band_follows_the_task_phase():
+    """Successes whose typical error changes with the phase: the band's centre tracks it at every step."""
+    task = SyntheticTask(phase_amplitude=1.0, noise_sd=0.1, episode_sd=0.0)
+    band = rules.fit_band(synthetic_episodes(60, 0, 40, seed=3, task=task))
+    j = np.arange(40)
+    expected = task.base + task.phase_amplitude * np.sin(2 * np.pi * j / task.phase_period)
+    assert band.steps == list(8 * j)
+    assert np.max(np.abs(np.array(band.center) - expected)) < 0.1
+    assert all(0.05 < s < 0.2 for s in band.scale)
+    # a step between knots takes the knot before it; before the first, the first
+    z = band.standardise(np.array([0, 9, 15, 16]), np.exp(np.array(band.center)[[0, 1, 1, 2]]))
+    assert np.allclose(z, 0.0)
+
+
+def test_pure_pieces_against_brute_force():
+    rng = np.random.default_rng(0)
+    for n in (0, 1, 4, 5, 6, 30):
+        v = rng.lognormal(size=n)
+        ref = np.array([np.median(v[max(0, i - 4): i + 1]) for i in range(n)])
+        run = rules.running_statistic(v, 5)
+        assert np.array_equal(run, ref)
+        a = rules.alert_statistic(run, 2)
+        if n < 2:
+            assert a == -math.inf
+            continue
+        # A is the smallest threshold at which the episode never alerts: just below it alerts, at it not
+        assert rules.first_alert(run, a, 2) is None and rules.first_alert(run, a - 1e-9, 2) is not None
+        # and the service's step_alert raises at exactly the pure function's index
+        state, raised = AlertState(), None
+        for i, r in enumerate(run):
+            state, event = step_alert(state, r, a - 1e-9, 2, 0.8 * a)
+            if event == "raise":
+                raised = i
+                break
+        assert raised == rules.first_alert(run, a - 1e-9, 2)
+
+
+def test_conformal_rank_and_minimum_successes():
+    assert rules.conformal_rank(9, 0.1) == 9 and rules.conformal_rank(8, 0.1) == 9
+    assert rules.min_conformal_episodes(0.1) == 9 and rules.min_conformal_episodes(0.05) == 19
+    assert rules.min_successes("running", 0.1) == 9 and rules.min_successes("band", 0.1) == 17
+    with pytest.raises(ValueError, match="alpha"):
+        rules.conformal_rank(10, 1.5)
+
+
+def test_calibration_errors_name_the_fix():
+    with pytest.raises(ValueError, match="needs at least 17 successful held-out episodes with scored decisions, "
+                                         "got 10; record 7 more"):
+        rules.calibrate_rule(synthetic_episodes(10, 0, 20, seed=0), rules.RuleParams("band"), ALPHA)
+    one_decision = synthetic_episodes(20, 0, 1, seed=0)
+    with pytest.raises(ValueError, match="fewer than 2 scored decisions"):
+        rules.calibrate_rule(one_decision, rules.RuleParams("running"), ALPHA)
+    with pytest.raises(ValueError, match="unknown alert rule"):
+        rules.RuleParams("early")
+
+
+def test_calibrated_rule_round_trips_through_json():
+    rule = rules.calibrate_rule(synthetic_episodes(30, 0, 30, seed=5), rules.RuleParams("band", 3, 1, 0.5), ALPHA)
+    again = rules.CalibratedRule.from_dict(rule.to_dict())
+    ep = synthetic_episodes(0, 1, 30, seed=6)[0]
+    assert again.params == rule.params and again.threshold == rule.threshold
+    assert np.array_equal(again.running(ep), rule.running(ep)) and again.judge(ep) == rule.judge(ep)
+    assert rules.clear_level(rule.params, 1.0) == pytest.approx(1.0 + math.log(0.5))
+    assert rules.clear_level(rules.RuleParams("running", clear_ratio=0.5), 2.0) == 1.0
+
+
+def test_cross_fit_judges_every_episode_once_with_binomial_intervals():
+    eps = synthetic_episodes(60, 30, 30, seed=8)
+    out = rules.cross_fit(eps, rules.RuleParams("running"), ALPHA, k=5, seed=0)
+    assert out["successes"] == 60 and out["failures"] == 30 and out["skipped_episodes"] == 0
+    ci = binomtest(out["false_alerts"], 60).proportion_ci(method="exact")
+    assert out["false_alert_ci"] == pytest.approx([ci.low, ci.high])
+    assert out["true_alert_rate"] == out["true_alerts"] / 30
+    # too few successes in the training folds: counted as skipped, never silently judged
+    few = rules.cross_fit(synthetic_episodes(8, 4, 10, seed=9), rules.RuleParams("running"), ALPHA, k=2)
+    assert few["successes"] == few["failures"] == 0 and few["skipped_episodes"] == 12
