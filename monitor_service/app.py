@@ -3,19 +3,28 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import ctypes
+import os
+import signal
+import sys
 import threading
 import time
 
 from fastapi import FastAPI, Request
+from fastapi.exception_handlers import http_exception_handler
 from fastapi.exceptions import RequestValidationError
+from fastapi.openapi.utils import get_openapi
 from fastapi.responses import JSONResponse
 from fastapi.staticfiles import StaticFiles
+from starlette.exceptions import HTTPException as StarletteHTTPException
+from starlette.routing import Match, Route
 
 from monitor_service import db
 from monitor_service.alerts import webhook_loop
 from monitor_service.auth import ensure_admin_key
 from monitor_service.metrics import REQUEST_SECONDS
 from monitor_service.routers import alerts, calibrations, dashboard, episodes, health, ingest, keys, tasks
+from monitor_service.schemas import ERROR_MEANING, Error
 from monitor_service.settings import MonitorSettings
 
 
@@ -72,9 +81,62 @@ class RequestTimer:
             REQUEST_SECONDS.observe(time.perf_counter() - start)
 
 
+PUBLIC_PATHS = {"/healthz", "/readyz"}
+SUPERVISOR_ENV = "JEPA_MONITOR_SUPERVISOR_PID"   # set by `jepa-monitor serve --workers N` for its workers
+
+
+def exit_with_parent(parent_pid: int, poll_s: float = 0.5) -> None:
+    """End this worker (SIGTERM: uvicorn's graceful shutdown) as soon as its supervising process is gone, even
+    after a SIGKILL, so a restarted service never meets an orphan holding its port.
+
+    Linux delivers the signal itself (prctl PR_SET_PDEATHSIG); a watcher thread covers other systems and the
+    moment before prctl took effect.
+    """
+    if sys.platform.startswith("linux"):
+        ctypes.CDLL(None, use_errno=True).prctl(1, signal.SIGTERM)   # 1 = PR_SET_PDEATHSIG
+
+    def watch() -> None:
+        while os.getppid() == parent_pid:
+            time.sleep(poll_s)
+        os.kill(os.getpid(), signal.SIGTERM)
+
+    threading.Thread(target=watch, name="exit-with-parent", daemon=True).start()
+
+
+def openapi_with_errors(app: FastAPI) -> dict:
+    """The OpenAPI document as the server answers: every 4xx is ``Error`` ({"detail": "..."}, 422 included);
+    routes behind a key document 401 and 403, routes with a body or parameters 400 / 413 / 422."""
+    if app.openapi_schema:
+        return app.openapi_schema
+    schema = get_openapi(title=app.title, version=app.version, description=app.description, routes=app.routes)
+    components = schema.setdefault("components", {}).setdefault("schemas", {})
+    components["Error"] = Error.model_json_schema()
+    error = {"application/json": {"schema": {"$ref": "#/components/schemas/Error"}}}
+    for path, operations in schema["paths"].items():
+        for op in operations.values():
+            for content in op.get("requestBody", {}).get("content", {}).values():
+                components.update(content.get("schema", {}).pop("$defs", {}))
+            codes = set() if path in PUBLIC_PATHS else {401, 403}
+            if "requestBody" in op:
+                codes |= {400, 413, 422}
+            if op.get("parameters"):
+                codes |= {400, 422}
+            responses = op.setdefault("responses", {})
+            codes |= {int(c) for c in responses if c.startswith("4")}
+            for code in codes:
+                responses[str(code)] = {"description": ERROR_MEANING[code], "content": error}
+    for unused in ("HTTPValidationError", "ValidationError"):
+        components.pop(unused, None)
+    app.openapi_schema = schema
+    return schema
+
+
 def create_app(settings: MonitorSettings | None = None) -> FastAPI:
     """Build the service: storage (migrated to head unless disabled), auth bootstrap, routers and background tasks."""
     settings = settings or MonitorSettings()
+    supervisor = os.environ.get(SUPERVISOR_ENV, "")
+    if supervisor.isdigit() and int(supervisor) == os.getppid():   # a worker of `serve --workers N`
+        exit_with_parent(int(supervisor))
     engine = db.make_engine(settings.database_url)
     if settings.run_migrations:
         db.upgrade(engine)
@@ -112,6 +174,17 @@ def create_app(settings: MonitorSettings | None = None) -> FastAPI:
     app.state.write_lock = threading.Lock() if engine.dialect.name == "sqlite" else contextlib.nullcontext()
     app.state.stop = asyncio.Event()
 
+    @app.exception_handler(StarletteHTTPException)
+    async def http_error(request: Request, exc: StarletteHTTPException) -> JSONResponse:
+        if exc.status_code != 405:
+            return await http_exception_handler(request, exc)
+        # Several routes share a path (GET and POST /v1/keys): Allow names every method of the path, not only
+        # those of the route that answered.
+        allowed = sorted({m for r in app.routes if isinstance(r, Route) and r.matches(request.scope)[0] != Match.NONE
+                          for m in r.methods or ()})
+        return JSONResponse({"detail": f"{request.method} is not allowed on {request.url.path}; use "
+                             f"{', '.join(allowed)}"}, 405, headers={"Allow": ", ".join(allowed)})
+
     @app.exception_handler(RequestValidationError)
     async def readable_validation_error(_: Request, exc: RequestValidationError) -> JSONResponse:
         parts = []
@@ -122,6 +195,7 @@ def create_app(settings: MonitorSettings | None = None) -> FastAPI:
 
     for module in (health, ingest, tasks, episodes, calibrations, alerts, keys, dashboard):
         app.include_router(module.router)
+    app.openapi = lambda: openapi_with_errors(app)
     app.mount("/static", StaticFiles(directory=dashboard.STATIC_DIR), name="static")
     app.add_middleware(BodyLimit, max_bytes=settings.max_body_bytes)
     app.add_middleware(RequestTimer)

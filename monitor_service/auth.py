@@ -1,4 +1,6 @@
-"""API keys with roles: robot (write its own data), operator (read, acknowledge), admin (everything)."""
+"""API keys with roles: robot (write its own robot's data, nothing else), operator (read, acknowledge),
+admin (configure: tasks, keys, calibrations; read). Ingest is the robot role's alone: calibration data must
+come from a robot, so neither an operator nor an admin key can write decisions, targets or outcomes."""
 from __future__ import annotations
 
 import hashlib
@@ -72,8 +74,8 @@ def _presented_key(request: Request) -> str | None:
     return None
 
 
-def require(role: str):
-    """FastAPI dependency factory: the caller must hold ``role`` or a higher one."""
+def require(role: str, exact: bool = False):
+    """FastAPI dependency factory: the caller must hold ``role`` or a higher one (``exact``: that role only)."""
 
     def dependency(request: Request) -> Principal:
         key = _presented_key(request)
@@ -86,8 +88,11 @@ def require(role: str):
                 session.expunge(row)
         if row is None or row.revoked_at is not None:
             raise HTTPException(401, "API key unknown or revoked: ask an admin for a key (jepa-monitor keys create)")
-        if ROLE_RANK[row.role] < ROLE_RANK[role]:
-            raise HTTPException(403, f"this endpoint needs the {role!r} role; your key {row.name!r} is {row.role!r}")
+        if (row.role != role) if exact else (ROLE_RANK[row.role] < ROLE_RANK[role]):
+            fix = ("ingestion is for robot keys only, each bound to its robot: create one with "
+                   "`jepa-monitor keys create --role robot --robot NAME`" if role == "robot" else
+                   f"this endpoint needs the {role!r} role")
+            raise HTTPException(403, f"{fix}; your key {row.name!r} is {row.role!r}")
         return Principal(row.id, row.name, row.role, row.robot)
 
     return dependency

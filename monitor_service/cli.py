@@ -35,6 +35,8 @@ def cmd_serve(args) -> int:
         os.environ["JEPA_MONITOR_DATABASE_URL"] = args.database_url
     settings = _settings(args)
     db.upgrade(db.make_engine(settings.database_url))  # once, before any worker starts
+    if args.workers > 1:   # each worker exits when this supervising process dies (app.exit_with_parent)
+        os.environ["JEPA_MONITOR_SUPERVISOR_PID"] = str(os.getpid())
     if args.workers > 1 and not os.environ.get("PROMETHEUS_MULTIPROC_DIR"):
         os.environ["PROMETHEUS_MULTIPROC_DIR"] = tempfile.mkdtemp(prefix="jepa-monitor-prom-")
     if os.environ.get("PROMETHEUS_MULTIPROC_DIR"):

@@ -78,4 +78,7 @@ def decode_body(body: bytes, content_type: str | None) -> Any:
             return json.loads(body)
         except ValueError as exc:
             raise BodyError(f"malformed JSON body ({exc}); send a JSON object") from exc
+        except RecursionError:
+            raise BodyError("JSON body nested too deeply; records are flat objects with latents as lists of "
+                            "numbers") from None
     raise BodyError(f"content type {ctype!r} is not supported; use {JSON_CONTENT_TYPE} or {MSGPACK_CONTENT_TYPE}")

@@ -211,9 +211,9 @@ def conformal_rank(n: int, alpha: float) -> int:
 
 
 def min_conformal_episodes(alpha: float) -> int:
-    """Smallest n with r <= n, i.e. a finite threshold at ``alpha``."""
-    n = 1
-    while conformal_rank(n, alpha) > n:
+    """Smallest n with r <= n, i.e. a finite threshold at ``alpha``: n >= (1 - alpha) / alpha."""
+    n = max(1, math.ceil((1.0 - alpha) / alpha) - 1)
+    while conformal_rank(n, alpha) > n:   # at most a step or two past the estimate (float rounding)
         n += 1
     return n
 

@@ -5,10 +5,52 @@ import datetime as dt
 from typing import Annotated, Any, Literal
 
 import numpy as np
-from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, WithJsonSchema
+from fastapi import Path as FastApiPath
+from pydantic import AfterValidator, BaseModel, BeforeValidator, ConfigDict, Discriminator, Field, Tag, WithJsonSchema
 
 Name = Annotated[str, Field(min_length=1, max_length=128, pattern=r"^[A-Za-z0-9_.:\-]+$")]
 Role = Literal["robot", "operator", "admin"]
+# Integers are bounded so every one fits the database's 32-bit INTEGER columns (PostgreSQL), step + horizon too.
+MAX_ID = 2**31 - 1
+MAX_STEP = 2**30          # episode steps: about 1.7 years at 20 Hz
+MAX_HORIZON = 1_000_000
+MAX_SEED = 2**32 - 1
+# Input models are strict (no "5" for 5, no true for 1), as the JSON Schema they publish; an integral float
+# such as 3.0 is a JSON Schema integer, so it is taken as one.
+def _integral(v: Any) -> Any:
+    return int(v) if isinstance(v, float) and v.is_integer() else v
+
+
+def json_int(ge: int, le: int) -> Any:
+    """A bounded JSON Schema integer (constraints first, so the published schema states them)."""
+    return Annotated[int, Field(ge=ge, le=le), BeforeValidator(_integral)]
+# Timestamps are stored as naive UTC; the API states the offset (RFC 3339 date-time).
+UtcDatetime = Annotated[dt.datetime, AfterValidator(lambda v: v if v.tzinfo else v.replace(tzinfo=dt.timezone.utc))]
+
+
+ObjectId = Annotated[int, FastApiPath(ge=1, le=MAX_ID, description="row id")]
+
+
+class Error(BaseModel):
+    """Every 4xx answer: one line naming the problem and the fix."""
+
+    detail: str
+
+
+ERROR_MEANING = {
+    400: "malformed body or header",
+    401: "no API key, or an unknown or revoked one",
+    403: "the key's role or robot may not do this",
+    404: "unknown task, episode, calibration, alert or key",
+    409: "conflicts with what is stored",
+    413: "body over the size limit",
+    422: "a field is invalid, or the data cannot support the request",
+}
+
+
+def errors(*codes: int) -> dict:
+    """``responses=`` of a route: the 4xx answers it gives besides those of auth and body parsing."""
+    return {code: {"model": Error, "description": ERROR_MEANING[code]} for code in codes}
 
 
 def _to_latent(value: Any) -> np.ndarray:
@@ -18,7 +60,11 @@ def _to_latent(value: Any) -> np.ndarray:
     elif isinstance(value, list):
         if not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in value):
             raise ValueError("latent must be a list of numbers")
-        arr = np.asarray(value, dtype=np.float64)
+        try:
+            arr = np.asarray(value, dtype=np.float64)
+        except OverflowError:   # an integer beyond float64 (e.g. 400 digits)
+            index = next(i for i, v in enumerate(value) if isinstance(v, int) and abs(v) > 3.4e38)
+            raise ValueError(f"latent value at index {index} overflows float32; rescale the latent") from None
     else:
         raise ValueError(f"latent must be a list of numbers or a float32 array, got {type(value).__name__}")
     if arr.ndim != 1 or arr.size == 0:
@@ -26,7 +72,8 @@ def _to_latent(value: Any) -> np.ndarray:
     bad = np.flatnonzero(~np.isfinite(arr))
     if bad.size:
         raise ValueError(f"latent has NaN or inf at index {int(bad[0])}; send finite values only")
-    arr32 = arr.astype("<f4")
+    with np.errstate(over="ignore"):   # the overflow is reported just below
+        arr32 = arr.astype("<f4")
     if not np.all(np.isfinite(arr32)):
         raise ValueError("latent overflows float32; rescale the latent")
     return arr32
@@ -35,12 +82,13 @@ def _to_latent(value: Any) -> np.ndarray:
 Latent = Annotated[
     np.ndarray,
     BeforeValidator(_to_latent),
-    WithJsonSchema({"type": "array", "items": {"type": "number"}, "description": "float32 latent vector"}),
+    WithJsonSchema({"type": "array", "items": {"type": "number", "minimum": -3.4e38, "maximum": 3.4e38},
+                    "minItems": 1, "description": "float32 latent vector, finite, non-empty"}),
 ]
 
 
 class _Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid", arbitrary_types_allowed=True)
+    model_config = ConfigDict(extra="forbid", arbitrary_types_allowed=True, strict=True)
 
 
 class DecisionIn(_Strict):
@@ -49,8 +97,8 @@ class DecisionIn(_Strict):
     kind: Literal["decision"] = "decision"
     task: Name
     episode: Name
-    step: int = Field(ge=0, description="decision step t")
-    horizon: int = Field(ge=1, description="prediction horizon k")
+    step: json_int(0, MAX_STEP) = Field(description="decision step t")
+    horizon: json_int(1, MAX_HORIZON) = Field(description="prediction horizon k")
     z_hat: Latent
     z_now: Latent | None = Field(
         None, description="the current latent z_t = E_rgb(o_t), optional: scores the persistence baseline "
@@ -66,7 +114,7 @@ class TargetIn(_Strict):
 
     kind: Literal["target"] = "target"
     episode: Name
-    step: int = Field(ge=0)
+    step: json_int(0, MAX_STEP + MAX_HORIZON)
     z: Latent
 
 
@@ -78,10 +126,27 @@ class OutcomeIn(_Strict):
     success: bool
     held_out: bool | None = None
     group: Name | None = None
-    length: int | None = Field(None, ge=1, description="episode length in env steps (detection lead times)")
+    length: json_int(1, MAX_STEP + MAX_HORIZON) | None = Field(None,
+                               description="episode length in env steps (detection lead times)")
 
 
-Record = Annotated[DecisionIn | TargetIn | OutcomeIn, Field(discriminator="kind")]
+def _record_kind(value: Any) -> str | None:
+    """A record's kind: its ``kind`` field, else what its fields say (z_hat: decision, z: target, success:
+    outcome), as the single-record routes, where ``kind`` may be left out, read it."""
+    if not isinstance(value, dict):
+        return getattr(value, "kind", None)
+    if "kind" in value:
+        return value["kind"] if isinstance(value["kind"], str) else None
+    return next((kind for key, kind in (("z_hat", "decision"), ("z", "target"), ("success", "outcome"))
+                 if key in value), None)
+
+
+Record = Annotated[
+    Annotated[DecisionIn, Tag("decision")] | Annotated[TargetIn, Tag("target")] | Annotated[OutcomeIn, Tag("outcome")],
+    Discriminator(_record_kind, custom_error_type="record_kind",
+                  custom_error_message="a record is a decision, target or outcome: set kind, or send its fields "
+                                       "(z_hat, z or success)"),
+]
 
 
 class BatchIn(_Strict):
@@ -100,7 +165,7 @@ class IngestResult(BaseModel):
 
 
 class TaskIn(_Strict):
-    latent_dim: int | None = Field(None, ge=1, le=1_000_000)
+    latent_dim: json_int(1, 1_000_000) | None = None
     description: str = Field("", max_length=512)
 
 
@@ -108,7 +173,7 @@ class TaskOut(BaseModel):
     name: str
     latent_dim: int | None
     description: str
-    created_at: dt.datetime
+    created_at: UtcDatetime
 
 
 class DecisionOut(BaseModel):
@@ -136,8 +201,8 @@ class EpisodeOut(BaseModel):
     open_alert_id: int | None
     alert_note: str = Field(description="why this episode can or cannot raise alerts")
     live: bool
-    started_at: dt.datetime
-    updated_at: dt.datetime
+    started_at: UtcDatetime
+    updated_at: UtcDatetime
 
 
 class RiskPoint(BaseModel):
@@ -156,14 +221,16 @@ class EpisodeDetail(EpisodeOut):
 class CalibrateIn(_Strict):
     task: Name
     checkpoint: str | None = None
-    alpha: float | None = Field(None, gt=0.0, lt=1.0, description="guaranteed false-alert rate per successful episode")
+    alpha: float | None = Field(None, ge=0.001, lt=1.0,
+                                description="guaranteed false-alert rate per successful episode (0.001 needs 999 "
+                                "successes)")
     rule: Literal["running", "band"] | None = Field(
         None, description="the alert rule to calibrate (default: the service's alert_rule); window, debounce and "
         "hysteresis are the service's settings and become part of the calibration")
-    folds: int | None = Field(None, ge=2, le=20, description="folds of the cross-fitted detection figures")
-    n_bootstrap: int | None = Field(None, ge=100, le=200_000)
-    n_permutation: int | None = Field(None, ge=100, le=200_000)
-    seed: int | None = None
+    folds: json_int(2, 20) | None = Field(None, description="folds of the cross-fitted detection figures")
+    n_bootstrap: json_int(100, 200_000) | None = None
+    n_permutation: json_int(100, 200_000) | None = None
+    seed: json_int(0, MAX_SEED) | None = None
 
 
 class CalibrationOut(BaseModel):
@@ -175,7 +242,7 @@ class CalibrationOut(BaseModel):
     threshold: float | None = Field(description="alarm threshold of the rule's statistic")
     auroc: float
     result: dict
-    created_at: dt.datetime
+    created_at: UtcDatetime
 
 
 class PooledWarning(BaseModel):
@@ -201,20 +268,40 @@ class AlertOut(BaseModel):
     calibration_id: int
     state: str
     acknowledged_by: str | None
-    acknowledged_at: dt.datetime | None
+    acknowledged_at: UtcDatetime | None
     note: str
-    raised_at: dt.datetime
-    cleared_at: dt.datetime | None
+    raised_at: UtcDatetime
+    cleared_at: UtcDatetime | None
 
 
 class AckIn(_Strict):
     note: str = Field("", max_length=512)
 
 
-class KeyIn(_Strict):
+class RobotKeyIn(_Strict):
+    """A robot key: it ingests for exactly one robot and reads nothing."""
+
     name: Name
-    role: Role
-    robot: Name | None = Field(None, description="required for robot keys: the robot this key may write for")
+    role: Literal["robot"]
+    robot: Name = Field(description="the robot this key may write for")
+
+
+class OperatorKeyIn(_Strict):
+    """An operator key: reads and acknowledges alerts; never ingests."""
+
+    name: Name
+    role: Literal["operator"]
+    robot: None = Field(None, description="only robot keys name a robot")
+
+
+class AdminKeyIn(OperatorKeyIn):
+    """An admin key: registers tasks, manages keys, calibrates, reads; never ingests."""
+
+    role: Literal["admin"]
+
+
+# one model per role, so the published discriminator maps each role to exactly one schema
+KeyIn = Annotated[RobotKeyIn | OperatorKeyIn | AdminKeyIn, Field(discriminator="role")]
 
 
 class KeyOut(BaseModel):
@@ -222,8 +309,8 @@ class KeyOut(BaseModel):
     name: str
     role: str
     robot: str | None
-    created_at: dt.datetime
-    revoked_at: dt.datetime | None
+    created_at: UtcDatetime
+    revoked_at: UtcDatetime | None
 
 
 class KeyCreated(KeyOut):

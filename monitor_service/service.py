@@ -145,8 +145,8 @@ def _check_dim(ctx: IngestContext, name: str, dim: int, what: str) -> None:
 
 
 def _check_owner(ctx: IngestContext, ep: Episode) -> None:
-    p = ctx.principal
-    if p.role == "robot" and ep.robot != p.robot:
+    p = ctx.principal   # a robot key (the ingest routes admit no other role)
+    if ep.robot != p.robot:
         raise IngestError(403, f"episode {ep.id!r} belongs to robot {ep.robot!r}; your key writes only for {p.robot!r}")
 
 
@@ -165,11 +165,9 @@ def _ingest_decision(ctx: IngestContext, rec: DecisionIn) -> None:
     _check_dim(ctx, rec.task, rec.z_hat.shape[0], "z_hat")
     if rec.z_now is not None:
         _check_dim(ctx, rec.task, rec.z_now.shape[0], "z_now")
-    p = ctx.principal
+    p = ctx.principal   # a robot key, bound to its robot
     robot = rec.robot or p.robot
-    if robot is None:
-        raise IngestError(422, "decision has no robot: set 'robot' in the record or use a robot key")
-    if p.role == "robot" and robot != p.robot:
+    if robot != p.robot:
         raise IngestError(403, f"your key writes only for robot {p.robot!r}, not {robot!r}")
     ep = ctx.episodes.get(rec.episode)
     if ep is None:

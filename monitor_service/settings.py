@@ -20,7 +20,7 @@ class MonitorSettings(BaseSettings):
     # The running statistic is the median of the most recent `running_window` values (Sec. 3.6 sliding window).
     # Window, debounce and clear ratio are part of every calibrated rule: change them and recalibrate.
     running_window: int = Field(5, ge=1)
-    alpha: float = Field(0.1, gt=0.0, lt=1.0,
+    alpha: float = Field(0.1, ge=0.001, lt=1.0,
                          description="guaranteed rate of successful episodes that raise any alert (rules.py)")
     alert_rule: Literal["running", "band"] = Field(
         "band", description="alert rule of new calibrations: running median of NMSE, or NMSE judged against the "

@@ -14,7 +14,7 @@ from monitor_service.alerts import alert_payload
 from monitor_service.auth import Principal, require
 from monitor_service.db import Alert, utcnow
 from monitor_service.deps import get_read_session, get_session
-from monitor_service.schemas import AckIn, AlertOut
+from monitor_service.schemas import AckIn, AlertOut, MAX_ID, ObjectId, errors
 
 router = APIRouter(prefix="/v1/alerts", tags=["alerts"])
 
@@ -47,9 +47,9 @@ def list_alerts(
     return [alert_out(a) for a in session.scalars(q.limit(limit))]
 
 
-@router.post("/{alert_id}/ack", response_model=AlertOut)
+@router.post("/{alert_id}/ack", response_model=AlertOut, responses=errors(404))
 def acknowledge(
-    alert_id: int, body: AckIn | None = None, session: Session = Depends(get_session),
+    alert_id: ObjectId, body: AckIn | None = None, session: Session = Depends(get_session),
     principal: Principal = Depends(require("operator")),
 ) -> AlertOut:
     """An operator takes the alert; acknowledging twice keeps the first operator and time."""
@@ -79,7 +79,9 @@ def _max_alert_id(make_session) -> int:
     return value
 
 
-@router.get("/stream")
+@router.get("/stream", response_class=StreamingResponse, responses={
+    200: {"content": {"text/event-stream": {"schema": {"type": "string"}}}, "description": "alert events"},
+    **errors(400)})
 async def stream(request: Request, _: Principal = Depends(require("operator"))) -> StreamingResponse:
     """Server-sent events: one `alert` event per newly raised alert; resumes after the Last-Event-ID header.
 
@@ -89,7 +91,9 @@ async def stream(request: Request, _: Principal = Depends(require("operator"))) 
     poll = request.app.state.settings.sse_poll_s
     stop: asyncio.Event = request.app.state.stop
     last = request.headers.get("last-event-id")
-    start = int(last) if last and last.isdigit() else await run_in_threadpool(_max_alert_id, make_session)
+    if last is not None and not (last.isdigit() and int(last) <= MAX_ID):
+        raise HTTPException(400, f"Last-Event-ID must be an alert id (0 to {MAX_ID}); got {last[:40]!r}")
+    start = int(last) if last is not None else await run_in_threadpool(_max_alert_id, make_session)
 
     async def events():
         after = start

@@ -9,7 +9,7 @@ from sqlalchemy.orm import Session
 from monitor_service.auth import Principal, require
 from monitor_service.db import CalibrationRow
 from monitor_service.deps import get_read_session
-from monitor_service.schemas import CalibrateIn, CalibrationOut, PooledWarning, ReportOut
+from monitor_service.schemas import CalibrateIn, CalibrationOut, ObjectId, PooledWarning, ReportOut, errors
 from monitor_service.service import calibrate_task, report
 
 router = APIRouter(prefix="/v1", tags=["calibrations"])
@@ -22,7 +22,7 @@ def calibration_out(r: CalibrationRow) -> CalibrationOut:
     )
 
 
-@router.post("/calibrations", response_model=CalibrationOut, status_code=201)
+@router.post("/calibrations", response_model=CalibrationOut, status_code=201, responses=errors(404, 409))
 async def create_calibration(request: Request, body: CalibrateIn, _: Principal = Depends(require("admin"))) -> CalibrationOut:
     """Calibrate a task (or one checkpoint of it) from its held-out labelled episodes and make it the active one:
     the alert rule's threshold (at most alpha of successful episodes alert), detection figures, controls."""
@@ -34,8 +34,8 @@ async def create_calibration(request: Request, body: CalibrateIn, _: Principal =
         )
     except LookupError as exc:
         raise HTTPException(404, str(exc)) from None
-    except ValueError as exc:
-        raise HTTPException(422, str(exc)) from None
+    except ValueError as exc:   # a valid request the stored episodes cannot support (too few, one class only)
+        raise HTTPException(409, str(exc)) from None
     return calibration_out(row)
 
 
@@ -53,8 +53,8 @@ def list_calibrations(
     return [calibration_out(r) for r in session.scalars(q)]
 
 
-@router.get("/calibrations/{calibration_id}", response_model=CalibrationOut)
-def get_calibration(calibration_id: int, session: Session = Depends(get_read_session), _: Principal = Depends(require("operator"))) -> CalibrationOut:
+@router.get("/calibrations/{calibration_id}", response_model=CalibrationOut, responses=errors(404))
+def get_calibration(calibration_id: ObjectId, session: Session = Depends(get_read_session), _: Principal = Depends(require("operator"))) -> CalibrationOut:
     row = session.get(CalibrationRow, calibration_id)
     if row is None:
         raise HTTPException(404, f"calibration {calibration_id} does not exist; list them with GET /v1/calibrations")

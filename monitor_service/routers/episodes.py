@@ -11,7 +11,7 @@ from monitor_service.auth import Principal, require
 from monitor_service.db import Decision, Episode, utcnow
 from monitor_service.deps import get_read_session, get_settings
 from monitor_service import rules
-from monitor_service.schemas import DecisionOut, EpisodeDetail, EpisodeOut, RiskPoint
+from monitor_service.schemas import DecisionOut, EpisodeDetail, EpisodeOut, RiskPoint, errors
 from monitor_service.service import active_calibration, rule_params
 from monitor_service.settings import MonitorSettings
 
@@ -49,7 +49,7 @@ def list_episodes(
     return [EpisodeOut(**episode_out(e, settings.live_episode_s)) for e in session.scalars(q.limit(limit))]
 
 
-@router.get("/{episode_id}", response_model=EpisodeDetail)
+@router.get("/{episode_id}", response_model=EpisodeDetail, responses=errors(404))
 def get_episode(
     episode_id: str,
     session: Session = Depends(get_read_session),

@@ -35,7 +35,9 @@ def readyz(request: Request):
     return Health(status="ok", detail=f"schema {rev}")
 
 
-@router.get("/metrics")
+@router.get("/metrics", response_class=Response, responses={
+    200: {"content": {CONTENT_TYPE_LATEST.split(";")[0]: {"schema": {"type": "string"}}},
+          "description": "Prometheus text exposition"}})
 async def metrics(request: Request, _: Principal = Depends(require("operator"))) -> Response:
     """Prometheus exposition (needs an operator key: configure the scrape job's bearer token)."""
     s = request.app.state.settings

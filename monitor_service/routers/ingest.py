@@ -12,8 +12,8 @@ from sqlalchemy.exc import IntegrityError
 
 from monitor_service.auth import Principal, require
 from monitor_service.db import IdempotencyKey
-from monitor_service.encoding import BodyError, decode_body
-from monitor_service.schemas import BatchIn, DecisionIn, IngestResult, OutcomeIn, TargetIn
+from monitor_service.encoding import MSGPACK_CONTENT_TYPE, BodyError, decode_body
+from monitor_service.schemas import BatchIn, DecisionIn, IngestResult, OutcomeIn, TargetIn, errors
 from monitor_service.service import IngestContext, IngestError, ingest, publish_metrics
 
 router = APIRouter(prefix="/v1", tags=["ingest"])
@@ -96,7 +96,7 @@ def _apply(app, records, principal: Principal, key: str | None, body_hash: str, 
 
 
 def _endpoint(adapter: TypeAdapter, summary: str):
-    async def endpoint(request: Request, principal: Principal = Depends(require("robot"))) -> JSONResponse:
+    async def endpoint(request: Request, principal: Principal = Depends(require("robot", exact=True))) -> JSONResponse:
         body = await request.body()
         return await run_in_threadpool(_handle, request, body, adapter, principal)
 
@@ -112,7 +112,10 @@ for path, model, summary in (
 ):
     router.add_api_route(
         path, _endpoint(TypeAdapter(model), summary), methods=["POST"], response_model=IngestResult, summary=summary,
-        # The body is read by hand (JSON or msgpack), so document it explicitly.
+        responses=errors(404, 409),
+        # The body is read by hand (JSON or msgpack, same fields), so document it explicitly; nested models'
+        # "$defs" move to the document's components (app.openapi_with_errors).
         openapi_extra={"requestBody": {"required": True, "content": {
-            "application/json": {"schema": model.model_json_schema()}, "application/x-msgpack": {}}}},
+            media: {"schema": model.model_json_schema(ref_template="#/components/schemas/{model}")}
+            for media in ("application/json", MSGPACK_CONTENT_TYPE)}}},
     )

@@ -1,14 +1,14 @@
 """Task registry: an admin registers each task before robots may report on it."""
 from __future__ import annotations
 
-from fastapi import APIRouter, Depends
+from fastapi import APIRouter, Depends, HTTPException
 from sqlalchemy import select
 from sqlalchemy.orm import Session
 
 from monitor_service.auth import Principal, require
 from monitor_service.db import Task
 from monitor_service.deps import get_read_session, get_session
-from monitor_service.schemas import Name, TaskIn, TaskOut
+from monitor_service.schemas import Name, TaskIn, TaskOut, errors
 
 router = APIRouter(prefix="/v1/tasks", tags=["tasks"])
 
@@ -17,10 +17,9 @@ def _out(t: Task) -> TaskOut:
     return TaskOut(name=t.name, latent_dim=t.latent_dim, description=t.description, created_at=t.created_at)
 
 
-@router.put("/{name}", response_model=TaskOut)
+@router.put("/{name}", response_model=TaskOut, responses=errors(409))
 def put_task(name: Name, body: TaskIn, session: Session = Depends(get_session), _: Principal = Depends(require("admin"))) -> TaskOut:
     """Register a task (or update its description); its latent dimension is fixed once set."""
-    from fastapi import HTTPException
 
     task = session.get(Task, name)
     if task is None:

@@ -139,7 +139,49 @@ def test_auth_roles_and_refusals(client, robot, operator, admin):
     assert client.delete(f"/v1/keys/{arm2_id}", headers=admin).status_code == 200
     assert client.post("/v1/targets", json={"episode": "a", "step": 1, "z": [1.0] * DIM}, headers=arm2).status_code == 401
     r = client.post("/v1/keys", json={"name": "r", "role": "robot"}, headers=admin)
-    assert r.status_code == 422 and "robot name" in r.json()["detail"]
+    assert r.status_code == 422 and "body.robot.robot: Field required" in r.json()["detail"]
+    r = client.post("/v1/keys", json={"name": "o", "role": "operator", "robot": "arm1"}, headers=admin)
+    assert r.status_code == 422 and "body.operator.robot" in r.json()["detail"]
+    assert client.post("/v1/keys", json={"name": "arm1-key", "role": "admin"}, headers=admin).status_code == 409
+
+
+def test_only_robot_keys_ingest(client, robot, operator, admin):
+    """An operator reads and acknowledges; an admin configures. Neither may write calibration data."""
+    register_task(client, "Square")
+    records = {"/v1/decisions": {"task": "Square", "episode": "e", "step": 0, "horizon": 1, "z_hat": [1.0] * DIM},
+               "/v1/targets": {"episode": "e", "step": 1, "z": [1.0] * DIM},
+               "/v1/outcomes": {"episode": "e", "success": True},
+               "/v1/batch": {"records": [{"kind": "outcome", "episode": "e", "success": True}]}}
+    for path, body in records.items():
+        for key in (operator, admin):
+            r = client.post(path, json=body, headers=key)
+            assert r.status_code == 403 and "robot keys only" in r.json()["detail"], (path, r.text)
+    assert _count(client, Episode) == 0
+    assert client.post("/v1/decisions", json=records["/v1/decisions"], headers=robot).status_code == 200
+
+
+@pytest.mark.parametrize("method, path, body, field", [
+    ("GET", f"/v1/calibrations/{2**63}", None, "calibration_id"),
+    ("GET", f"/v1/calibrations/{2**31}", None, "calibration_id"),
+    ("POST", f"/v1/alerts/{2**64}/ack", None, "alert_id"),
+    ("DELETE", f"/v1/keys/{10**30}", None, "key_id"),
+    ("POST", "/v1/decisions", b'{"task":"Square","episode":"b","step":9223372036854775808,"horizon":1,"z_hat":[1]}', "step"),
+    ("POST", "/v1/decisions", b'{"task":"Square","episode":"b","step":0,"horizon":99999999999,"z_hat":[1]}', "horizon"),
+    ("POST", "/v1/decisions", b'{"task":"Square","episode":"b","step":0,"horizon":1,"z_hat":[1,' + b"9" * 400 + b']}', "index 1"),
+    ("POST", "/v1/batch", b"[" * 100_000 + b"]" * 100_000, "nested too deeply"),
+    ("POST", "/v1/calibrations", b'{"task":"Square","seed":-1}', "seed"),
+    ("POST", "/v1/calibrations", b'{"task":"Square","alpha":1e-300}', "alpha"),
+    ("PUT", "/v1/tasks/Square", b'{"latent_dim":' + b"9" * 40 + b'}', "latent_dim"),
+    ("GET", "/v1/episodes?limit=99999999999999999999999", None, "limit"),
+], ids=["id-2^63", "id-2^31", "alert-2^64", "key-1e30", "step-2^63", "horizon", "latent-400-digits",
+        "nested-100000", "seed", "alpha", "latent_dim", "limit"])
+def test_out_of_range_input_is_a_4xx_naming_the_field(client, robot, admin, method, path, body, field):
+    register_task(client, "Square")
+    key = robot if path in ("/v1/decisions", "/v1/batch") else admin
+    r = client.request(method, path, content=body, headers={**key, "Content-Type": "application/json"})
+    assert 400 <= r.status_code < 500, r.text
+    assert field in r.json()["detail"], r.text
+    assert _count(client, Decision) == 0
 
 
 @pytest.mark.parametrize(
@@ -307,7 +349,7 @@ def test_too_few_successes_for_alpha_says_how_many(client, robot, operator, admi
     _ingest_calibration_set(client, robot, "Square", rng, 5, 5, 0.3, 0.6)
     for rule, need in (("running", 9), ("band", 17)):
         r = client.post("/v1/calibrations", json={"task": "Square", "alpha": 0.1, "rule": rule}, headers=admin)
-        assert r.status_code == 422 and f"needs at least {need} successful held-out episodes" in r.json()["detail"]
+        assert r.status_code == 409 and f"needs at least {need} successful held-out episodes" in r.json()["detail"]
         assert f"got 5; record {need - 5} more" in r.json()["detail"]
     assert client.get("/v1/calibrations", headers=operator).json() == []
     recs, _ = episode_records("after", "Square", rng, 2.0, n_steps=8, held_out=False)
@@ -319,12 +361,12 @@ def test_too_few_successes_for_alpha_says_how_many(client, robot, operator, admi
 def test_calibration_refusals(client, robot, admin):
     register_task(client, "Square")
     r = client.post("/v1/calibrations", json={"task": "Square"}, headers=admin)
-    assert r.status_code == 422 and "no held-out episode" in r.json()["detail"]
+    assert r.status_code == 409 and "no held-out episode" in r.json()["detail"]
     assert client.post("/v1/calibrations", json={"task": "Nope"}, headers=admin).status_code == 404
     rng = np.random.default_rng(10)
     _ingest_calibration_set(client, robot, "Square", rng, 4, 0, 0.3, 0.6)
     r = client.post("/v1/calibrations", json={"task": "Square"}, headers=admin)
-    assert r.status_code == 422 and "both successes and failures" in r.json()["detail"]
+    assert r.status_code == 409 and "both successes and failures" in r.json()["detail"]
 
 
 def test_per_checkpoint_calibration_takes_precedence(client, robot, operator, admin):

@@ -1,7 +1,11 @@
 """Against a real uvicorn server in a subprocess: kill -9 restart, link outage, concurrent writers, workers."""
 import asyncio
+import os
+import signal
+import time
 import concurrent.futures
 import re
+from pathlib import Path
 
 import httpx
 import numpy as np
@@ -168,6 +172,45 @@ def test_concurrent_writers_two_workers_and_metrics_aggregate(db_url, tmp_path):
             total = float(re.search(r'jepa_monitor_decisions_total\{robot="arm1",task="Square"\} ([0-9.e+]+)', text).group(1))
             assert total == 4 * 6 * 5 + 6
         http.close()
+
+
+def _children(pid: int) -> list[int]:
+    out = []
+    for entry in Path("/proc").iterdir():
+        if entry.name.isdigit():
+            try:
+                if int((entry / "stat").read_text().rsplit(")", 1)[1].split()[1]) == pid:
+                    out.append(int(entry.name))
+            except (OSError, IndexError, ValueError):
+                continue
+    return out
+
+
+@pytest.mark.skipif(not Path("/proc").is_dir(), reason="reads the process tree from /proc")
+def test_workers_exit_when_the_supervisor_is_killed(db_url, tmp_path):
+    """kill -9 of the supervising PID only: its workers must go, so a restart finds the port free."""
+    server = start_server(db_url, admin_key=ADMIN, workers=2, log_path=tmp_path / "s.log",
+                          env={"PROMETHEUS_MULTIPROC_DIR": str(tmp_path / "prom")})
+    try:
+        workers = [c for c in _children(server.process.pid)
+                   if "spawn_main" in Path(f"/proc/{c}/cmdline").read_bytes().decode(errors="replace")]
+        assert len(workers) == 2, workers
+        os.kill(server.process.pid, signal.SIGKILL)     # the supervisor alone, not its process group
+        server.process.wait(10)
+        deadline = time.monotonic() + 15
+        while time.monotonic() < deadline and any(Path(f"/proc/{w}").exists() and
+                                                  "Z" not in Path(f"/proc/{w}/stat").read_text().split()[2]
+                                                  for w in workers):
+            time.sleep(0.2)
+        alive = [w for w in workers if Path(f"/proc/{w}").exists()
+                 and Path(f"/proc/{w}/stat").read_text().split()[2] != "Z"]
+        assert alive == [], f"workers {alive} outlived their supervisor"
+        with pytest.raises(httpx.TransportError):
+            httpx.get(server.url + "/healthz", timeout=2)
+        restarted = start_server(db_url, admin_key=ADMIN, port=server.port, log_path=tmp_path / "s2.log")
+        restarted.stop()
+    finally:
+        server.kill()
 
 
 def test_bench_runs_end_to_end_and_reports_every_mode(capsys):
