@@ -21,9 +21,11 @@ from starlette.routing import Match, Route
 
 from monitor_service import db
 from monitor_service.alerts import webhook_loop
-from monitor_service.auth import ensure_admin_key
+from monitor_service.auth import KeyCache, ensure_admin_key
+from monitor_service.ingest import IngestStore
 from monitor_service.metrics import REQUEST_SECONDS
 from monitor_service.routers import alerts, calibrations, dashboard, episodes, health, ingest, keys, tasks
+from monitor_service.routers.ingest import IngestFastPath
 from monitor_service.schemas import ERROR_MEANING, Error
 from monitor_service.settings import MonitorSettings
 
@@ -135,7 +137,9 @@ def create_app(settings: MonitorSettings | None = None) -> FastAPI:
     """Build the service: storage (migrated to head unless disabled), auth bootstrap, routers and background tasks."""
     settings = settings or MonitorSettings()
     supervisor = os.environ.get(SUPERVISOR_ENV, "")
-    if supervisor.isdigit() and int(supervisor) == os.getppid():   # a worker of `serve --workers N`
+    if supervisor.isdigit():   # a worker of `serve --workers N`
+        if int(supervisor) != os.getppid():
+            raise SystemExit(f"the supervising process {supervisor} ended while this worker started; not serving")
         exit_with_parent(int(supervisor))
     engine = db.make_engine(settings.database_url)
     if settings.run_migrations:
@@ -168,7 +172,8 @@ def create_app(settings: MonitorSettings | None = None) -> FastAPI:
     app.state.engine = engine
     app.state.sessionmaker = make_session
     app.state.read_sessionmaker = db.make_sessionmaker(engine, read_only=True)
-    app.state.known_dims = {}  # task -> latent size, filled as ingestion meets tasks
+    app.state.ingest = IngestStore(engine, settings)   # the ingest path and its episode state (ingest.py)
+    app.state.key_cache = KeyCache()
     # SQLite has one writer; queueing writers of this process on a lock hands over at once, where SQLite's own
     # busy handler would sleep and poll (long tails). Other worker processes still queue on busy_timeout.
     app.state.write_lock = threading.Lock() if engine.dialect.name == "sqlite" else contextlib.nullcontext()
@@ -197,6 +202,7 @@ def create_app(settings: MonitorSettings | None = None) -> FastAPI:
         app.include_router(module.router)
     app.openapi = lambda: openapi_with_errors(app)
     app.mount("/static", StaticFiles(directory=dashboard.STATIC_DIR), name="static")
+    app.add_middleware(IngestFastPath)   # inside the body limit and the request timer
     app.add_middleware(BodyLimit, max_bytes=settings.max_body_bytes)
     app.add_middleware(RequestTimer)
     return app

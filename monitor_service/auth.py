@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import hashlib
 import secrets
+import time
 from dataclasses import dataclass
 
 from fastapi import HTTPException, Request
@@ -74,26 +75,55 @@ def _presented_key(request: Request) -> str | None:
     return None
 
 
-def require(role: str, exact: bool = False):
-    """FastAPI dependency factory: the caller must hold ``role`` or a higher one (``exact``: that role only)."""
+class KeyCache:
+    """Known keys by hash for ``ttl_s`` seconds: a request is not a database query for its key. A revocation
+    through this process clears the cache at once; another process's takes effect within ``ttl_s``."""
 
-    def dependency(request: Request) -> Principal:
-        key = _presented_key(request)
-        if not key:
-            raise HTTPException(401, "no API key: send it in the X-API-Key header (or Authorization: Bearer)")
+    def __init__(self, ttl_s: float = 2.0):
+        self.ttl_s = ttl_s
+        self.rows: dict[str, tuple[float, ApiKey]] = {}
+
+    def lookup(self, make_session, key_hash: str) -> ApiKey | None:
+        hit = self.rows.get(key_hash)
+        now = time.monotonic()
+        if hit is not None and now - hit[0] < self.ttl_s:
+            return hit[1]
         # A short session of its own: the handler's transaction (a write lock on SQLite) starts only after auth.
-        with request.app.state.read_sessionmaker() as session:
-            row = session.scalar(select(ApiKey).where(ApiKey.key_hash == hash_key(key)))
+        with make_session() as session:
+            row = session.scalar(select(ApiKey).where(ApiKey.key_hash == key_hash))
             if row is not None:
                 session.expunge(row)
-        if row is None or row.revoked_at is not None:
-            raise HTTPException(401, "API key unknown or revoked: ask an admin for a key (jepa-monitor keys create)")
-        if (row.role != role) if exact else (ROLE_RANK[row.role] < ROLE_RANK[role]):
-            fix = ("ingestion is for robot keys only, each bound to its robot: create one with "
-                   "`jepa-monitor keys create --role robot --robot NAME`" if role == "robot" else
-                   f"this endpoint needs the {role!r} role")
-            raise HTTPException(403, f"{fix}; your key {row.name!r} is {row.role!r}")
-        return Principal(row.id, row.name, row.role, row.robot)
+        if row is not None:
+            self.rows[key_hash] = (now, row)
+        return row
+
+    def clear(self) -> None:
+        self.rows.clear()
+
+
+def authenticate(request: Request, role: str, exact: bool = False) -> Principal:
+    """The caller, who must hold ``role`` or a higher one (``exact``: that role only); 401 / 403 otherwise.
+
+    Keys come from the app's KeyCache, so this runs on the event loop (a cache miss is one indexed query)."""
+    key = _presented_key(request)
+    if not key:
+        raise HTTPException(401, "no API key: send it in the X-API-Key header (or Authorization: Bearer)")
+    row = request.app.state.key_cache.lookup(request.app.state.read_sessionmaker, hash_key(key))
+    if row is None or row.revoked_at is not None:
+        raise HTTPException(401, "API key unknown or revoked: ask an admin for a key (jepa-monitor keys create)")
+    if (row.role != role) if exact else (ROLE_RANK[row.role] < ROLE_RANK[role]):
+        fix = ("ingestion is for robot keys only, each bound to its robot: create one with "
+               "`jepa-monitor keys create --role robot --robot NAME`" if role == "robot" else
+               f"this endpoint needs the {role!r} role")
+        raise HTTPException(403, f"{fix}; your key {row.name!r} is {row.role!r}")
+    return Principal(row.id, row.name, row.role, row.robot)
+
+
+def require(role: str, exact: bool = False):
+    """FastAPI dependency factory of :func:`authenticate` (async: no thread-pool hop per request)."""
+
+    async def dependency(request: Request) -> Principal:
+        return authenticate(request, role, exact)
 
     return dependency
 

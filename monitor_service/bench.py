@@ -1,18 +1,30 @@
-"""``jepa-monitor bench``: ingestion throughput and latency against a real uvicorn server on loopback.
+"""``jepa-monitor bench``: ingest throughput and latency against real servers on loopback, side by side with the
+framework's floor (``floor.py``: bare FastAPI + SQLite inserting the same rows) in one run.
 
-Each "decision" is what the robot loop sends per policy step: the decision record (z_hat) plus the realized
-latent that scores an earlier decision, so the server does the full work (store, NMSE, episode scores).
-Modes: one decision per request (JSON, then msgpack), batched msgpack over parallel connections, and the
-MonitorClient's per-call cost in the control loop while its sender drains to the same server.
+What a robot loop sends: a decision record (z_hat for step t + k) and, k steps later, the realized latent that
+scores it. Modes, each with the same bodies against the service and against the floor:
+- one record per request (decision or target alternately; JSON, then msgpack), from ``--concurrency``
+  connections, as a fleet of robots would send them;
+- batches of ``--batch`` decisions (each with its target) per msgpack request;
+- the MonitorClient's own batching, end to end.
+The load comes from threads of this process on keep-alive connections; the server's CPU per request is read
+from /proc (steadier than wall latency on a shared machine); the load average is printed with the numbers.
+Every 2xx is committed and its alerts evaluated. With ``--servers 2`` on a PostgreSQL URL two server processes
+share the database: the run checks afterwards that no record and no counter update was lost.
 """
 from __future__ import annotations
 
+import http.client
 import json
 import os
+import subprocess
+import sys
 import tempfile
 import threading
 import time
 import uuid
+from contextlib import ExitStack
+from dataclasses import dataclass
 from pathlib import Path
 
 import httpx
@@ -20,155 +32,275 @@ import numpy as np
 
 from monitor_service.client import MonitorClient
 from monitor_service.encoding import MSGPACK_CONTENT_TYPE, pack
-from monitor_service.server import start_server
+from monitor_service.server import free_port, start_server
 
 HORIZON = 4
 STEPS_PER_EPISODE = 200
+LATENTS = 64   # distinct latents cycled through, so bodies are built cheaply while every record is new
 
 
-def _records(rng: np.random.Generator, dim: int, start: int, count: int, prefix: str) -> list[list[dict]]:
-    """Per decision: [decision, target-for-(step)] records of synthetic episodes of STEPS_PER_EPISODE steps."""
-    out = []
-    for i in range(start, start + count):
-        ep, step = f"{prefix}-{i // STEPS_PER_EPISODE}", i % STEPS_PER_EPISODE
-        z = rng.standard_normal(dim).astype("<f4")
-        recs = [{"kind": "decision", "task": "bench", "episode": ep, "step": step, "horizon": HORIZON, "z_hat": z}]
-        recs.append({"kind": "target", "episode": ep, "step": step + HORIZON, "z": z + 0.1})
-        out.append(recs)
-    return out
+@dataclass
+class Target:
+    """A server to load: its base URL, the robot key to ingest with, and its PID when started here."""
+
+    url: str
+    key: str
+    pid: int | None = None
+
+    @property
+    def host_port(self) -> tuple[str, int]:
+        u = httpx.URL(self.url)
+        return u.host, u.port
 
 
-def _jsonable(recs: list[dict]) -> list[dict]:
-    return [{k: (v.tolist() if isinstance(v, np.ndarray) else v) for k, v in r.items()} for r in recs]
+class Bodies:
+    """Request bodies of one connection: its own episodes, decision t then the target t + HORIZON scoring it."""
+
+    def __init__(self, dim: int, conn_id: str, binary: bool, batch: int, seed: int):
+        rng = np.random.default_rng(seed)
+        self.latents = [rng.standard_normal(dim).astype("<f4") for _ in range(LATENTS)]
+        self.json_latents = [json.dumps(z.tolist()) for z in self.latents]
+        self.binary, self.batch, self.conn_id, self.i = binary, batch, conn_id, 0
+
+    def _record(self, kind: str, ep: str, step: int, j: int):
+        if self.binary:
+            if kind == "decision":
+                return {"kind": "decision", "task": "bench", "episode": ep, "step": step, "horizon": HORIZON,
+                        "z_hat": self.latents[j]}
+            return {"kind": "target", "episode": ep, "step": step + HORIZON, "z": self.latents[(j + 1) % LATENTS]}
+        if kind == "decision":
+            return (f'{{"kind":"decision","task":"bench","episode":"{ep}","step":{step},"horizon":{HORIZON},'
+                    f'"z_hat":{self.json_latents[j]}}}')
+        return f'{{"kind":"target","episode":"{ep}","step":{step + HORIZON},"z":{self.json_latents[(j + 1) % LATENTS]}}}'
+
+    def next(self) -> tuple[str, bytes, int]:
+        """(path, body, decisions in it): one record per request, or a batch of decisions and their targets."""
+        if self.batch == 0:
+            n, kind = divmod(self.i, 2)
+            self.i += 1
+            ep, step = f"{self.conn_id}-{n // STEPS_PER_EPISODE}", n % STEPS_PER_EPISODE
+            rec = self._record("decision" if kind == 0 else "target", ep, step, n % LATENTS)
+            path = "/v1/decisions" if kind == 0 else "/v1/targets"
+            return path, (pack(rec) if self.binary else rec.encode()), 1 - kind
+        recs = []
+        for _ in range(self.batch):
+            n = self.i
+            self.i += 1
+            ep, step = f"{self.conn_id}-{n // STEPS_PER_EPISODE}", n % STEPS_PER_EPISODE
+            recs += [self._record("decision", ep, step, n % LATENTS), self._record("target", ep, step, n % LATENTS)]
+        body = pack({"records": recs}) if self.binary else ('{"records":[' + ",".join(recs) + "]}").encode()
+        return "/v1/batch", body, self.batch
 
 
-def _cpu_seconds(pid: int) -> float | None:
-    """User + system CPU time of a process (Linux /proc); None elsewhere."""
-    try:
-        fields = open(f"/proc/{pid}/stat").read().rsplit(")", 1)[1].split()
-    except OSError:
+def _cpu_seconds(pid: int | None) -> float | None:
+    """User + system CPU time of a process and its children (Linux /proc); None elsewhere."""
+    if pid is None:
         return None
-    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+    total = 0.0
+    pids = [pid] + [int(p) for p in _child_pids(pid)]
+    for p in pids:
+        try:
+            fields = open(f"/proc/{p}/stat").read().rsplit(")", 1)[1].split()
+        except OSError:
+            continue
+        total += (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+    return total
 
 
-def _summary(name: str, n_decisions: int, seconds: float, latencies: list[float]) -> dict:
-    lat = np.asarray(latencies) * 1000
-    row = {
-        "mode": name, "decisions": n_decisions, "seconds": round(seconds, 3),
-        "decisions_per_s": round(n_decisions / seconds, 1), "requests": len(latencies),
-        "p50_ms": round(float(np.percentile(lat, 50)), 3), "p99_ms": round(float(np.percentile(lat, 99)), 3),
-    }
-    print(f"{name:<28}{row['decisions_per_s']:>10.0f} decisions/s   p50 {row['p50_ms']:7.2f} ms   "
-          f"p99 {row['p99_ms']:7.2f} ms   ({n_decisions} decisions, {len(latencies)} requests)", flush=True)
-    return row
+def _child_pids(pid: int) -> list[str]:
+    try:
+        return open(f"/proc/{pid}/task/{pid}/children").read().split()
+    except OSError:
+        return []
 
 
-def _sequential(url: str, key: str, groups: list[list[dict]], binary: bool, max_seconds: float, name: str) -> dict:
-    latencies = []
-    with httpx.Client(base_url=url, timeout=30) as http:
-        start = time.perf_counter()
-        for recs in groups:
-            if binary:
-                kw = {"content": pack({"records": recs}), "headers": {"X-API-Key": key, "Content-Type": MSGPACK_CONTENT_TYPE}}
-            else:
-                kw = {"content": json.dumps({"records": _jsonable(recs)}), "headers": {"X-API-Key": key, "Content-Type": "application/json"}}
-            t0 = time.perf_counter()
-            r = http.post("/v1/batch", **kw)
-            latencies.append(time.perf_counter() - t0)
-            r.raise_for_status()
-            if time.perf_counter() - start > max_seconds:
-                break
-        elapsed = time.perf_counter() - start
-    return _summary(name, len(latencies), elapsed, latencies)
-
-
-def _batched(url: str, key: str, groups: list[list[dict]], batch: int, concurrency: int, max_seconds: float) -> dict:
-    bodies = [pack({"records": [r for g in groups[i : i + batch] for r in g]}) for i in range(0, len(groups), batch)]
-    sizes = [len(groups[i : i + batch]) for i in range(0, len(groups), batch)]
+def load(targets: list[Target], binary: bool, batch: int, dim: int, concurrency: int, seconds: float, tag: str) -> dict:
+    """Closed-loop load from ``concurrency`` keep-alive connections spread over ``targets`` for ``seconds``."""
     latencies: list[float] = []
-    done = [0]
+    counts = {"requests": 0, "decisions": 0, "records": 0}
+    errors: list[str] = []
     lock = threading.Lock()
-    next_i = [0]
-    start = time.perf_counter()
+    deadline = time.perf_counter() + seconds
+    content_type = MSGPACK_CONTENT_TYPE if binary else "application/json"
 
-    def worker():
-        with httpx.Client(base_url=url, timeout=30) as http:
-            while True:
-                with lock:
-                    i = next_i[0]
-                    next_i[0] += 1
-                if i >= len(bodies) or time.perf_counter() - start > max_seconds:
-                    return
+    def connection(c: int) -> None:
+        target = targets[c % len(targets)]
+        bodies = Bodies(dim, f"{tag}-{uuid.uuid4().hex[:8]}-c{c}", binary, batch, seed=c)
+        host, port = target.host_port
+        conn = http.client.HTTPConnection(host, port, timeout=60)
+        mine, n_req, n_dec, n_rec = [], 0, 0, 0
+        headers = {"X-API-Key": target.key, "Content-Type": content_type}
+        try:
+            while time.perf_counter() < deadline:
+                path, body, decisions = bodies.next()
                 t0 = time.perf_counter()
-                r = http.post("/v1/batch", content=bodies[i], headers={
-                    "X-API-Key": key, "Content-Type": MSGPACK_CONTENT_TYPE, "Idempotency-Key": uuid.uuid4().hex})
-                dt = time.perf_counter() - t0
-                r.raise_for_status()
-                with lock:
-                    latencies.append(dt)
-                    done[0] += sizes[i]
+                conn.request("POST", path, body, headers)
+                resp = conn.getresponse()
+                data = resp.read()
+                mine.append(time.perf_counter() - t0)
+                if resp.status != 200:
+                    with lock:
+                        errors.append(f"{resp.status} {data[:200]!r}")
+                    return
+                n_req += 1
+                n_dec += decisions
+                n_rec += 1 if batch == 0 else 2 * batch
+        finally:
+            conn.close()
+            with lock:
+                latencies.extend(mine)
+                counts["requests"] += n_req
+                counts["decisions"] += n_dec
+                counts["records"] += n_rec
 
-    threads = [threading.Thread(target=worker) for _ in range(concurrency)]
+    cpu0 = [_cpu_seconds(t.pid) for t in targets]
+    start = time.perf_counter()
+    threads = [threading.Thread(target=connection, args=(c,)) for c in range(concurrency)]
     for t in threads:
         t.start()
     for t in threads:
         t.join()
-    return _summary(f"binary batch={batch} x{concurrency}", done[0], time.perf_counter() - start, latencies)
+    elapsed = time.perf_counter() - start
+    cpu1 = [_cpu_seconds(t.pid) for t in targets]
+    if errors:
+        raise RuntimeError(f"the server refused a request: {errors[0]}")
+    lat = np.asarray(latencies) * 1000
+    row = {"requests_per_s": counts["requests"] / elapsed, "decisions_per_s": counts["decisions"] / elapsed,
+           "records_per_s": counts["records"] / elapsed, "p50_ms": float(np.percentile(lat, 50)),
+           "p99_ms": float(np.percentile(lat, 99)), **counts, "seconds": elapsed}
+    if all(c is not None for c in cpu0 + cpu1):
+        row["server_cpu_ms_per_request"] = (sum(cpu1) - sum(cpu0)) * 1000 / max(1, counts["requests"])
+    return row
 
 
-def _client_cost(url: str, key: str, groups: list[list[dict]], max_seconds: float) -> dict:
-    """Time MonitorClient.decision()/target() calls in a loop while its thread drains to the server."""
-    per_call = []
-    with MonitorClient(url, key, batch_size=256) as client:
+def client_end_to_end(target: Target, dim: int, decisions: int, seconds: float) -> dict:
+    """MonitorClient: per-call cost in the control loop, and decisions/s until all are delivered."""
+    rng = np.random.default_rng(1)
+    latents = [rng.standard_normal(dim).astype("<f4") for _ in range(LATENTS)]
+    per_call, run = [], uuid.uuid4().hex[:8]
+    with MonitorClient(target.url, target.key, batch_size=256) as client:
         start = time.perf_counter()
-        for recs in groups:
-            d, t = recs
+        for i in range(decisions):
+            ep, step = f"client-{run}-{i // STEPS_PER_EPISODE}", i % STEPS_PER_EPISODE
             t0 = time.perf_counter()
-            client.decision(d["task"], d["episode"], d["step"], d["horizon"], d["z_hat"])
-            client.target(t["episode"], t["step"], t["z"])
+            client.decision("bench", ep, step, HORIZON, latents[i % LATENTS])
+            client.target(ep, step + HORIZON, latents[(i + 1) % LATENTS])
             per_call.append(time.perf_counter() - t0)
-            if time.perf_counter() - start > max_seconds:
+            if time.perf_counter() - start > seconds:
                 break
-        enqueue_s = time.perf_counter() - start
-        client.flush(120)
+        client.flush(300)
         total = time.perf_counter() - start
-    lat_us = np.asarray(per_call) * 1e6
-    print(f"{'client per decision':<28}p50 {np.percentile(lat_us, 50):7.1f} us   p99 {np.percentile(lat_us, 99):7.1f} us   "
-          f"(enqueue {len(per_call)} in {enqueue_s:.2f} s; all delivered after {total:.2f} s = "
-          f"{len(per_call) / total:.0f} decisions/s end to end)", flush=True)
-    return {"mode": "client", "decisions": len(per_call), "p50_us": float(np.percentile(lat_us, 50)),
-            "p99_us": float(np.percentile(lat_us, 99)), "end_to_end_decisions_per_s": len(per_call) / total}
+    us = np.asarray(per_call) * 1e6
+    return {"decisions": len(per_call), "decisions_per_s": len(per_call) / total,
+            "call_p50_us": float(np.percentile(us, 50)), "call_p99_us": float(np.percentile(us, 99))}
 
 
-def run_bench(
-    n: int = 4000, batches: tuple[int, ...] = (16, 64), dim: int = 256, max_seconds: float = 20.0, concurrency: int = 2
-) -> list[dict]:
-    """Start a fresh server on a temporary SQLite file, run every mode, print and return the numbers."""
-    admin = "bench-admin-" + uuid.uuid4().hex
-    with tempfile.TemporaryDirectory(prefix="jepa-monitor-bench-") as tmp:
-        db_url = f"sqlite:///{Path(tmp) / 'bench.db'}"
-        with start_server(db_url, admin_key=admin, log_path=Path(tmp) / "server.log") as server:
-            http = httpx.Client(base_url=server.url, headers={"X-API-Key": admin}, timeout=30)
-            http.put("/v1/tasks/bench", json={"latent_dim": dim}).raise_for_status()
-            key = http.post("/v1/keys", json={"name": "bench-robot", "role": "robot", "robot": "bench-arm"}).json()["key"]
-            http.close()
-            rng = np.random.default_rng(0)
-            print(f"jepa-monitor bench: latent dim {dim}, SQLite (WAL) at {db_url}, server {server.url}, 1 worker", flush=True)
-            single_n = min(n, 1000)
-            modes = [
-                lambda: _sequential(server.url, key, _records(rng, dim, 0, single_n, "json"), False, max_seconds, "json, 1 decision/request"),
-                lambda: _sequential(server.url, key, _records(rng, dim, 0, single_n, "bin"), True, max_seconds, "binary, 1 decision/request"),
-                *[lambda b=b: _batched(server.url, key, _records(rng, dim, 0, n, f"batch{b}"), b, concurrency, max_seconds) for b in batches],
-                lambda: _client_cost(server.url, key, _records(rng, dim, 0, n, "client"), max_seconds),
-            ]
-            rows = []
-            for mode in modes:
-                cpu0 = _cpu_seconds(server.process.pid)
-                row = mode()
-                cpu1 = _cpu_seconds(server.process.pid)
-                if cpu0 is not None and cpu1 is not None:
-                    # CPU the server spent per decision: unlike wall latency, not inflated by other load on the host.
-                    row["server_cpu_ms_per_decision"] = round((cpu1 - cpu0) * 1000 / row["decisions"], 3)
-                    print(f"{'':<28}server CPU {row['server_cpu_ms_per_decision']:.3f} ms per decision", flush=True)
-                rows.append(row)
-    return rows
+def _provision(url: str, admin_key: str, dim: int) -> str:
+    with httpx.Client(base_url=url, headers={"X-API-Key": admin_key}, timeout=30) as http:
+        r = http.put("/v1/tasks/bench", json={"latent_dim": dim})
+        if r.status_code != 200:
+            raise RuntimeError(f"registering the bench task failed: {r.status_code} {r.text}")
+        r = http.post("/v1/keys", json={"name": f"bench-robot-{uuid.uuid4().hex[:8]}", "role": "robot",
+                                        "robot": "bench-arm"})
+        r.raise_for_status()
+        return r.json()["key"]
+
+
+def start_floor(tmp: Path) -> tuple[subprocess.Popen, Target]:
+    """The floor app (floor.py) under uvicorn, one worker, on a free loopback port."""
+    port = free_port()
+    env = dict(os.environ, JEPA_MONITOR_FLOOR_DB=str(tmp / "floor.db"))
+    proc = subprocess.Popen([sys.executable, "-m", "uvicorn", "monitor_service.floor:create_app", "--factory",
+                             "--host", "127.0.0.1", "--port", str(port), "--log-level", "warning"], env=env,
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
+    url = f"http://127.0.0.1:{port}"
+    deadline = time.monotonic() + 60
+    while time.monotonic() < deadline:
+        try:
+            httpx.get(url + "/docs", timeout=1)
+            return proc, Target(url, "", proc.pid)
+        except httpx.TransportError:
+            time.sleep(0.1)
+    proc.kill()
+    raise RuntimeError("the floor server did not start")
+
+
+def _verify_no_lost_updates(database_url: str) -> dict:
+    """Every decision row counted on its episode, every scored decision counted as scored (PostgreSQL runs)."""
+    from sqlalchemy import create_engine, text
+
+    engine = create_engine(database_url)
+    with engine.connect() as conn:
+        rows = conn.execute(text(
+            "SELECT e.id, e.n_decisions, e.n_scored, count(d.id), count(d.nmse) FROM episodes e "
+            "LEFT JOIN decisions d ON d.episode_id = e.id WHERE e.task = 'bench' GROUP BY e.id")).all()
+    engine.dispose()
+    bad = [r for r in rows if r[1] != r[3] or r[2] != r[4]]
+    return {"episodes": len(rows), "decisions": sum(r[3] for r in rows), "mismatched_episodes": len(bad)}
+
+
+def _line(mode: str, ours: dict, floor: dict | None) -> str:
+    cpu = ours.get("server_cpu_ms_per_request")
+    text = (f"{mode:<34}{ours['requests_per_s']:>8.0f} req/s {ours['decisions_per_s']:>8.0f} dec/s "
+            f"p50 {ours['p50_ms']:6.2f} p99 {ours['p99_ms']:6.2f} ms" + (f"  CPU {cpu:.2f} ms/req" if cpu else ""))
+    if floor is not None:
+        text += (f" | floor {floor['requests_per_s']:>7.0f} req/s p99 {floor['p99_ms']:6.2f} ms"
+                 f" | ratio {ours['requests_per_s'] / floor['requests_per_s']:.2f}")
+    return text
+
+
+def run_bench(dim: int = 1024, seconds: float = 8.0, concurrency: int = 8, batch: int = 64, batch_concurrency: int = 2,
+              host: str | None = None, port: int | None = None, admin_key: str | None = None,
+              database_url: str | None = None, servers: int = 1, workers: int = 1, client_decisions: int = 20_000,
+              floor: bool = True) -> dict:
+    """Run every mode against the service (started here, or at ``host:port``) and the floor; print and return."""
+    results: dict = {"dim": dim, "load_average_before": os.getloadavg(), "modes": {}}
+    with tempfile.TemporaryDirectory(prefix="jepa-monitor-bench-") as tmp, ExitStack() as stack:
+        tmp = Path(tmp)
+        if host or port:
+            if not admin_key:
+                raise ValueError("--host/--port need --admin-key: the bench registers its task and a robot key")
+            url = f"http://{host or '127.0.0.1'}:{port or 8765}"
+            targets = [Target(url, _provision(url, admin_key, dim))]
+            where = f"the server at {url}"
+        else:
+            admin_key = "bench-admin-" + uuid.uuid4().hex
+            database_url = database_url or f"sqlite:///{tmp / 'bench.db'}"
+            targets = []
+            for i in range(servers):
+                server = stack.enter_context(start_server(
+                    database_url, admin_key=admin_key, workers=workers, log_path=tmp / f"server{i}.log",
+                    env={"PROMETHEUS_MULTIPROC_DIR": str(tmp / f"prom{i}")} if workers > 1 else None))
+                targets.append(Target(server.url, "", server.process.pid))
+            key = _provision(targets[0].url, admin_key, dim)
+            for t in targets:
+                t.key = key
+            backend = database_url.split(":", 1)[0]
+            where = f"{servers} server process(es) x {workers} worker(s) on {backend}"
+        floor_target = None
+        if floor:
+            proc, floor_target = start_floor(tmp)
+            stack.callback(proc.kill)
+        print(f"jepa-monitor bench: latent dim {dim}, {where}; {seconds:g} s per mode; load average "
+              f"{results['load_average_before'][0]:.2f} before the run (2xx = committed, alerts evaluated)", flush=True)
+        modes = [(f"json, 1 record/request x{concurrency}", False, 0, concurrency),
+                 (f"msgpack, 1 record/request x{concurrency}", True, 0, concurrency),
+                 (f"msgpack, {batch} decisions/request x{batch_concurrency}", True, batch, batch_concurrency)]
+        for name, binary, size, conns in modes:
+            ours = load(targets, binary, size, dim, conns, seconds, "svc")
+            theirs = load([floor_target], binary, size, dim, conns, seconds, "floor") if floor_target else None
+            results["modes"][name] = {"service": ours, "floor": theirs}
+            print(_line(name, ours, theirs), flush=True)
+        if client_decisions:
+            row = client_end_to_end(targets[0], dim, client_decisions, seconds)
+            results["modes"]["MonitorClient end to end"] = row
+            print(f"{'MonitorClient end to end':<34}{row['decisions_per_s']:>23.0f} dec/s   call p50 "
+                  f"{row['call_p50_us']:.1f} us p99 {row['call_p99_us']:.1f} us per decision", flush=True)
+        if database_url and database_url.startswith("postgresql") and not (host or port):
+            check = _verify_no_lost_updates(database_url)
+            results["postgres_check"] = check
+            print(f"PostgreSQL, {servers} servers: {check['decisions']} decisions on {check['episodes']} episodes; "
+                  f"episodes whose counters disagree with their rows: {check['mismatched_episodes']}", flush=True)
+        results["load_average_after"] = os.getloadavg()
+        print(f"load average after the run: {results['load_average_after'][0]:.2f}", flush=True)
+    return results

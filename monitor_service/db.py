@@ -76,6 +76,8 @@ class Episode(Base):
     ended_at: Mapped[dt.datetime | None] = mapped_column(DateTime, nullable=True)
     length: Mapped[int | None] = mapped_column(Integer, nullable=True)  # env steps, from the outcome
     risk_score: Mapped[float | None] = mapped_column(Float, nullable=True)  # the calibrated rule's latest statistic
+    # bumped by every ingest write: a server process's cached state of the episode is current when it matches
+    version: Mapped[int] = mapped_column(Integer, default=0, server_default="0")
 
 
 class Decision(Base):
@@ -166,7 +168,10 @@ class IdempotencyKey(Base):
 def make_engine(url: str) -> Engine:
     """Create the engine; SQLite gets WAL, a busy timeout and BEGIN IMMEDIATE so concurrent writers queue."""
     if url.startswith("sqlite"):
-        engine = create_engine(url, connect_args={"check_same_thread": False, "timeout": 30})
+        # a pool as large as the request thread pool: connections are reused, never opened per request (the
+        # PRAGMAs below cost more than the request's own statements)
+        engine = create_engine(url, connect_args={"check_same_thread": False, "timeout": 30}, pool_size=40,
+                               max_overflow=10)
 
         @event.listens_for(engine, "connect")
         def _sqlite_pragmas(dbapi_conn, _record):

@@ -9,6 +9,7 @@ import json
 from typing import Any
 
 import msgpack
+import orjson
 import numpy as np
 
 MSGPACK_CONTENT_TYPE = "application/x-msgpack"
@@ -68,12 +69,37 @@ def unpack(body: bytes) -> Any:
         raise BodyError(f"malformed msgpack body ({exc}); encode with monitor_service.encoding.pack") from exc
 
 
+MAX_DEPTH = 16   # a batch is 4 levels deep (body, records, record, latent)
+
+
+def _shallow(payload: Any, limit: int = MAX_DEPTH) -> bool:
+    """Whether no list or object lies deeper than ``limit`` (an explicit stack: no recursion to exhaust)."""
+    stack = [(payload, 1)] if isinstance(payload, (list, dict)) else []
+    while stack:
+        node, depth = stack.pop()
+        if depth > limit:
+            return False
+        children = node.values() if isinstance(node, dict) else node
+        if set(map(type, children)) & {list, dict}:   # C speed over a latent's numbers
+            stack.extend((c, depth + 1) for c in children if type(c) in (list, dict))
+    return True
+
+
 def decode_body(body: bytes, content_type: str | None) -> Any:
     """Decode a request body by its content type (JSON or msgpack)."""
     ctype = (content_type or JSON_CONTENT_TYPE).split(";")[0].strip().lower()
     if ctype == MSGPACK_CONTENT_TYPE:
         return unpack(body)
     if ctype in (JSON_CONTENT_TYPE, ""):
+        try:
+            payload = orjson.loads(body)   # about 10x quicker than json on lists of floats
+        except orjson.JSONDecodeError:
+            pass   # not strict JSON: the standard parser names the problem (and reads NaN, refused later by field)
+        else:
+            if not _shallow(payload):
+                raise BodyError(f"JSON body nested too deeply (over {MAX_DEPTH} levels); records are flat objects with "
+                                "latents as lists of numbers")
+            return payload
         try:
             return json.loads(body)
         except ValueError as exc:

@@ -28,6 +28,16 @@ ALERTS = Counter("jepa_monitor_alerts", "Intervention alerts raised", ["task", "
 WEBHOOK_FAILURES = Counter("jepa_monitor_webhook_failures", "Failed webhook delivery attempts")
 
 
+def publish(observations: list[tuple[str, str, str, float]]) -> None:
+    """Turn a committed request's (kind, task, robot, value) observations into Prometheus samples."""
+    counters = {"decision": DECISIONS, "target": TARGETS, "outcome": OUTCOMES, "alert": ALERTS}
+    for kind, task, robot, value in observations:
+        if kind == "nmse":
+            NMSE.labels(task, robot).observe(value)
+        else:
+            counters[kind].labels(task, robot).inc(value)
+
+
 class DatabaseGauges:
     """Custom collector: per-task calibration gauges, open alerts and live alert rates, queried at scrape time.
 

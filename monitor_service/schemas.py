@@ -53,12 +53,20 @@ def errors(*codes: int) -> dict:
     return {code: {"model": Error, "description": ERROR_MEANING[code]} for code in codes}
 
 
+F32_MAX = float(np.finfo(np.float32).max)
+
+
 def _to_latent(value: Any) -> np.ndarray:
     """Accept a JSON list or a decoded float32 array; demand a finite, non-empty 1-D vector."""
     if isinstance(value, np.ndarray):
+        if value.dtype == np.float32 and value.ndim == 1 and value.size:   # msgpack's arrays: only check finite
+            if not np.isfinite(value).all():
+                raise ValueError(f"latent has NaN or inf at index {int(np.flatnonzero(~np.isfinite(value))[0])}; "
+                                 "send finite values only")
+            return value.astype("<f4", copy=False)
         arr = value
     elif isinstance(value, list):
-        if not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in value):
+        if not set(map(type, value)) <= {float, int}:   # at C speed: no bool, str, list or null among them
             raise ValueError("latent must be a list of numbers")
         try:
             arr = np.asarray(value, dtype=np.float64)
@@ -69,14 +77,12 @@ def _to_latent(value: Any) -> np.ndarray:
         raise ValueError(f"latent must be a list of numbers or a float32 array, got {type(value).__name__}")
     if arr.ndim != 1 or arr.size == 0:
         raise ValueError(f"latent must be a non-empty 1-D vector, got shape {list(arr.shape)}")
-    bad = np.flatnonzero(~np.isfinite(arr))
-    if bad.size:
-        raise ValueError(f"latent has NaN or inf at index {int(bad[0])}; send finite values only")
-    with np.errstate(over="ignore"):   # the overflow is reported just below
-        arr32 = arr.astype("<f4")
-    if not np.all(np.isfinite(arr32)):
+    finite = np.isfinite(arr)
+    if not finite.all():
+        raise ValueError(f"latent has NaN or inf at index {int(np.flatnonzero(~finite)[0])}; send finite values only")
+    if np.abs(arr).max() > F32_MAX:
         raise ValueError("latent overflows float32; rescale the latent")
-    return arr32
+    return arr.astype("<f4")
 
 
 Latent = Annotated[

@@ -36,6 +36,7 @@ async def create_calibration(request: Request, body: CalibrateIn, _: Principal =
         raise HTTPException(404, str(exc)) from None
     except ValueError as exc:   # a valid request the stored episodes cannot support (too few, one class only)
         raise HTTPException(409, str(exc)) from None
+    app.state.ingest.forget_calibrations()   # this process alerts with it from the next record on
     return calibration_out(row)
 
 

@@ -1,7 +1,7 @@
 """API key management (admin)."""
 from __future__ import annotations
 
-from fastapi import APIRouter, Depends, HTTPException
+from fastapi import APIRouter, Depends, HTTPException, Request
 from sqlalchemy import select
 from sqlalchemy.orm import Session
 
@@ -34,11 +34,13 @@ def list_keys(session: Session = Depends(get_read_session), _: Principal = Depen
 
 
 @router.delete("/{key_id}", response_model=KeyOut, responses=errors(404))
-def revoke_key(key_id: ObjectId, session: Session = Depends(get_session), _: Principal = Depends(require("admin"))) -> KeyOut:
+def revoke_key(request: Request, key_id: ObjectId, session: Session = Depends(get_session),
+               _: Principal = Depends(require("admin"))) -> KeyOut:
     """Revoke a key; requests with it are refused from now on."""
     try:
         row = revoke(session, key_id)
     except LookupError as exc:
         raise HTTPException(404, str(exc)) from None
     session.commit()
+    request.app.state.key_cache.clear()   # refused from this process's next request on
     return KeyOut(**key_out(row))

@@ -1,6 +1,8 @@
 """Shared helpers of the monitor tests: settings in a temp dir, keys, and synthetic episodes."""
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 
 from monitor_service.settings import MonitorSettings
@@ -81,3 +83,22 @@ def records_for_nmse(episode, task, rng, nmse_values, steps=None, horizon=4, dim
             out["length"] = length
         recs.append(out)
     return recs
+
+
+def _stat(pid) -> list[str] | None:
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    except OSError:
+        return None
+
+
+def children(pid: int) -> list[int]:
+    """Pids whose parent is ``pid``."""
+    return [int(p.name) for p in Path("/proc").iterdir()
+            if p.name.isdigit() and (st := _stat(p.name)) is not None and int(st[1]) == pid]
+
+
+def alive(pid: int) -> bool:
+    """Running and not a zombie (a zombie only waits for init to reap it)."""
+    st = _stat(pid)
+    return st is not None and st[0] != "Z"

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 from alembic.autogenerate import compare_metadata
 from alembic.runtime.migration import MigrationContext
-from monitor_testkit import ADMIN, DIM, episode_records
+from monitor_testkit import ADMIN, DIM, alive, children, episode_records
 
 from monitor_service import db
 from monitor_service.server import free_port, start_server
@@ -42,25 +42,6 @@ def pg_url():
     finally:
         subprocess.run(prefix + [f"{PG_BIN}/pg_ctl", "-D", str(data), "-m", "immediate", "-w", "stop"], capture_output=True)
         shutil.rmtree(root, ignore_errors=True)
-
-
-def _stat(pid) -> list[str] | None:
-    try:
-        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
-    except OSError:
-        return None
-
-
-def children(pid: int) -> list[int]:
-    """Pids whose parent is ``pid``."""
-    return [int(p.name) for p in Path("/proc").iterdir()
-            if p.name.isdigit() and (st := _stat(p.name)) is not None and int(st[1]) == pid]
-
-
-def alive(pid: int) -> bool:
-    """Running and not a zombie (a zombie only waits for init to reap it)."""
-    st = _stat(pid)
-    return st is not None and st[0] != "Z"
 
 
 def test_migrations_on_postgres(pg_url):
@@ -120,3 +101,17 @@ def test_service_on_postgres_concurrent_idempotent_calibrated_and_restarted(pg_u
         http.close()
     finally:
         server.stop()
+
+
+def test_two_servers_on_one_postgres_lose_no_update_and_scale(pg_url, capsys):
+    """The bench's PostgreSQL mode: two server processes share the database; every episode's counters agree
+    with its stored rows afterwards (no update lost to the other process)."""
+    from monitor_service.bench import run_bench
+
+    out = run_bench(dim=16, seconds=1.0, concurrency=4, batch=8, batch_concurrency=2, client_decisions=0,
+                    database_url=pg_url, servers=2, floor=False)
+    check = out["postgres_check"]
+    assert check["mismatched_episodes"] == 0 and check["decisions"] > 0
+    sent = sum(m["service"]["decisions"] for m in out["modes"].values())
+    assert check["decisions"] >= sent   # every acknowledged decision is stored (earlier tests' rows add to it)
+    assert "2 server process(es)" in capsys.readouterr().out

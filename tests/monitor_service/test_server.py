@@ -10,7 +10,7 @@ from pathlib import Path
 import httpx
 import numpy as np
 import pytest
-from monitor_testkit import ADMIN, DIM, episode_records
+from monitor_testkit import ADMIN, DIM, alive, children, episode_records
 
 from monitor_service.client import AsyncMonitorClient, MonitorClient
 from monitor_service.server import free_port, provision, start_server
@@ -174,37 +174,22 @@ def test_concurrent_writers_two_workers_and_metrics_aggregate(db_url, tmp_path):
         http.close()
 
 
-def _children(pid: int) -> list[int]:
-    out = []
-    for entry in Path("/proc").iterdir():
-        if entry.name.isdigit():
-            try:
-                if int((entry / "stat").read_text().rsplit(")", 1)[1].split()[1]) == pid:
-                    out.append(int(entry.name))
-            except (OSError, IndexError, ValueError):
-                continue
-    return out
-
-
 @pytest.mark.skipif(not Path("/proc").is_dir(), reason="reads the process tree from /proc")
 def test_workers_exit_when_the_supervisor_is_killed(db_url, tmp_path):
     """kill -9 of the supervising PID only: its workers must go, so a restart finds the port free."""
     server = start_server(db_url, admin_key=ADMIN, workers=2, log_path=tmp_path / "s.log",
                           env={"PROMETHEUS_MULTIPROC_DIR": str(tmp_path / "prom")})
     try:
-        workers = [c for c in _children(server.process.pid)
+        workers = [c for c in children(server.process.pid)
                    if "spawn_main" in Path(f"/proc/{c}/cmdline").read_bytes().decode(errors="replace")]
         assert len(workers) == 2, workers
         os.kill(server.process.pid, signal.SIGKILL)     # the supervisor alone, not its process group
         server.process.wait(10)
         deadline = time.monotonic() + 15
-        while time.monotonic() < deadline and any(Path(f"/proc/{w}").exists() and
-                                                  "Z" not in Path(f"/proc/{w}/stat").read_text().split()[2]
-                                                  for w in workers):
+        while time.monotonic() < deadline and any(alive(w) for w in workers):
             time.sleep(0.2)
-        alive = [w for w in workers if Path(f"/proc/{w}").exists()
-                 and Path(f"/proc/{w}/stat").read_text().split()[2] != "Z"]
-        assert alive == [], f"workers {alive} outlived their supervisor"
+        survivors = [w for w in workers if alive(w)]
+        assert survivors == [], f"workers {survivors} outlived their supervisor"
         with pytest.raises(httpx.TransportError):
             httpx.get(server.url + "/healthz", timeout=2)
         restarted = start_server(db_url, admin_key=ADMIN, port=server.port, log_path=tmp_path / "s2.log")
@@ -213,12 +198,31 @@ def test_workers_exit_when_the_supervisor_is_killed(db_url, tmp_path):
         server.kill()
 
 
-def test_bench_runs_end_to_end_and_reports_every_mode(capsys):
+def test_bench_compares_the_service_with_the_floor_in_one_run(capsys):
     from monitor_service.bench import run_bench
 
-    rows = run_bench(n=40, batches=(8,), dim=16, max_seconds=5, concurrency=2)
-    assert [r["mode"] for r in rows] == ["json, 1 decision/request", "binary, 1 decision/request", "binary batch=8 x2", "client"]
-    assert rows[2]["decisions"] == 40 and rows[3]["decisions"] == 40
-    assert all(r["decisions"] > 0 for r in rows)
-    out = capsys.readouterr().out
-    assert "decisions/s" in out and "client per decision" in out
+    out = run_bench(dim=16, seconds=0.7, concurrency=2, batch=8, batch_concurrency=1, client_decisions=40)
+    modes = out["modes"]
+    assert list(modes) == ["json, 1 record/request x2", "msgpack, 1 record/request x2",
+                           "msgpack, 8 decisions/request x1", "MonitorClient end to end"]
+    for name in list(modes)[:3]:
+        ours, floor = modes[name]["service"], modes[name]["floor"]
+        assert ours["requests"] > 0 and floor["requests"] > 0 and ours["p99_ms"] >= ours["p50_ms"] > 0
+        assert ours["server_cpu_ms_per_request"] > 0
+    assert modes["msgpack, 8 decisions/request x1"]["service"]["decisions"] == \
+        8 * modes["msgpack, 8 decisions/request x1"]["service"]["requests"]
+    assert modes["MonitorClient end to end"]["decisions"] == 40
+    text = capsys.readouterr().out
+    assert "| floor" in text and "| ratio" in text and "load average" in text
+
+
+def test_bench_runs_against_a_server_someone_else_started(db_url, tmp_path, capsys):
+    from monitor_service.bench import run_bench
+
+    with start_server(db_url, admin_key=ADMIN, log_path=tmp_path / "s.log") as server:
+        out = run_bench(dim=8, seconds=0.5, concurrency=1, batch=4, batch_concurrency=1, client_decisions=0,
+                        host="127.0.0.1", port=server.port, admin_key=ADMIN, floor=False)
+        assert all(m["service"]["requests"] > 0 and m["floor"] is None for m in out["modes"].values())
+        assert f"the server at {server.url}" in capsys.readouterr().out
+        with pytest.raises(ValueError, match="--admin-key"):
+            run_bench(host="127.0.0.1", port=server.port)

@@ -1,6 +1,6 @@
 """Persistence control, episode length and risk: decisions may carry the current latent z_t (the persistence
 baseline z_hat = z_t is scored against the same realized target), outcomes may carry the episode's length, and
-an episode keeps the latest value of its calibrated alert rule's statistic.
+an episode keeps the latest value of its calibrated alert rule's statistic and a version counter.
 
 Revision ID: 0002
 Revises: 0001
@@ -21,10 +21,13 @@ def upgrade() -> None:
     with op.batch_alter_table("episodes") as batch:
         batch.add_column(sa.Column("length", sa.Integer, nullable=True))
         batch.add_column(sa.Column("risk_score", sa.Float, nullable=True))
+        # optimistic concurrency of the in-memory episode state of each server process (ingest.py)
+        batch.add_column(sa.Column("version", sa.Integer, nullable=False, server_default="0"))
 
 
 def downgrade() -> None:
     with op.batch_alter_table("episodes") as batch:
+        batch.drop_column("version")
         batch.drop_column("risk_score")
         batch.drop_column("length")
     with op.batch_alter_table("decisions") as batch:
