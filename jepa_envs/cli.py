@@ -62,8 +62,12 @@ def _make_demos_args(p: argparse.ArgumentParser) -> None:
 def make_demos(args: argparse.Namespace) -> int:
     spec = _spec_or_exit(args.task)
     if spec.suite != "embedded":
-        raise SystemExit(f"error: no scripted expert exists for {spec.name} ({spec.suite}); only PushT has one. "
-                         f"Use the public {spec.suite} demonstrations with jepa_envs.data.load_dataset instead")
+        raise SystemExit(
+            f"error: no scripted expert exists for {spec.name} ({spec.suite}); only PushT has one. Bring your own "
+            f"data: download the public {spec.suite} demonstrations (or record your own) as HDF5 in the "
+            "robomimic layout data/demo_N/{obs/<camera>_image, obs/<low-dim keys>, actions, states} with "
+            "data.attrs['env_args']; convert delta actions with `jepa-envs convert-abs-actions IN OUT`; then "
+            f"`jepa-policy train --task {spec.name} --dataset OUT` (docs/envs_simulation.md)")
     if args.episodes < 1:
         raise SystemExit(f"error: --episodes must be >= 1, got {args.episodes}")
     if args.workers < 1:

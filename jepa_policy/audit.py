@@ -1,15 +1,27 @@
-"""Representation-collapse audit (paper Sec. 4.9): spectral statistics of latents, computed in float64.
+"""The paper's audits of a trained policy, on fixed sample manifests so every checkpoint sees the same inputs.
 
-For a representation matrix X (N samples x D features), centred over samples, with eigenvalues
-lambda_1 >= ... >= lambda_D of X_c^T X_c:
+Collapse (Sec. 4.9), computed in float64. For a representation matrix X (N samples x D features), centred over
+samples, with eigenvalues lambda_1 >= ... >= lambda_D of X_c^T X_c:
 - effective rank = exp(entropy of lambda / sum(lambda))  (Roy & Vetterli), between 1 and D;
 - top-eigenvalue share = lambda_1 / sum(lambda);
 - TE32 = 1 - sum_{i<=32} lambda_i / sum(lambda): spectral energy outside the leading 32 directions; the
   paper's pre-specified low-rank boundary is TE32 = 0.05.
-The checkpoint audit encodes a fixed manifest of dataset windows (seeded choice of up to 4,096) with the
-EMA policy and reports these statistics for the encoder latents z = E_rgb(o) and the predictor's z_hat.
+Views: ``c_t`` (the fused representation, width 384 at paper size: the audited one), ``e_rgb`` (the pooled image
+features E_rgb, 1,024-d) and ``z_hat`` (the predictor's output).
+
+Retrieval (Sec. 4.9): does z_hat pick its own realized target E_rgb(o_{t+k}) out of a pool of 256 candidates
+(itself and 255 other targets of the manifest, drawn once per query from a seed)? Recall@1, Recall@5 and the
+median rank under NMSE, with the candidate-label permutation null (the true candidate drawn uniformly from
+the pool) and its p-value, overall and split by whether the window's future frame was clamped at the episode's
+end (then o_{t+k} is the last frame, an easier target).
+
+Gradient interaction (Sec. 4.5): per parameter group the norms of the action-loss and future-loss gradients,
+their ratio and cosine; the cross-gradients (the future loss on the action head, the action loss on the future
+head); and the paper's gradient share on the parameters that produce the action readout.
 """
 from __future__ import annotations
+
+import math
 
 import numpy as np
 import torch
@@ -17,6 +29,12 @@ import torch
 from jepa_policy.dataset import WindowDataset
 
 TE32_BOUNDARY = 0.05
+VIEWS = {
+    "c_t": "fused representation c_t = Fuse([E_rgb(o_t), s_t]) (the paper's audited view)",
+    "e_rgb": "pooled image features E_rgb(o_t)",
+    "z_hat": "predictor output z_hat (refined future latent)",
+}
+POOL = 256
 
 
 def centred_spectrum(x: np.ndarray) -> np.ndarray:
@@ -38,7 +56,7 @@ def spectral_stats(x: np.ndarray, k: int = 32) -> dict:
                 "low_rank": True}
     p = lam / total
     nz = p[p > 0]
-    te = float(1.0 - p[:k].sum())
+    te = max(0.0, float(1.0 - p[:k].sum()))   # exactly 0 when D <= k (not -1e-16)
     return {"effective_rank": float(np.exp(-(nz * np.log(nz)).sum())), "top_share": float(p[0]),
             f"te{k}": te, "dim": int(np.asarray(x).shape[1]), "low_rank": te < TE32_BOUNDARY}
 
@@ -49,22 +67,158 @@ def manifest(num_windows: int, samples: int = 4096, seed: int = 0) -> np.ndarray
     return np.sort(rng.choice(num_windows, size=min(samples, num_windows), replace=False))
 
 
-@torch.inference_mode()
-def audit_checkpoint(policy, demos, samples: int = 4096, seed: int = 0, batch_size: int = 256) -> dict:
-    """Spectral statistics of encoder latents E_rgb(o_t) and predicted z_hat on a fixed manifest of windows."""
-    windows = WindowDataset.from_demos(demos)
-    idx = manifest(len(windows), samples, seed)
-    model, device = policy.model, policy.device
-    z_enc, z_hat = [], []
+def _batches(windows: WindowDataset, idx: np.ndarray, batch_size: int, device):
     for start in range(0, len(idx), batch_size):
         batch = windows[idx[start:start + batch_size]]
-        obs = {k: v.to(device) for k, v in batch["obs"].items()}
-        newest = {k: obs[k][:, -1] for k in policy.spec.image_keys}
-        z_enc.append(model.encode_future(newest).double().cpu().numpy())
-        _, zh = model.predict(obs, want_future=True)
-        if zh is not None:
-            z_hat.append(zh.double().cpu().numpy())
-    report = {"samples": int(len(idx)), "seed": seed, "encoder": spectral_stats(np.concatenate(z_enc))}
-    if z_hat:
-        report["predictor"] = spectral_stats(np.concatenate(z_hat))
-    return report
+        yield ({k: v.to(device) for k, v in batch["obs"].items()},
+               {k: v.to(device) for k, v in batch["future_obs"].items()})
+
+
+@torch.inference_mode()
+def audit_checkpoint(policy, demos, samples: int = 4096, seed: int = 0, batch_size: int = 256) -> dict:
+    """Spectral statistics of each view (``VIEWS``) on a fixed manifest of dataset windows."""
+    model = policy.model
+    if not hasattr(model, "representations"):
+        raise ValueError(f"arm {model.cfg.arm!r} has no fused representation c_t to audit (the collapse audit "
+                         "reads the JEPA family: jepa, mip and the ablation arms)")
+    windows = WindowDataset.from_demos(demos)
+    idx = manifest(len(windows), samples, seed)
+    views: dict[str, list[np.ndarray]] = {}
+    for obs, _ in _batches(windows, idx, batch_size, policy.device):
+        for name, x in model.representations(obs).items():
+            views.setdefault(name, []).append(x.double().cpu().numpy())
+    return {"samples": int(len(idx)), "seed": seed, "primary": "c_t",
+            "views": {name: {"what": VIEWS[name], **spectral_stats(np.concatenate(xs))}
+                      for name, xs in views.items()}}
+
+
+def nmse_matrix(z_hat: np.ndarray, targets: np.ndarray) -> np.ndarray:
+    """(Q, P) d_NMSE of each query against each of its P candidates: z_hat (Q, D), targets (Q, P, D)."""
+    rms = np.sqrt(np.mean(targets * targets, axis=-1))
+    return np.mean(((z_hat[:, None, :] - targets) / np.maximum(rms, 1e-6)[..., None]) ** 2, axis=-1)
+
+
+def candidate_pools(n: int, pool: int, seed: int) -> np.ndarray:
+    """(n, pool) manifest positions: column 0 is the query's own target, the rest other samples (seeded)."""
+    if n < pool:
+        raise ValueError(f"retrieval needs at least {pool} manifest samples, got {n}; use a larger dataset or "
+                         "--pool smaller")
+    rng = np.random.default_rng(seed)
+    others = np.empty((n, pool - 1), dtype=np.int64)
+    for i in range(n):
+        draw = rng.choice(n - 1, size=pool - 1, replace=False)
+        others[i] = draw + (draw >= i)      # skip the query itself
+    return np.concatenate([np.arange(n)[:, None], others], axis=1)
+
+
+def retrieval_stats(scores: np.ndarray, permutations: int = 1000, seed: int = 0) -> dict:
+    """Recall@1/@5, median rank of column 0 (the true target; lower score = better) and the label-permutation
+    null: the true column drawn uniformly, Recall@1 recomputed, p = (1 + #null >= observed) / (1 + B)."""
+    scores = np.asarray(scores, dtype=np.float64)
+    n, pool = scores.shape
+    if n == 0:
+        return {"queries": 0}
+    order_rank = scores.argsort(axis=1, kind="stable").argsort(axis=1) + 1    # rank of every candidate
+    rank = order_rank[:, 0]
+    recall1 = float(np.mean(rank == 1))
+    rng = np.random.default_rng(seed)
+    null = np.array([np.mean(order_rank[np.arange(n), rng.integers(0, pool, n)] == 1) for _ in range(permutations)])
+    return {"queries": int(n), "pool": int(pool), "recall_at_1": recall1, "recall_at_5": float(np.mean(rank <= 5)),
+            "median_rank": float(np.median(rank)), "chance_recall_at_1": 1.0 / pool,
+            "null_recall_at_1_mean": float(null.mean()),
+            "permutation_p": float((1 + np.sum(null >= recall1 - 1e-12)) / (1 + permutations))}
+
+
+@torch.inference_mode()
+def retrieval_audit(policy, demos, samples: int = 4096, pool: int = POOL, seed: int = 0, permutations: int = 1000,
+                    batch_size: int = 256) -> dict:
+    """Sec. 4.9 retrieval on a fixed manifest: z_hat against its own realized target among ``pool`` candidates."""
+    model = policy.model
+    if not model.cfg.has_future_token:
+        raise ValueError(f"arm {model.cfg.arm!r} predicts no future latent: retrieval needs a future head")
+    windows = WindowDataset.from_demos(demos)
+    idx = manifest(len(windows), samples, seed)
+    z_hat, z_real = [], []
+    for obs, future in _batches(windows, idx, batch_size, policy.device):
+        z_hat.append(model.predict(obs, want_future=True)[1].double().cpu().numpy())
+        z_real.append(model.encode_future(future).double().cpu().numpy())
+    z_hat, z_real = np.concatenate(z_hat), np.concatenate(z_real)
+    pools = candidate_pools(len(idx), pool, seed)
+    scores = np.concatenate([nmse_matrix(z_hat[s:s + 64], z_real[pools[s:s + 64]])
+                             for s in range(0, len(idx), 64)])
+    clamped = windows.index.clamped[idx]
+    out = {"samples": int(len(idx)), "seed": seed, "score": "d_NMSE (lower is the better match)",
+           "all": retrieval_stats(scores, permutations, seed)}
+    for name, mask in (("future_in_episode", ~clamped), ("future_clamped_at_end", clamped)):
+        out[name] = retrieval_stats(scores[mask], permutations, seed) if mask.any() else {"queries": 0}
+    return out
+
+
+def gradient_interaction(model, batch, generator: torch.Generator | None = None) -> dict:
+    """Sec. 4.5 on one batch: per parameter group ||g_act||, ||g_future||, their ratio and cosine; the
+    cross-gradients; and the gradient share on the action readout (``PolicyModel.gradient_share``).
+
+    The loss terms are the weighted ones training sums; nothing is written to ``.grad``."""
+    if not hasattr(model, "parameter_groups"):
+        raise ValueError(f"arm {model.cfg.arm!r} has no future loss to interact with (JEPA family only)")
+    terms, _ = model.loss_terms(batch, generator)
+    groups = model.parameter_groups()
+    params = [p for ps in groups.values() for p in ps]
+    readout = {id(p) for p in model.action_readout_parameters()}
+    out = {"arm": model.cfg.arm, "groups": {}}
+    if "future" not in terms:
+        out["gradient_share"] = 0.0
+        return out
+    g_act = torch.autograd.grad(terms["act"], params, retain_graph=True, allow_unused=True)
+    g_fut = torch.autograd.grad(terms["future"], params, allow_unused=True)
+
+    def flat(grads, members):
+        parts = [g.float().flatten() for g, p in zip(grads, params) if id(p) in members and g is not None]
+        return torch.cat(parts) if parts else torch.zeros(0)
+
+    for name, members in groups.items():
+        ids = {id(p) for p in members}
+        a, f = flat(g_act, ids), flat(g_fut, ids)
+        na, nf = float(a.norm()) if a.numel() else 0.0, float(f.norm()) if f.numel() else 0.0
+        cos = float(torch.dot(a, f) / (a.norm() * f.norm())) if na > 0 and nf > 0 and a.numel() == f.numel() else None
+        out["groups"][name] = {"act_norm": na, "future_norm": nf,
+                               "ratio": nf / na if na > 0 else (math.inf if nf > 0 else 0.0), "cosine": cos}
+    ra, rf = flat(g_act, readout), flat(g_fut, readout)
+    out["gradient_share"] = float(rf.norm() / ra.norm().clamp_min(1e-30)) if ra.numel() else 0.0
+    out["cross"] = {"future_loss_on_action_head": out["groups"]["action_head"]["future_norm"],
+                    "action_loss_on_future_head": out["groups"].get("future_head", {}).get("act_norm", 0.0)}
+    return out
+
+
+def gradient_audit(policy, demos, batches: int = 8, batch_size: int = 64, seed: int = 0) -> dict:
+    """``gradient_interaction`` averaged over ``batches`` seeded batches of a dataset (train-mode noise)."""
+    model = policy.model
+    windows = WindowDataset.from_demos(demos)
+    rng = np.random.default_rng(seed)
+    rows = []
+    model.train()
+    try:
+        for b in range(batches):
+            idx = np.sort(rng.choice(len(windows), size=min(batch_size, len(windows)), replace=False))
+            batch = windows[idx]
+            batch = {k: ({kk: vv.to(policy.device) for kk, vv in v.items()} if isinstance(v, dict)
+                         else v.to(policy.device)) for k, v in batch.items()}
+            torch.manual_seed(seed * 1000 + b)
+            rows.append(gradient_interaction(model, batch))
+    finally:
+        model.eval()
+    return {**average_interaction(rows), "batches": batches, "batch_size": batch_size, "seed": seed}
+
+
+def average_interaction(rows: list[dict]) -> dict:
+    """The mean of each number over rows of ``gradient_interaction`` (cosines of groups that have them)."""
+    out = {"arm": rows[0]["arm"], "gradient_share": float(np.mean([r["gradient_share"] for r in rows])),
+           "groups": {}}
+    for name in rows[0]["groups"]:
+        out["groups"][name] = {}
+        for key in ("act_norm", "future_norm", "ratio", "cosine"):
+            vals = [r["groups"][name][key] for r in rows if r["groups"][name][key] is not None]
+            out["groups"][name][key] = float(np.mean(vals)) if vals else None
+    if "cross" in rows[0]:
+        out["cross"] = {k: float(np.mean([r["cross"][k] for r in rows])) for k in rows[0]["cross"]}
+    return out

@@ -7,6 +7,7 @@ audits read it through ``load_checkpoint`` / ``load_model``.
 """
 from __future__ import annotations
 
+import hashlib
 import os
 import random
 from pathlib import Path
@@ -74,6 +75,18 @@ def save_checkpoint(path: Path, *, model, ema, optimizer, scheduler, step: int, 
     os.replace(tmp, path)
 
 
+def save_eval_snapshot(path: Path, *, ema, step: int, cfg, model_cfg: ModelConfig, spec,
+                       env_args: dict | None = None) -> None:
+    """The EMA weights of one periodic evaluation: enough to act (``Policy.from_checkpoint``), not to resume."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    payload = {"format": FORMAT, "step": step, "train_config": cfg.to_dict(), "model_config": model_cfg.to_dict(),
+               "task": spec.name, "image_size": spec.image_size, "env_args": env_args, "ema": ema.state_dict(),
+               "eval_snapshot": True}
+    tmp = path.with_suffix(".tmp")
+    torch.save(payload, tmp)
+    os.replace(tmp, path)
+
+
 def load_checkpoint(path: str | Path, map_location="cpu") -> dict:
     """The checkpoint's payload; a clear error for a missing file or a file of another kind."""
     path = Path(path)
@@ -94,3 +107,56 @@ def load_model(ckpt: dict, ema: bool = True) -> BasePolicyModel:
         state = ckpt["model"]
     model.load_state_dict(state)
     return model
+
+
+BACKBONE = "encoder.cameras."   # the per-camera ResNet-18 GN backbones: what a pretrained encoder replaces
+
+
+def load_encoder_weights(model: BasePolicyModel, path: str | Path,
+                         key_map: tuple[tuple[str, str], ...] = ()) -> tuple[int, str]:
+    """Initialise the image backbones (``encoder.cameras.*``) from a local file; returns (tensors, sha256).
+
+    The file is a ``jepa-policy train`` checkpoint (its EMA weights are used), or any state_dict (optionally
+    under "state_dict"). ``key_map`` pairs (source prefix, our prefix) rename its keys, e.g.
+    ``[["", "encoder.cameras.agentview_image."]]`` for a bare ResNet18GN state_dict of one camera, or
+    ``[["backbone.", "encoder.cameras.agentview_image."]]``; without a map the keys must already be ours.
+    Every backbone tensor must be provided with its exact shape; anything else is an error naming the keys.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"encoder weights {path} do not exist; pass a local file (no download is made)")
+    raw = path.read_bytes()
+    state = torch.load(path, map_location="cpu", weights_only=False)
+    if isinstance(state, dict) and state.get("format") == FORMAT:
+        state = {k[len(EMA_PREFIX):]: v for k, v in state["ema"].items() if k.startswith(EMA_PREFIX)}
+    elif isinstance(state, dict) and isinstance(state.get("state_dict"), dict):
+        state = state["state_dict"]
+    if not isinstance(state, dict):
+        raise ValueError(f"{path} holds no state_dict (a mapping of names to tensors)")
+    pairs = key_map or ((BACKBONE, BACKBONE),)
+    mapped = {}
+    for key, value in state.items():
+        for src, dst in pairs:
+            if key.startswith(src) and (dst + key[len(src):]).startswith(BACKBONE):
+                mapped[dst + key[len(src):]] = value
+                break
+    own = {k: v for k, v in model.state_dict().items() if k.startswith(BACKBONE)}
+    missing = sorted(set(own) - set(mapped))
+    unexpected = sorted(set(mapped) - set(own))
+    wrong = sorted(k for k in set(own) & set(mapped) if tuple(own[k].shape) != tuple(mapped[k].shape))
+    if missing or unexpected or wrong:
+        raise ValueError(f"{path} does not fit this model's image backbone: {len(missing)} missing (e.g. "
+                         f"{missing[:3]}), {len(unexpected)} unexpected (e.g. {unexpected[:3]}), {len(wrong)} of another "
+                         f"shape (e.g. {wrong[:3]}); check cameras, encoder_width and encoder_key_map")
+    model.load_state_dict(mapped, strict=False)
+    return len(mapped), hashlib.sha256(raw).hexdigest()
+
+
+def freeze_backbone(model: BasePolicyModel) -> int:
+    """Stop training the image backbones; returns how many tensors were frozen (fusion and heads still learn)."""
+    frozen = 0
+    for name, p in model.named_parameters():
+        if name.startswith(BACKBONE):
+            p.requires_grad_(False)
+            frozen += 1
+    return frozen

@@ -7,7 +7,7 @@ import json
 import sys
 from pathlib import Path
 
-from jepa_policy.train import TrainConfig
+from jepa_policy.train import TRAIN_HELP, TrainConfig
 
 
 def _add_train_args(parser: argparse.ArgumentParser) -> None:
@@ -17,13 +17,13 @@ def _add_train_args(parser: argparse.ArgumentParser) -> None:
     for f in dataclasses.fields(TrainConfig):
         flag = "--" + f.name.replace("_", "-")
         default = getattr(TrainConfig(), f.name)
+        text = f"{TRAIN_HELP[f.name]} (paper default {default!r})"
         if isinstance(default, bool):
-            parser.add_argument(flag, dest=f.name, action=argparse.BooleanOptionalAction, default=None)
+            parser.add_argument(flag, dest=f.name, action=argparse.BooleanOptionalAction, default=None, help=text)
         elif isinstance(default, dict):
-            parser.add_argument(flag, dest=f.name, type=json.loads, default=None,
-                                help="JSON object of ModelConfig overrides")
+            parser.add_argument(flag, dest=f.name, type=json.loads, default=None, help=TRAIN_HELP[f.name])
         else:
-            parser.add_argument(flag, dest=f.name, type=type(default), default=None, help=f"default {default!r}")
+            parser.add_argument(flag, dest=f.name, type=type(default), default=None, help=text)
 
 
 def _train_config(args) -> TrainConfig:
@@ -32,7 +32,13 @@ def _train_config(args) -> TrainConfig:
     overrides = {f.name: getattr(args, f.name) for f in dataclasses.fields(TrainConfig)
                  if getattr(args, f.name) is not None}
     if args.config:
-        data = json.loads(Path(args.config).read_text())
+        path = Path(args.config)
+        if not path.is_file():
+            raise FileNotFoundError(f"--config {path} does not exist; pass a run's train_config.json")
+        data = json.loads(path.read_text())
+        if overrides.get("resume") and "stop_at" not in overrides:
+            # a run's train_config.json keeps the stop_at it was launched with; a resume goes on to the end
+            data["stop_at"] = 0
         return TrainConfig.from_dict({**data, **overrides})
     task = overrides.pop("task", "PushT")
     return load_config(task, args.preset, **overrides)
@@ -41,7 +47,10 @@ def _train_config(args) -> TrainConfig:
 def cmd_train(args) -> int:
     from jepa_policy.train import train
 
-    cfg = _train_config(args)
+    try:
+        cfg = _train_config(args)
+    except TypeError as exc:   # an option of the wrong type in --config or --model: the user's to fix
+        raise ValueError(str(exc)) from None
     result = train(cfg)
     print(json.dumps({"checkpoint": result["checkpoint"], "step": result["step"], "eval_curve": result["curve"]}))
     return 0
@@ -51,7 +60,9 @@ def cmd_eval(args) -> int:
     from jepa_policy.evaluate import evaluate
     from jepa_policy.policy import Policy
 
-    policy = Policy.from_checkpoint(args.checkpoint, device=args.device, ema=not args.no_ema)
+    from jepa_policy.train import resolve_device
+
+    policy = Policy.from_checkpoint(args.checkpoint, device=resolve_device(args.device), ema=not args.no_ema)
     report = evaluate(policy, episodes=args.episodes, seed=args.seed, num_envs=args.num_envs,
                       max_steps=args.max_steps, video_dir=args.video, out=args.out)
     summary = {k: v for k, v in report.items() if k != "records"}
@@ -62,7 +73,13 @@ def cmd_eval(args) -> int:
 def cmd_describe(args) -> int:
     from jepa_policy.describe import describe
 
-    report = describe(args.task, arm=args.arm)
+    overrides = {}
+    if args.preset:
+        from jepa_policy.train import load_config
+
+        cfg = load_config(args.task, args.preset)
+        overrides = dict(cfg.model, **({"image_size": cfg.image_size} if cfg.image_size else {}))
+    report = describe(args.task, arm=args.arm, **overrides)
     if args.json:
         print(json.dumps(report, indent=2))
     else:
@@ -96,6 +113,20 @@ def cmd_protocols(args) -> int:
     from jepa_policy.evaluate import reporting_protocols
 
     path = Path(args.curve)
+    if args.select:
+        from jepa_policy.selection import select_checkpoint
+        from jepa_policy.train import resolve_device
+
+        run_dir = path if path.is_dir() else path.parent
+        result = select_checkpoint(run_dir, fresh_seed=args.fresh_seed,
+                                   ladder=tuple(int(x) for x in args.ladder.split(",")), num_envs=args.num_envs,
+                                   max_steps=args.max_steps, device=resolve_device(args.device))
+        print(json.dumps(result, indent=2))
+        return 0
+    if path.is_dir():
+        path = path / "eval_curve.json"
+    if not path.exists():
+        raise FileNotFoundError(f"{path} does not exist; pass a run's eval_curve.json, its folder or a checkpoint")
     if path.suffix == ".pt":
         from jepa_policy.checkpoint import load_checkpoint
         curve = load_checkpoint(path)["eval_curve"]
@@ -107,12 +138,25 @@ def cmd_protocols(args) -> int:
 
 def cmd_audit(args) -> int:
     from jepa_envs.data import load_dataset
-    from jepa_policy.audit import audit_checkpoint
+    from jepa_policy.audit import audit_checkpoint, gradient_audit, retrieval_audit
     from jepa_policy.policy import Policy
+    from jepa_policy.train import resolve_device
 
-    policy = Policy.from_checkpoint(args.checkpoint, device=args.device)
+    policy = Policy.from_checkpoint(args.checkpoint, device=resolve_device(args.device))
     demos = load_dataset(args.dataset, task=policy.spec.name, image_size=policy.spec.image_size)
-    print(json.dumps(audit_checkpoint(policy, demos, samples=args.samples, seed=args.seed)))
+    kinds = args.kind.split(",")
+    unknown = sorted(set(kinds) - {"collapse", "retrieval", "gradients"})
+    if unknown:
+        raise ValueError(f"unknown audit(s) {unknown}; choose from collapse, retrieval, gradients")
+    report = {"checkpoint": str(args.checkpoint), "arm": policy.model.cfg.arm}
+    if "collapse" in kinds:
+        report["collapse"] = audit_checkpoint(policy, demos, samples=args.samples, seed=args.seed)
+    if "retrieval" in kinds:
+        report["retrieval"] = retrieval_audit(policy, demos, samples=args.samples, pool=args.pool, seed=args.seed,
+                                              permutations=args.permutations)
+    if "gradients" in kinds:
+        report["gradients"] = gradient_audit(policy, demos, batches=args.batches, seed=args.seed)
+    print(json.dumps(report, indent=2))
     return 0
 
 
@@ -136,56 +180,71 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_train)
 
     p = sub.add_parser("eval", help="seeded rollouts of a checkpoint: success rate and per-decision NMSE")
-    p.add_argument("--checkpoint", required=True)
-    p.add_argument("--episodes", type=int, default=40)
-    p.add_argument("--seed", type=int, default=100_000)
-    p.add_argument("--num-envs", type=int, default=4)
+    p.add_argument("--checkpoint", required=True, help="a `jepa-policy train` checkpoint (.pt)")
+    p.add_argument("--episodes", type=int, default=40, help="rollouts (default 40, the paper's)")
+    p.add_argument("--seed", type=int, default=100_000, help="seed of the first rollout; episode i uses seed + i")
+    p.add_argument("--num-envs", type=int, default=4, help="environments stepped together")
     p.add_argument("--max-steps", type=int, default=None, help="episode step limit (default: the task's)")
     p.add_argument("--video", default=None, help="directory for one GIF per episode")
     p.add_argument("--out", default=None, help="JSONL file of per-episode records")
-    p.add_argument("--device", default="cpu")
+    p.add_argument("--device", default="auto", help="auto (CUDA when present) | cpu | cuda | cuda:N")
     p.add_argument("--no-ema", action="store_true", help="act with the raw instead of the EMA weights")
     p.set_defaults(func=cmd_eval)
 
     p = sub.add_parser("describe", help="parameter counts of an arm, total and per part")
-    p.add_argument("--task", default="ToolHang")
-    p.add_argument("--arm", default="jepa")
-    p.add_argument("--json", action="store_true")
+    p.add_argument("--task", default="ToolHang", help="task whose shapes to use")
+    p.add_argument("--arm", default="jepa", help="comparison arm (jepa, mip, dual_independent, ...)")
+    p.add_argument("--preset", default=None, help="shapes of this preset of configs/<task>.json (default: the paper's)")
+    p.add_argument("--json", action="store_true", help="print JSON instead of a table")
     p.set_defaults(func=cmd_describe)
 
     bench = sub.add_parser("bench", help="latency and training-throughput benchmarks")
     bsub = bench.add_subparsers(dest="bench", required=True)
     p = bsub.add_parser("latency", help="decision latency at batch 1, arms interleaved in one process")
-    p.add_argument("--task", default="ToolHang")
-    p.add_argument("--arms", default="mip,jepa,diffusion")
-    p.add_argument("--warmup", type=int, default=30)
-    p.add_argument("--iters", type=int, default=300)
+    p.add_argument("--task", default="ToolHang", help="task whose model shapes to time")
+    p.add_argument("--arms", default="mip,jepa,diffusion", help="comma-separated arms, timed interleaved")
+    p.add_argument("--warmup", type=int, default=30, help="untimed calls first (paper: 30)")
+    p.add_argument("--iters", type=int, default=300, help="timed calls (paper: 300)")
     p.add_argument("--dp-steps", default="100,16", help="DDPM sampler lengths timed for the diffusion arm")
-    p.add_argument("--device", default="auto")
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--json", action="store_true")
+    p.add_argument("--device", default="auto", help="auto | cpu | cuda | cuda:N")
+    p.add_argument("--seed", type=int, default=0, help="seed of the random weights and inputs")
+    p.add_argument("--json", action="store_true", help="print JSON instead of a table")
     p.set_defaults(func=cmd_bench_latency)
     p = bsub.add_parser("train", help="training samples/s and peak memory on synthetic batches")
-    p.add_argument("--task", default="ToolHang")
-    p.add_argument("--preset", default="paper")
-    p.add_argument("--arm", default="jepa")
-    p.add_argument("--steps", type=int, default=3)
-    p.add_argument("--warmup", type=int, default=1)
+    p.add_argument("--task", default="ToolHang", help="task whose model shapes to train")
+    p.add_argument("--preset", default="paper", help="preset of configs/<task>.json")
+    p.add_argument("--arm", default="jepa", help="comparison arm")
+    p.add_argument("--steps", type=int, default=3, help="timed steps")
+    p.add_argument("--warmup", type=int, default=1, help="untimed steps first")
     p.add_argument("--batch-size", type=int, default=None, help="default: the preset's")
-    p.add_argument("--device", default="auto")
-    p.add_argument("--json", action="store_true")
+    p.add_argument("--device", default="auto", help="auto | cpu | cuda | cuda:N")
+    p.add_argument("--json", action="store_true", help="print JSON instead of a table")
     p.set_defaults(func=cmd_bench_train)
 
-    p = sub.add_parser("audit", help="collapse audit (Sec. 4.9): effective rank, top share, TE32 of latents")
-    p.add_argument("--checkpoint", required=True)
-    p.add_argument("--dataset", required=True)
-    p.add_argument("--samples", type=int, default=4096)
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--device", default="cpu")
+    p = sub.add_parser("audit", help="the paper's audits of a checkpoint: collapse (c_t, E_rgb, z_hat), retrieval, "
+                                     "gradient interaction")
+    p.add_argument("--checkpoint", required=True, help="a `jepa-policy train` checkpoint (.pt)")
+    p.add_argument("--dataset", required=True, help="the demonstrations it was trained on (the sample manifest)")
+    p.add_argument("--kind", default="collapse,retrieval,gradients",
+                   help="comma-separated: collapse (Sec. 4.9), retrieval (Sec. 4.9), gradients (Sec. 4.5)")
+    p.add_argument("--samples", type=int, default=4096, help="windows in the fixed manifest (paper: 4,096)")
+    p.add_argument("--pool", type=int, default=256, help="retrieval candidates per query (paper: 256)")
+    p.add_argument("--permutations", type=int, default=1000, help="label permutations of the retrieval null")
+    p.add_argument("--batches", type=int, default=8, help="batches averaged by the gradient audit")
+    p.add_argument("--seed", type=int, default=0, help="seed of the manifest, the pools and the batches")
+    p.add_argument("--device", default="auto", help="auto | cpu | cuda | cuda:N")
     p.set_defaults(func=cmd_audit)
 
-    p = sub.add_parser("protocols", help="Table 6 reporting protocols from eval_curve.json or a checkpoint")
-    p.add_argument("curve")
+    p = sub.add_parser("protocols", help="Table 6 reporting protocols of a run, or (--select) its leakage-free "
+                                         "checkpoint selection on fresh seeds")
+    p.add_argument("curve", help="a run folder, its eval_curve.json, or a checkpoint")
+    p.add_argument("--select", action="store_true",
+                   help="confirm the two best evaluation checkpoints on fresh seeds with a paired bootstrap")
+    p.add_argument("--fresh-seed", type=int, default=1_000_000, help="first fresh rollout seed (--select)")
+    p.add_argument("--ladder", default="32,64,128", help="fresh episodes per candidate while undecided (--select)")
+    p.add_argument("--num-envs", type=int, default=4, help="environments stepped together (--select)")
+    p.add_argument("--max-steps", type=int, default=None, help="episode step limit (--select; default: the task's)")
+    p.add_argument("--device", default="auto", help="auto | cpu | cuda | cuda:N (--select)")
     p.set_defaults(func=cmd_protocols)
 
     p = sub.add_parser("robot", help="run a checkpoint for N episodes on a robot bridge (jepa-robot-bridge)")
@@ -201,9 +260,18 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+# What a user gets wrong (a path, an option, a dataset of another kind): one line naming it, exit code 2.
+USER_ERRORS = (FileNotFoundError, ValueError, KeyError)
+
+
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    return args.func(args)
+    try:
+        return args.func(args)
+    except USER_ERRORS as exc:
+        message = exc.args[0] if isinstance(exc, KeyError) and exc.args else exc
+        print(f"jepa-policy {args.command}: error: {message}", file=sys.stderr)
+        return 2
 
 
 if __name__ == "__main__":

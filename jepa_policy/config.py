@@ -72,6 +72,11 @@ class ModelConfig(ObservationLayout):
     diffusion_infer_steps: int = 100
     diffusion_keypoints: int = 32            # spatial-softmax keypoints per camera
     diffusion_feature_dim: int = 64          # per-camera feature after the keypoints
+    # --- a pretrained image encoder (the paper's DINO variant is one; train.load_encoder_weights) ---
+    encoder_weights: str = ""                # local file the training run initialised the encoder from ("" = none)
+    encoder_weights_sha256: str = ""         # its content hash, recorded when the run started
+    encoder_key_map: tuple[tuple[str, str], ...] = ()   # (source prefix, our prefix) pairs applied to its keys
+    freeze_encoder: bool = False             # keep the encoder fixed (its target z_{t+k} then moves no more)
 
     extra: dict = field(default_factory=dict, compare=False, hash=False)
 
@@ -79,6 +84,7 @@ class ModelConfig(ObservationLayout):
         # Accept lists from JSON/YAML so from_dict round-trips.
         object.__setattr__(self, "cameras", tuple(self.cameras))
         object.__setattr__(self, "lowdim", tuple((str(k), int(d)) for k, d in self.lowdim))
+        object.__setattr__(self, "encoder_key_map", tuple((str(a), str(b)) for a, b in self.encoder_key_map))
         # Derived defaults that reproduce the paper's counts at width 384 and scale with small CPU configs.
         for name, value in (("time_emb_dim", self.width // 2), ("dual_future_width", self.width // 2),
                             ("dual_future_layers", self.layers)):
@@ -123,6 +129,10 @@ class ModelConfig(ObservationLayout):
             bad(f"arm={self.arm!r} is unknown; choose one of {', '.join(ARMS)}")
         if self.image_norm not in IMAGE_NORMS:
             bad(f"image_norm={self.image_norm!r} is unknown; choose one of {', '.join(IMAGE_NORMS)}")
+        if self.freeze_encoder and not self.encoder_weights:
+            bad("freeze_encoder needs encoder_weights: a frozen random encoder learns nothing")
+        if self.encoder_weights and self.arm == "diffusion":
+            bad("encoder_weights load a JEPA-family ResNet encoder; the diffusion arm has its own encoder")
         if self.lambda_z_mode not in LAMBDA_Z_MODES:
             bad(f"lambda_z_mode={self.lambda_z_mode!r}; choose 'adaptive' or 'fixed'")
         if not self.cameras:
@@ -198,6 +208,7 @@ class ModelConfig(ObservationLayout):
         d = asdict(self)
         d["cameras"] = list(self.cameras)
         d["lowdim"] = [[k, v] for k, v in self.lowdim]
+        d["encoder_key_map"] = [[a, b] for a, b in self.encoder_key_map]
         return d
 
     @classmethod

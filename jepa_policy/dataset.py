@@ -30,6 +30,7 @@ class WindowIndex:
     action: np.ndarray   # (N, horizon) actions t .. t+H-1
     future: np.ndarray   # (N,) frame t+k
     episode: np.ndarray  # (N,) episode of each window
+    clamped: np.ndarray  # (N,) bool: t+k lies past the episode's end, so the future frame is its last one
 
 
 def window_indices(episode_ends: np.ndarray, obs_steps: int, horizon: int, future_k: int) -> WindowIndex:
@@ -49,7 +50,7 @@ def window_indices(episode_ends: np.ndarray, obs_steps: int, horizon: int, futur
     obs = np.clip(t[:, None] + np.arange(-(obs_steps - 1), 1), lo, hi)
     action = np.clip(t[:, None] + np.arange(horizon), lo, hi)
     future = np.minimum(t + future_k, hi[:, 0])
-    return WindowIndex(obs=obs, action=action, future=future, episode=ep)
+    return WindowIndex(obs=obs, action=action, future=future, episode=ep, clamped=t + future_k > hi[:, 0])
 
 
 class WindowDataset(Dataset):

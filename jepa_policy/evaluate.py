@@ -57,6 +57,23 @@ def reporting_protocols(curve: list[dict]) -> dict:
     }
 
 
+def residualise_records(records: list[dict]) -> dict | None:
+    """Sec. 4.10's control: log NMSE regressed on log persistence NMSE (the magnitude of latent change) over
+    every scored decision; each decision gets ``nmse_residualised``, its log NMSE minus the line. Returns the
+    line (None when fewer than 3 decisions have both scores)."""
+    pairs = [d for r in records for d in r["decisions"]
+             if d.get("nmse") is not None and d.get("nmse_persistence") is not None]
+    if len(pairs) < 3:
+        return None
+    y = np.log(np.maximum([d["nmse"] for d in pairs], 1e-12))
+    x = np.log(np.maximum([d["nmse_persistence"] for d in pairs], 1e-12))
+    slope, intercept = np.polyfit(x, y, 1)
+    for d, yi, xi in zip(pairs, y, x):
+        d["nmse_residualised"] = float(yi - intercept - slope * xi)
+    return {"intercept": float(intercept), "slope": float(slope), "decisions": len(pairs),
+            "what": "log NMSE = intercept + slope * log NMSE(z_t, z_{t+k}); nmse_residualised is the rest"}
+
+
 def env_kwargs_for(spec, env_args: dict | None) -> dict:
     """Constructor kwargs that rebuild the environment the demonstrations were recorded in.
 
@@ -102,6 +119,7 @@ def evaluate(policy, episodes: int, seed: int, num_envs: int = 4, max_steps: int
     finally:
         envs.close()
     valid = [d["nmse"] for r in records for d in r["decisions"] if d["nmse"] is not None]
+    fit = residualise_records(records)
     report = {
         "task": spec.name,
         "episodes": episodes,
@@ -110,6 +128,10 @@ def evaluate(policy, episodes: int, seed: int, num_envs: int = 4, max_steps: int
         "mean_length": float(np.mean([r["length"] for r in records])),
         "mean_max_reward": float(np.mean([r["max_reward"] for r in records])),  # PushT: best coverage
         "mean_nmse": float(np.mean(valid)) if valid else None,
+        "mean_nmse_persistence": float(np.mean(
+            [d["nmse_persistence"] for r in records for d in r["decisions"] if d.get("nmse_persistence") is not None]
+        )) if valid else None,
+        "residualised_fit": fit,
         "records": records,
     }
     if out:

@@ -50,9 +50,12 @@ class ObservationEncoder(nn.Module):
         """E_rgb: {image_key: (N, 3, h, w) float} -> z (N, d_z), cameras in config order."""
         return torch.cat([net(images[key]) for key, net in zip(self.camera_keys, self.cameras.values())], dim=-1)
 
-    def forward(self, images: Mapping[str, Tensor], lowdim: Tensor) -> Tensor:
-        """-> c (N, width): the conditioning representation, which also carries proprioception."""
-        return self.fuse(torch.cat([self.rgb(images), lowdim], dim=-1))
+    def forward(self, images: Mapping[str, Tensor], lowdim: Tensor, with_rgb: bool = False):
+        """-> c (N, width): the conditioning representation, which also carries proprioception; with ``with_rgb``
+        also its E_rgb (N, d_z), from the same pass."""
+        rgb = self.rgb(images)
+        c = self.fuse(torch.cat([rgb, lowdim], dim=-1))
+        return (c, rgb) if with_rgb else c
 
 # ----------------------------------------------------------------------------------------------------------
 # Conditioning memory M = Enc([TimeEmb(u, v), Embed_o(c_t)]) (Sec. 3.2, Eq. memory)
@@ -305,10 +308,18 @@ class PolicyModel(BasePolicyModel):
     def predict(self, obs: Mapping, want_future: bool = True) -> tuple[Tensor, Tensor | None]:
         """Two passes from one encoding: step 1 from zeros at (0, tau), step 2 fed step 1's outputs at (tau, 1),
         no noise, centre crop. -> (actions (B, H, A) unnormalised float32, z_hat (B, d_z) or None)."""
+        c, _ = self._encode(obs)
+        return self._two_steps(c, want_future)
+
+    def _encode(self, obs: Mapping) -> tuple[Tensor, Tensor]:
+        """Centre-cropped encoding of an observation history: (c (B, T, width), E_rgb (B, T, d_z))."""
         cfg = self.cfg
         images, _, b = self._crop_obs(obs, None, False, None)
-        lowdim = self._lowdim(obs, b)
-        c = self.encoder(images, lowdim.flatten(0, 1)).view(b, cfg.obs_steps, cfg.width)
+        c, rgb = self.encoder(images, self._lowdim(obs, b).flatten(0, 1), with_rgb=True)
+        return c.view(b, cfg.obs_steps, cfg.width), rgb.view(b, cfg.obs_steps, -1)
+
+    def _two_steps(self, c: Tensor, want_future: bool) -> tuple[Tensor, Tensor | None]:
+        cfg, b = self.cfg, c.shape[0]
         obs_tokens = self.memory.embed_obs(c)
         ref = obs_tokens
         a0_in = torch.zeros(b, cfg.horizon, cfg.action_dim, device=ref.device, dtype=ref.dtype)
@@ -319,6 +330,29 @@ class PolicyModel(BasePolicyModel):
                            want_future=want_future)
         actions = self.normalizer.unnormalize("action", a1.float())
         return actions, (None if z1 is None else z1.float())
+
+    @torch.no_grad()
+    def representations(self, obs: Mapping) -> dict[str, Tensor]:
+        """The views the collapse audit reads (Sec. 4.9), for the newest frame of each history:
+        ``c_t`` the fused representation Fuse([E_rgb(o_t), s_t]) (width), ``e_rgb`` its pooled image features
+        E_rgb(o_t) (d_z), and ``z_hat`` the refined future prediction (arms with a future token)."""
+        c, rgb = self._encode(obs)
+        out = {"c_t": c[:, -1].float(), "e_rgb": rgb[:, -1].float()}
+        if self.cfg.has_future_token:
+            out["z_hat"] = self._two_steps(c, want_future=True)[1]
+        return out
+
+    def parameter_groups(self) -> dict[str, list[nn.Parameter]]:
+        """Named parts for the gradient-interaction audit (Sec. 4.5): the image encoder and fusion, the
+        conditioning path M shared by both heads, the stack(s), and each head with its token embedding."""
+        groups = {"encoder": ("encoder",), "conditioning": ("memory",),
+                  "action_head": ("action_embed", "action_pos", "action_head"),
+                  "future_head": ("future_embed", "future_type", "future_pos", "future_head")}
+        groups.update({"action_stack": ("action_stack",), "future_stack": ("future_stack",),
+                       "cross_blocks": ("cross_blocks",)} if self.cfg.is_dual else {"trunk": ("trunk",)})
+        out = {name: [p for n, p in self.named_parameters() if n.split(".", 1)[0] in owners and p.requires_grad]
+               for name, owners in groups.items()}
+        return {name: params for name, params in out.items() if params}
 
     @torch.no_grad()
     def encode_future(self, future_obs: Mapping) -> Tensor:

@@ -16,6 +16,7 @@ import json
 import os
 import random
 import shutil
+import sys
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -29,7 +30,9 @@ from tqdm import tqdm
 
 from jepa_envs.data import load_dataset
 from jepa_envs.spec import get_task_spec
-from jepa_policy.checkpoint import build_model, load_checkpoint, save_checkpoint, set_rng_state
+from jepa_policy.audit import gradient_interaction
+from jepa_policy.checkpoint import (build_model, freeze_backbone, load_checkpoint, load_encoder_weights, save_checkpoint,
+                                    save_eval_snapshot, set_rng_state)
 from jepa_policy.config import ModelConfig
 from jepa_policy.dataset import ResumableBatchSampler, WindowDataset, make_loader, normalizer_stats
 from jepa_policy.evaluate import evaluate
@@ -68,6 +71,9 @@ class TrainConfig:
     eval_episodes: int = 40
     eval_seed: int = 100_000          # fixed evaluation seed (Sec. 4.1)
     eval_envs: int = 4                # parallel environments of one evaluation
+    eval_max_steps: int = 0           # episode step limit of the periodic evaluation; 0 = the task's
+    keep_eval_checkpoints: bool = True  # EMA weights at every periodic evaluation (checkpoint selection, protocols)
+    grad_every: int = 1000            # gradient interaction of the two losses logged every N steps (0 = never)
     progress: bool = True
     init_candidates: int = 1          # best-of-K start: K initialisations race init_screen_steps (``train``)
     init_screen_steps: int = 0        # steps each candidate trains before the lowest-loss one continues
@@ -106,9 +112,14 @@ class TrainConfig:
              "grad_accum must be >= 1 and divide batch_size"),
             (self.lr > 0, "lr must be > 0"),
             (0.0 <= self.ema_decay < 1.0, "ema_decay must be in [0, 1)"),
-            (0 <= self.warmup_steps <= self.steps, "warmup_steps must be in [0, steps]"),
+            (self.warmup_steps >= 0, "warmup_steps must be >= 0"),
+            (self.warmup_steps <= self.steps,
+             f"steps ({self.steps}) is below warmup_steps ({self.warmup_steps}) of this preset; pass more --steps or "
+             f"--warmup-steps N with N <= steps"),
             (self.log_every >= 1 and self.ckpt_every >= 1, "log_every and ckpt_every must be >= 1"),
             (self.eval_every >= 0 and self.eval_episodes >= 1, "eval_every >= 0 and eval_episodes >= 1"),
+            (self.eval_max_steps >= 0, "eval_max_steps must be >= 0 (0 = the task's episode length)"),
+            (self.grad_every >= 0, "grad_every must be >= 0 (0 = no gradient-interaction log)"),
             (self.init_candidates >= 1, "init_candidates must be >= 1 (1 = a single start, no selection)"),
             (self.init_candidates == 1 or 1 <= self.init_screen_steps < self.steps,
              "with init_candidates > 1, init_screen_steps must be in [1, steps)"),
@@ -119,6 +130,44 @@ class TrainConfig:
             if not ok:
                 raise ValueError(f"invalid training config: {message}")
         ModelConfig.for_task(spec.with_image_size(self.image_size or spec.image_size), arm=self.arm, **self.model)
+
+
+# What each option does: the --help of ``jepa-policy train`` (every field has a line; tested).
+TRAIN_HELP = {
+    "task": "task name (PushT, ToolHang, Square, ...; `jepa-envs list`)",
+    "arm": "jepa | mip | dual_independent | dual_cross | backcut | fwdcut | sigreg | lambda_a0 | diffusion",
+    "dataset": "demonstration file (robomimic/MimicGen/LIBERO HDF5 or `jepa-envs make-demos`)",
+    "out_dir": "run folder: checkpoints, log.jsonl, TensorBoard, train_config.json",
+    "resume": "checkpoint to continue from (runs to the schedule's end unless --stop-at is given)",
+    "steps": "length of the schedule (cosine decay ends here)",
+    "stop_at": "stop and checkpoint at this step (time-sliced jobs); 0 = run to --steps",
+    "batch_size": "global batch over all ranks and accumulation shards",
+    "grad_accum": "accumulation shards per rank and step (same result as more ranks)",
+    "lr": "AdamW learning rate after warm-up",
+    "weight_decay": "AdamW weight decay of matrices and kernels",
+    "beta1": "AdamW beta1",
+    "beta2": "AdamW beta2",
+    "warmup_steps": "linear learning-rate warm-up steps",
+    "ema_decay": "Polyak averaging of the weights that evaluate and act",
+    "seed": "seed of the weights, the batches and the model's noise",
+    "image_size": "camera image size in pixels (0 = the task's)",
+    "device": "auto (CUDA when present) | cpu | cuda | cuda:N",
+    "bf16": "bf16 autocast on CUDA",
+    "num_workers": "data-loader worker processes",
+    "log_every": "steps between log rows (log.jsonl, TensorBoard)",
+    "ckpt_every": "steps between checkpoints (latest.pt)",
+    "eval_every": "steps between seeded evaluations (0 = none)",
+    "eval_episodes": "rollouts of each periodic evaluation",
+    "eval_seed": "seed of the first evaluation rollout (the same every time)",
+    "eval_envs": "environments stepped together in an evaluation",
+    "eval_max_steps": "episode step limit of the periodic evaluation (0 = the task's)",
+    "keep_eval_checkpoints": "keep the EMA weights of every periodic evaluation (for `jepa-policy protocols --select`)",
+    "grad_every": "steps between rows of the action/future gradient interaction (Sec. 4.5) in log.jsonl (0 = never)",
+    "progress": "progress bar",
+    "init_candidates": "best-of-K start: K seeds race --init-screen-steps, the lowest first-step loss continues",
+    "init_screen_steps": "steps each best-of-K candidate trains before the choice",
+    "model": "JSON object of ModelConfig overrides, e.g. '{\"width\": 64}'",
+}
 
 
 def load_config(task: str, preset: str = "paper", **overrides) -> TrainConfig:
@@ -277,6 +326,14 @@ def _train_run(cfg: TrainConfig, demos=None, selection: dict | None = None) -> d
     seed_everything(cfg.seed)  # identical initial weights on every rank
     model_cfg = ModelConfig.for_task(spec, arm=cfg.arm, **cfg.model)
     model = build_model(model_cfg).to(device)
+    if model_cfg.encoder_weights and not cfg.resume:   # a resumed run's weights come from its checkpoint
+        tensors, digest = load_encoder_weights(model, model_cfg.encoder_weights, model_cfg.encoder_key_map)
+        model_cfg = model_cfg.replace(encoder_weights_sha256=digest)
+        if is_main:
+            print(f"image backbone initialised from {model_cfg.encoder_weights} ({tensors} tensors, sha256 "
+                  f"{digest[:12]}){'; frozen' if model_cfg.freeze_encoder else ''}", file=sys.stderr, flush=True)
+    if model_cfg.freeze_encoder:
+        freeze_backbone(model)
     model.set_normalizer_stats(stats)
     ema = AveragedModel(model, multi_avg_fn=get_ema_multi_avg_fn(cfg.ema_decay), use_buffers=True)
     optimizer = torch.optim.AdamW(model.param_groups(cfg.weight_decay), lr=cfg.lr, betas=(cfg.beta1, cfg.beta2))
@@ -284,6 +341,12 @@ def _train_run(cfg: TrainConfig, demos=None, selection: dict | None = None) -> d
     step, curve = 0, []
     if cfg.resume:
         ckpt = load_checkpoint(cfg.resume, map_location=device)
+        if cfg.stop_at and cfg.stop_at <= int(ckpt["step"]):
+            raise ValueError(f"stop_at {cfg.stop_at} is not after the checkpoint's step {int(ckpt['step'])}; pass "
+                             f"--stop-at 0 to train to step {cfg.steps}, or a later --stop-at")
+        if is_main:
+            print(f"resuming {cfg.resume} at step {int(ckpt['step'])}: training to step {cfg.stop_at or cfg.steps}"
+                  f" of {cfg.steps}", file=sys.stderr, flush=True)
         model.load_state_dict(ckpt["model"])
         ema.load_state_dict(ckpt["ema"])
         optimizer.load_state_dict(ckpt["optimizer"])
@@ -327,15 +390,31 @@ def _train_run(cfg: TrainConfig, demos=None, selection: dict | None = None) -> d
         if is_main:
             policy = Policy(ema.module, spec, device=device)
             policy.env_args = getattr(demos, "env_args", None)
-            report = evaluate(policy, episodes=cfg.eval_episodes, seed=cfg.eval_seed, num_envs=cfg.eval_envs)
+            report = evaluate(policy, episodes=cfg.eval_episodes, seed=cfg.eval_seed, num_envs=cfg.eval_envs,
+                              max_steps=cfg.eval_max_steps or None)
             curve.append({"step": step, "success_rate": report["success_rate"],
                           "mean_nmse": report["mean_nmse"]})
             (out / "eval_curve.json").write_text(json.dumps(curve, indent=2))
+            if cfg.keep_eval_checkpoints:   # what `jepa-policy protocols --select` confirms on fresh seeds
+                save_eval_snapshot(ckpt_path.parent / f"eval_step{step}.pt", ema=ema, step=step, cfg=cfg,
+                                   model_cfg=model_cfg, spec=spec, env_args=getattr(demos, "env_args", None))
             writer.add_scalar("eval/success_rate", report["success_rate"], step)
             log_file.write(json.dumps({"step": step, "eval_success_rate": report["success_rate"]}) + "\n")
             log_file.flush()
         if world > 1:
             dist.barrier()
+
+    def log_gradients(batch):
+        """Sec. 4.5 on this step's first shard, after the update; training's RNG is re-seeded every step and
+        no .grad is touched, so the run itself is unchanged."""
+        row = gradient_interaction(model, _shard(batch, 0, shards))
+        log_file.write(json.dumps({"step": step, "gradient_interaction": row}) + "\n")
+        log_file.flush()
+        writer.add_scalar("grad/share", row["gradient_share"], step)
+        for name, g in row["groups"].items():
+            writer.add_scalar(f"grad/{name}/ratio", g["ratio"], step)
+            if g["cosine"] is not None:
+                writer.add_scalar(f"grad/{name}/cosine", g["cosine"], step)
 
     autocast = torch.autocast("cuda", dtype=torch.bfloat16) if device.type == "cuda" and cfg.bf16 \
         else contextlib.nullcontext()
@@ -378,6 +457,8 @@ def _train_run(cfg: TrainConfig, demos=None, selection: dict | None = None) -> d
                 log_file.flush()
                 progress.set_postfix(loss=f"{row['loss']:.4f}")
                 history.append(row)
+        if is_main and cfg.grad_every and step % cfg.grad_every == 0 and hasattr(model, "parameter_groups"):
+            log_gradients(batch)
         if cfg.eval_every and step % cfg.eval_every == 0:
             periodic_eval()
         if step % cfg.ckpt_every == 0 or step == last:

@@ -32,14 +32,16 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from jepa_envs.data import write_dataset
+from jepa_envs.data import load_dataset, write_dataset
 from jepa_envs.pusht_expert import generate_demos
+from jepa_policy.audit import audit_checkpoint, gradient_audit, retrieval_audit
 from jepa_policy.bench import count_passes, time_calls
 from jepa_policy.checkpoint import load_checkpoint
-from jepa_policy.demo.ceiling import state_ceiling
+from jepa_policy.demo.ceiling import evaluate_state_policy, state_ceiling, train_state_policy
 from jepa_policy.demo.report import write_report
 from jepa_policy.evaluate import env_kwargs_for, evaluate
 from jepa_policy.policy import Policy
+from jepa_policy.selection import select_checkpoint, wilson_ci
 from jepa_policy.train import load_config, train
 from monitor_service.client import MonitorClient
 from monitor_service.server import provision, start_server
@@ -66,6 +68,12 @@ class DemoConfig:
     num_envs: int = 4
     bootstrap: int = 10_000
     permutations: int = 10_000
+    ceiling_steps: int = 4000  # training steps of the true-state policy that measures the imitation ceiling
+    # the paper's audits of every checkpoint and the leakage-free checkpoint selection (jepa-policy audit/protocols)
+    audits: bool = False
+    audit_samples: int = 4096
+    audit_pool: int = 256
+    selection_ladder: tuple[int, ...] = (32, 64, 128)
 
 
 MODES = {
@@ -74,11 +82,12 @@ MODES = {
                                                                              "eval_episodes": 2,
                                                                              "init_candidates": 2,
                                                                              "init_screen_steps": 6},
-                        num_envs=2, bootstrap=1000, permutations=1000),
+                        num_envs=2, bootstrap=1000, permutations=1000, ceiling_steps=30, audits=True,
+                        audit_samples=64, audit_pool=32, selection_ladder=(2, 4)),
     "default": DemoConfig("default", demos=200, preset="cpu", seeds=(42,), calib_episodes=64, live_episodes=64,
                           latency_iters=300, latency_warmup=30),
     "full": DemoConfig("full", demos=200, preset="cpu", seeds=(41, 42, 43), calib_episodes=64, live_episodes=40,
-                       latency_iters=300, latency_warmup=30),
+                       latency_iters=300, latency_warmup=30, audits=True),
 }
 ARMS = ("jepa", "mip")
 ROBOT = "pusht-sim"
@@ -165,6 +174,43 @@ def train_all(cfg: DemoConfig, dataset: Path, out: Path, fresh: bool) -> dict[tu
     with ProcessPoolExecutor(max_workers=workers, mp_context=ctx) as pool:
         futures = {job: pool.submit(train_arm, cfg, *job, dataset, out, fresh, 1) for job in jobs}
         return {job: future.result() for job, future in futures.items()}
+
+
+def imitation_ceiling(cfg: DemoConfig, dataset: Path) -> dict:
+    """What perfect perception reaches on these demonstrations (``ceiling.py``): a true-state MLP with the image
+    policies' chunking, trained with the first seed and rolled out on the very episodes the arms play."""
+    policy, fit = train_state_policy(dataset, steps=cfg.ceiling_steps, warmup=min(200, cfg.ceiling_steps),
+                                     seed=cfg.seeds[0])
+    successes, episodes, best = 0, 0, []
+    for first, n in ((CALIB_SEED, cfg.calib_episodes), (LIVE_SEED, cfg.live_episodes)):
+        report = evaluate_state_policy(policy, fit["env_args"], n, first)
+        successes += round(report["success_rate"] * n)
+        episodes += n
+        best.append(report["mean_max_reward"] * n)
+    print(f"   true-state policy: {successes}/{episodes} episodes", flush=True)
+    return {"successes": successes, "episodes": episodes, "rate": successes / episodes,
+            "ci95": list(wilson_ci(successes, episodes)), "mean_best_reward": sum(best) / episodes,
+            "first_step_mse": fit["first_step_mse"], "steps": cfg.ceiling_steps, "train_seed": cfg.seeds[0]}
+
+
+def audit_runs(cfg: DemoConfig, dataset: Path, checkpoints: dict) -> dict:
+    """For every (arm, seed): the collapse audit (c_t first), retrieval (arms with a future head), the gradient
+    interaction, and the leakage-free checkpoint selection of its run (``jepa-policy audit`` / ``protocols``)."""
+    out = {}
+    for (arm, seed), ckpt in checkpoints.items():
+        policy = Policy.from_checkpoint(ckpt)
+        demos = load_dataset(dataset, task=TASK, image_size=policy.spec.image_size)
+        row = {"collapse": audit_checkpoint(policy, demos, samples=cfg.audit_samples),
+               "gradients": gradient_audit(policy, demos)}
+        if policy.model.cfg.has_future_token:
+            row["retrieval"] = retrieval_audit(policy, demos, samples=cfg.audit_samples, pool=cfg.audit_pool)
+        row["selection"] = select_checkpoint(Path(ckpt).parent.parent, ladder=cfg.selection_ladder,
+                                             num_envs=cfg.num_envs)
+        out[f"{arm} seed {seed}"] = row
+        c = row["collapse"]["views"]["c_t"]
+        print(f"   {arm} seed {seed}: TE32(c_t) {c['te32']:.3f}, effective rank {c['effective_rank']:.1f}; selection "
+              f"picks step {row['selection']['pick']['step']}", flush=True)
+    return out
 
 
 def _file_digest(path: Path) -> str:
@@ -317,17 +363,20 @@ def run(cfg: DemoConfig, out: Path, fresh: bool = False) -> dict:
     """Run the main job and return the summary (also written to ``out/summary.json``)."""
     out.mkdir(parents=True, exist_ok=True)
     timer = Timer()
-    with timer.step("1/5 scripted demonstrations"):
+    n_steps = 7 if cfg.audits else 6
+    with timer.step(f"1/{n_steps} scripted demonstrations"):
         dataset = make_demos(cfg, out, fresh)
-    with timer.step("2/5 training JEPA Policy and MIP (same seed, data and budget)"):
+    with timer.step(f"2/{n_steps} training JEPA Policy and MIP (same seed, data and budget)"):
         checkpoints = train_all(cfg, dataset, out, fresh)
+    with timer.step(f"3/{n_steps} imitation ceiling of these demonstrations (true-state policy, same episodes)"):
+        ceiling = imitation_ceiling(cfg, dataset)
 
     records: list[dict] = []
     calibrations: dict[int, dict] = {}
     # The monitor server shares this machine's cores with the rollouts; torch's multi-threaded kernels then spin
     # against it (measured here: 4x slower rollouts with 2 threads than with 1), so act single-threaded.
     torch.set_num_threads(1)
-    with timer.step("3/5 monitor service + monitored rollouts"):
+    with timer.step(f"4/{n_steps} monitor service + monitored rollouts"):
         monitor = Monitor(out, fresh=True)
         try:
             print(f"   monitor at {monitor.url} (SQLite {out / 'monitor.db'})")
@@ -356,12 +405,17 @@ def run(cfg: DemoConfig, out: Path, fresh: bool = False) -> dict:
             alerts, episodes, monitor_report = monitor.alerts(), monitor.episodes(), monitor.report()
         finally:
             monitor.close()
-    with timer.step("4/5 decision latency (JEPA vs MIP, interleaved)"):
+    with timer.step(f"5/{n_steps} decision latency (JEPA vs MIP, interleaved)"):
         policies = {arm: Policy.from_checkpoint(checkpoints[arm, cfg.seeds[0]]) for arm in ARMS}
         latency = decision_latency(policies, cfg)
         frames = rollout_frames(policies["jepa"], LIVE_SEED)
-    with timer.step("5/5 report"):
-        summary = write_report(out, cfg=asdict(cfg), dataset=dataset, checkpoints=checkpoints, records=records,
+    audits = None
+    if cfg.audits:
+        with timer.step(f"6/{n_steps} audits (collapse, retrieval, gradients) and checkpoint selection"):
+            audits = audit_runs(cfg, dataset, checkpoints)
+    with timer.step(f"{n_steps}/{n_steps} report"):
+        summary = write_report(out, cfg=asdict(cfg), dataset=dataset, checkpoints=checkpoints, ceiling=ceiling,
+                               audits=audits, records=records,
                                calibrations=calibrations, alerts=alerts, monitor_episodes=episodes,
                                monitor_report=monitor_report, latency=latency, frames=frames)
     summary["timing"] = {"steps_s": timer.steps, "total_s": timer.total}

@@ -36,8 +36,39 @@ def test_report_files_exist(quick_run):
     for figure in ("learning_curves.png", "roc.png", "nmse_distributions.png", "frames.png"):
         assert f"]({figure})" in page
     assert set(summary["timing"]["steps_s"]) == {
-        "1/5 scripted demonstrations", "2/5 training JEPA Policy and MIP (same seed, data and budget)",
-        "3/5 monitor service + monitored rollouts", "4/5 decision latency (JEPA vs MIP, interleaved)", "5/5 report"}
+        "1/7 scripted demonstrations", "2/7 training JEPA Policy and MIP (same seed, data and budget)",
+        "3/7 imitation ceiling of these demonstrations (true-state policy, same episodes)",
+        "4/7 monitor service + monitored rollouts", "5/7 decision latency (JEPA vs MIP, interleaved)",
+        "6/7 audits (collapse, retrieval, gradients) and checkpoint selection", "7/7 report"}
+
+
+def test_ceiling_is_measured_on_the_same_episodes_and_compared(quick_run):
+    out, summary = quick_run
+    cfg, c = demo.MODES["quick"], summary["ceiling"]
+    assert c["episodes"] == cfg.calib_episodes + cfg.live_episodes and c["steps"] == cfg.ceiling_steps
+    assert c["rate"] == pytest.approx(c["successes"] / c["episodes"])
+    assert c["ci95"] == pytest.approx(list(wilson_ci(c["successes"], c["episodes"])))
+    page = (out / "report.md").read_text()
+    assert "| ceiling: true-state policy |" in page and "imitation ceiling of these demonstrations" in page
+    assert "aim" not in page.lower()
+
+
+def test_audits_and_selection_of_every_run(quick_run):
+    out, summary = quick_run
+    audits = summary["audits"]
+    assert set(audits) == {"jepa seed 42", "mip seed 42"}
+    for run, a in audits.items():
+        views = a["collapse"]["views"]
+        assert a["collapse"]["primary"] == "c_t" and views["c_t"]["dim"] == 32   # the quick preset's width
+        assert views["e_rgb"]["dim"] == 64 and 0.0 <= views["c_t"]["te32"] <= 1.0
+        sel = a["selection"]
+        assert [c["step"] for c in sel["candidates"]] and sel["pick"]["fresh_episodes"] in (2, 4)
+        assert sel["pick"]["step"] in (15, 30)
+    assert "retrieval" in audits["jepa seed 42"] and "retrieval" not in audits["mip seed 42"]
+    assert audits["mip seed 42"]["gradients"]["gradient_share"] == 0.0
+    r = audits["jepa seed 42"]["retrieval"]["all"]
+    assert r["pool"] == 32 and r["queries"] == 64 and 0 < r["permutation_p"] <= 1
+    assert "## Audits of every checkpoint" in (out / "report.md").read_text()
 
 
 def test_demonstrations_end_past_the_threshold_and_are_reported(quick_run):
@@ -177,11 +208,14 @@ def test_report_summary_names_threshold_and_false_alarms():
     assert "Alert rule **band** (window 5, debounce 2): threshold 0.1755, so at most 0.1 of successful" in page
     assert "7/14 failures and 1/10 successes flagged" in text
     assert "8 intervention alerts on 8 episodes (7 failures, 1 success)." in page
-    assert "below the 60.0% aim for the default budget" in text
-    assert "The aim lies above this run's 95% interval (20.0%-40.0%)." in text
+    summary["ceiling"] = {"rate": 0.6, "ci95": [0.5, 0.7], "episodes": 10, "successes": 6, "train_seed": 42,
+                          "mean_best_reward": 0.8, "steps": 4000}
+    page, text = render_markdown(summary, {"mode": "default"}, {})
+    assert "| ceiling: true-state policy | 60.0% | [50.0%, 70.0%] | 10 |" in page
+    assert "jepa (30.0%) is below it: its interval ends before the ceiling's begins" in page
+    assert "ceiling     : 60.0% (95% CI 50.0%-70.0%, n=10" in text
     rate["ci95"] = [0.2, 0.65]
-    text = render_markdown(summary, {"mode": "default"}, {})[1]
-    assert "The aim lies inside this run's 95% interval (20.0%-65.0%)" in text
+    assert "jepa (30.0%) cannot be told apart from it" in render_markdown(summary, {"mode": "default"}, {})[0]
     rate["ci95"] = [0.2, 0.4]
     live.update(alerts=1, alerted_episodes=1, alerted_failures=1, alerted_successes=0)
     page, text = render_markdown(summary, {"mode": "default"}, {})
@@ -216,7 +250,6 @@ def test_report_describes_demonstrations_from_an_older_file(pusht_demo_file, tmp
     page, text = render_markdown(summary, {"mode": "default"}, {})
     assert f"4 scripted demonstrations, {sum(lengths)} transitions" in page
     assert "each ends when the task succeeds (final coverage min" in page and "past the task's" not in page
-    assert "Aim not reached" not in page   # 70 % clears the aim: no note
 
 
 def test_steps_override_changes_only_the_training_steps(capsys):

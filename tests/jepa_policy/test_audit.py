@@ -1,8 +1,13 @@
-"""Collapse audit statistics (Sec. 4.9) against direct eigen-decompositions and known spectra."""
+"""The paper's audits: collapse statistics (Sec. 4.9) against direct eigen-decompositions and known spectra,
+retrieval against brute force, the gradient interaction against the arms' known gradient routes (Sec. 4.5)."""
 import numpy as np
 import pytest
+import torch
+from _model_helpers import make_batch, tiny_model
 
-from jepa_policy.audit import centred_spectrum, manifest, spectral_stats
+from jepa_policy.audit import (audit_checkpoint, candidate_pools, centred_spectrum, gradient_interaction, manifest,
+                               nmse_matrix, retrieval_stats, spectral_stats)
+from jepa_policy.dataset import WindowDataset
 
 
 def test_spectrum_equals_eigenvalues_of_centred_gram():
@@ -37,3 +42,94 @@ def test_manifest_is_fixed_and_bounded():
     a, b = manifest(10_000, 4096, seed=3), manifest(10_000, 4096, seed=3)
     assert np.array_equal(a, b) and len(np.unique(a)) == 4096 and a.max() < 10_000
     assert len(manifest(100, 4096)) == 100
+
+
+# ----------------------------------------------------------------------------- retrieval (Sec. 4.9)
+
+def test_candidate_pools_hold_the_query_first_and_distinct_others():
+    pools = candidate_pools(300, 32, seed=1)
+    assert pools.shape == (300, 32) and np.array_equal(pools[:, 0], np.arange(300))
+    assert all(len(set(row)) == 32 and row[0] not in set(row[1:]) for row in pools.tolist())
+    assert np.array_equal(pools, candidate_pools(300, 32, seed=1))
+    with pytest.raises(ValueError, match="at least 256 manifest samples"):
+        candidate_pools(100, 256, seed=0)
+
+
+def test_retrieval_stats_against_brute_force_and_its_null():
+    rng = np.random.default_rng(0)
+    scores = rng.random((400, 16))
+    scores[:200, 0] = -1.0          # half the queries rank their own target first
+    out = retrieval_stats(scores, permutations=300, seed=0)
+    ranks = np.array([1 + np.sum(row[1:] < row[0]) for row in scores])
+    assert out["recall_at_1"] == pytest.approx(np.mean(ranks == 1))
+    assert out["recall_at_5"] == pytest.approx(np.mean(ranks <= 5))
+    assert out["median_rank"] == pytest.approx(np.median(ranks)) and out["chance_recall_at_1"] == 1 / 16
+    assert out["null_recall_at_1_mean"] == pytest.approx(1 / 16, abs=0.02)
+    assert out["permutation_p"] == pytest.approx(1 / 301)        # no permutation reaches 0.5
+    chance = retrieval_stats(rng.random((400, 16)), permutations=300, seed=0)
+    assert chance["permutation_p"] > 0.05                         # no signal: the null is not rejected
+
+
+def test_nmse_matrix_is_the_paper_nmse_per_candidate():
+    rng = np.random.default_rng(3)
+    z_hat, targets = rng.normal(size=(5, 12)), rng.normal(size=(5, 7, 12))
+    ref = [[np.sum(((z_hat[q] - targets[q, c]) / np.sqrt(np.mean(targets[q, c] ** 2))) ** 2) / 12
+            for c in range(7)] for q in range(5)]
+    np.testing.assert_allclose(nmse_matrix(z_hat, targets), ref, rtol=1e-12)
+
+
+# ----------------------------------------------------------------------------- gradient interaction (Sec. 4.5)
+
+@pytest.mark.parametrize("arm", ["jepa", "dual_independent", "backcut", "fwdcut", "mip"])
+def test_gradient_interaction_routes_match_the_arms(arm):
+    model = tiny_model(arm).train()
+    batch = make_batch(model.cfg, batch=4)
+    torch.manual_seed(0)
+    out = gradient_interaction(model, batch)
+    if arm == "mip":
+        assert out["gradient_share"] == 0.0 and out["groups"] == {}
+        return
+    g = out["groups"]
+    assert g["future_head"]["future_norm"] > 0 and g["action_head"]["act_norm"] > 0
+    if arm == "dual_independent":      # no path from the future loss to the action stack or head
+        assert g["action_stack"]["future_norm"] == 0.0 and g["action_head"]["future_norm"] == 0.0
+        assert out["gradient_share"] == 0.0 and g["conditioning"]["future_norm"] > 0
+    elif arm == "backcut":             # the future loss reaches h_z only
+        assert g["trunk"]["future_norm"] == g["encoder"]["future_norm"] == g["conditioning"]["future_norm"] == 0.0
+        assert out["gradient_share"] == 0.0
+    else:
+        assert g["trunk"]["future_norm"] > 0 and out["gradient_share"] > 0
+        assert -1.0 <= g["trunk"]["cosine"] <= 1.0
+    # the action loss reaches the future token's embedding only where action tokens may attend to it
+    assert g["future_head"]["act_norm"] == out["cross"]["action_loss_on_future_head"]
+    assert (g["future_head"]["act_norm"] > 0) == (arm in ("jepa", "backcut"))
+    assert out["cross"]["future_loss_on_action_head"] == g["action_head"]["future_norm"]
+    torch.manual_seed(0)
+    assert out["gradient_share"] == pytest.approx(model.gradient_share(batch), rel=1e-5, abs=1e-12)
+
+
+def test_gradient_interaction_leaves_grads_and_training_untouched():
+    model = tiny_model("jepa").train()
+    batch = make_batch(model.cfg)
+    gradient_interaction(model, batch)
+    assert all(p.grad is None for p in model.parameters())
+
+
+def test_collapse_audit_views_on_a_trained_checkpoint(pusht_demo_file, tmp_path):
+    from jepa_envs.data import load_dataset
+    from jepa_policy.policy import Policy
+    from jepa_policy.train import load_config, train
+
+    demos = load_dataset(pusht_demo_file, task="PushT", image_size=32)
+    cfg = load_config("PushT", "quick", out_dir=str(tmp_path), steps=2, warmup_steps=0, batch_size=4,
+                      model={"width": 48, "layers": 1, "heads": 2})
+    policy = Policy.from_checkpoint(train(cfg, demos)["checkpoint"])
+    out = audit_checkpoint(policy, demos, samples=100)
+    views = out["views"]
+    assert out["primary"] == "c_t" and list(views) == ["c_t", "e_rgb", "z_hat"]
+    assert views["c_t"]["dim"] == 48 and views["e_rgb"]["dim"] == views["z_hat"]["dim"] == 64
+    with torch.inference_mode():   # c_t is what the memory embeds: the encoder's output for the newest frame
+        obs = WindowDataset.from_demos(demos)[np.arange(3)]["obs"]
+        reps = policy.model.representations(obs)
+        c, _ = policy.model._encode(obs)
+    assert torch.equal(reps["c_t"], c[:, -1].float())

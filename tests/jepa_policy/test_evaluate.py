@@ -75,6 +75,21 @@ def test_rollouts_give_consistent_per_decision_nmse_records(checkpoint, tmp_path
                 assert d["nmse"] is None
     valid = [d["nmse"] for r in records for d in r["decisions"] if d["nmse"] is not None]
     assert report["mean_nmse"] == pytest.approx(np.mean(valid))
+    # the persistence control (z_t taken as the prediction of z_{t+k}) and the NMSE residualised on it
+    scored = [d for r in records for d in r["decisions"] if d["nmse"] is not None]
+    pers = [d["nmse_persistence"] for d in scored]
+    assert all(v >= 0 for v in pers) and report["mean_nmse_persistence"] == pytest.approx(np.mean(pers))
+    x, y = np.log(pers), np.log([d["nmse"] for d in scored])
+    slope, intercept = np.polyfit(x, y, 1)
+    fit = report["residualised_fit"]
+    assert fit["slope"] == pytest.approx(slope) and fit["intercept"] == pytest.approx(intercept)
+    np.testing.assert_allclose([d["nmse_residualised"] for d in scored], y - intercept - slope * x, atol=1e-9)
+    prediction = {(e.seed, e.step): e for e in events if e.kind == "prediction"}
+    for r in records:
+        for d in r["decisions"]:
+            if d["nmse"] is not None:
+                z_now = prediction[(r["seed"], d["step"])].z_now
+                assert d["nmse_persistence"] == pytest.approx(float(nmse(z_now, np.array(d["z_real"]))), rel=1e-9)
     # the hook saw every prediction and every realized target, with the same numbers as the records
     realized = [e for e in events if e.kind == "realized"]
     assert len([e for e in events if e.kind == "prediction"]) == sum(len(r["decisions"]) for r in records)

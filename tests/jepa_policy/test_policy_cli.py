@@ -50,10 +50,16 @@ def test_train_eval_protocols_from_the_command_line(pusht_demo_file, tmp_path, c
     report = json.loads(capsys.readouterr().out)
     assert report["episodes"] == 2 and 0.0 <= report["success_rate"] <= 1.0
     assert len((tmp_path / "eval.jsonl").read_text().splitlines()) == 2
-    assert main(["audit", "--checkpoint", str(ckpt), "--dataset", str(pusht_demo_file), "--samples", "64"]) == 0
+    assert main(["audit", "--checkpoint", str(ckpt), "--dataset", str(pusht_demo_file), "--samples", "64",
+                 "--pool", "16", "--permutations", "50", "--batches", "2"]) == 0
     audit = json.loads(capsys.readouterr().out)
-    assert audit["samples"] == 64 and audit["encoder"]["dim"] == audit["predictor"]["dim"] == 8 * 8
-    assert 1.0 <= audit["encoder"]["effective_rank"] <= 64 and 0.0 <= audit["encoder"]["te32"] <= 1.0
+    views = audit["collapse"]["views"]
+    assert audit["collapse"]["samples"] == 64 and list(views) == ["c_t", "e_rgb", "z_hat"]
+    assert views["c_t"]["dim"] == 32 and views["e_rgb"]["dim"] == views["z_hat"]["dim"] == 8 * 8   # width 32
+    assert "fused representation" in views["c_t"]["what"] and "E_rgb" in views["e_rgb"]["what"]
+    assert 1.0 <= views["e_rgb"]["effective_rank"] <= 64 and 0.0 <= views["e_rgb"]["te32"] <= 1.0
+    assert audit["retrieval"]["all"]["pool"] == 16 and audit["retrieval"]["all"]["queries"] == 64
+    assert set(audit["gradients"]["groups"]) == {"encoder", "conditioning", "action_head", "future_head", "trunk"}
     for source in (out / "eval_curve.json", ckpt):
         assert main(["protocols", str(source)]) == 0
         protocols = json.loads(capsys.readouterr().out)
@@ -63,3 +69,52 @@ def test_train_eval_protocols_from_the_command_line(pusht_demo_file, tmp_path, c
 def test_unknown_option_is_rejected():
     with pytest.raises(SystemExit):
         main(["train", "--stepz", "3"])
+
+
+def test_every_flag_of_every_subcommand_has_help():
+    import argparse
+
+    from jepa_policy.cli import build_parser
+
+    def parsers(p):
+        yield p
+        for action in p._actions:
+            if isinstance(action, argparse._SubParsersAction):
+                for sub in action.choices.values():
+                    yield from parsers(sub)
+
+    missing = [f"{p.prog} {a.option_strings or a.dest}" for p in parsers(build_parser()) for a in p._actions
+               if not isinstance(a, (argparse._HelpAction, argparse._SubParsersAction)) and not a.help]
+    assert missing == []
+
+
+@pytest.mark.parametrize("args, message", [
+    (["train", "--preset", "quick", "--steps", "1", "--warmup-steps", "2"], "steps (1) is below warmup_steps (2)"),
+    (["train", "--preset", "quick", "--dataset", "/nonexistent/demos.hdf5"], "/nonexistent/demos.hdf5 does not exist"),
+    (["train", "--preset", "quick", "--arm", "jepa2", "--dataset", "x.hdf5"], "arm='jepa2' is unknown"),
+    (["train", "--task", "Nope"], "unknown task 'Nope'"),
+    (["train", "--config", "/nonexistent/train_config.json"], "--config /nonexistent/train_config.json does not exist"),
+    (["eval", "--checkpoint", "/nonexistent.pt"], "/nonexistent.pt does not exist"),
+    (["protocols", "/nonexistent"], "/nonexistent does not exist; pass a run's eval_curve.json"),
+])
+def test_user_errors_are_one_line_and_exit_2(args, message, capsys):
+    assert main(args) == 2
+    err = capsys.readouterr().err
+    assert message in err and "Traceback" not in err and len(err.strip().splitlines()) == 1
+
+
+def test_documented_resume_of_a_stopped_run_goes_on_to_the_end(pusht_demo_file, tmp_path, capsys):
+    """`--config RUN/train_config.json --resume RUN/checkpoints/latest.pt` after --stop-at: trains on, says so."""
+    run = tmp_path / "run"
+    assert main(["train", "--task", "PushT", "--preset", "quick", "--dataset", str(pusht_demo_file), "--steps", "6",
+                 "--warmup-steps", "1", "--stop-at", "3", "--out-dir", str(run), "--no-progress"]) == 0
+    assert json.loads(capsys.readouterr().out.strip().splitlines()[-1])["step"] == 3
+    assert json.loads((run / "train_config.json").read_text())["stop_at"] == 3
+    assert main(["train", "--config", str(run / "train_config.json"), "--resume",
+                 str(run / "checkpoints" / "latest.pt")]) == 0
+    captured = capsys.readouterr()
+    assert json.loads(captured.out.strip().splitlines()[-1])["step"] == 6
+    assert "at step 3: training to step 6 of 6" in captured.err
+    assert main(["train", "--config", str(run / "train_config.json"), "--resume",
+                 str(run / "checkpoints" / "latest.pt"), "--stop-at", "4"]) == 2
+    assert "stop_at 4 is not after the checkpoint's step 6" in capsys.readouterr().err

@@ -147,3 +147,43 @@ def test_best_of_k_start_options_are_checked():
         load_config("PushT", "quick", init_candidates=0)
     with pytest.raises(ValueError, match="stop_at must be 0 or after init_screen_steps"):
         load_config("PushT", "quick", steps=10, init_candidates=2, init_screen_steps=4, stop_at=3)
+
+
+def test_pretrained_backbone_is_loaded_frozen_and_recorded(demos, tmp_path):
+    from jepa_policy.checkpoint import BACKBONE
+
+    opts = dict(steps=3, warmup_steps=0, batch_size=4, model={"width": 32, "layers": 1, "heads": 2})
+    source = train(load_config("PushT", "quick", out_dir=str(tmp_path / "a"), seed=1, **opts), demos)["checkpoint"]
+    frozen = load_config("PushT", "quick", out_dir=str(tmp_path / "b"), seed=2, **{
+        **opts, "model": {**opts["model"], "encoder_weights": source, "freeze_encoder": True}})
+    result = load_checkpoint(train(frozen, demos)["checkpoint"])
+    src = load_checkpoint(source)
+    backbone = [k for k in result["model"] if k.startswith(BACKBONE)]
+    assert backbone and all(torch.equal(result["model"][k], src["ema"]["module." + k]) for k in backbone)
+    assert not torch.equal(result["model"]["encoder.fuse.0.weight"], src["ema"]["module.encoder.fuse.0.weight"])
+    cfg = result["model_config"]
+    assert cfg["encoder_weights"] == source and cfg["freeze_encoder"] and len(cfg["encoder_weights_sha256"]) == 64
+    # fine-tuning from the same weights moves them; a file that does not fit says why
+    tuned = load_config("PushT", "quick", out_dir=str(tmp_path / "c"), **{
+        **opts, "model": {**opts["model"], "encoder_weights": source}})
+    moved = load_checkpoint(train(tuned, demos)["checkpoint"])["model"]
+    assert any(not torch.equal(moved[k], src["ema"]["module." + k]) for k in backbone)
+    wrong = load_config("PushT", "quick", out_dir=str(tmp_path / "d"), **{
+        **opts, "model": {**opts["model"], "encoder_width": 16, "encoder_weights": source}})
+    with pytest.raises(ValueError, match="does not fit this model's image backbone"):
+        train(wrong, demos)
+    with pytest.raises(ValueError, match="freeze_encoder needs encoder_weights"):
+        load_config("PushT", "quick", model={"freeze_encoder": True})
+
+
+def test_gradient_interaction_is_logged_without_changing_the_run(demos, tmp_path):
+    opts = dict(steps=4, warmup_steps=0, batch_size=4, log_every=2, model={"width": 32, "layers": 1, "heads": 2})
+    logged = train(load_config("PushT", "quick", out_dir=str(tmp_path / "a"), grad_every=2, **opts), demos)
+    plain = train(load_config("PushT", "quick", out_dir=str(tmp_path / "b"), grad_every=0, **opts), demos)
+    rows = [json.loads(line) for line in (tmp_path / "a" / "log.jsonl").read_text().splitlines()]
+    grads = [r for r in rows if "gradient_interaction" in r]
+    assert [r["step"] for r in grads] == [2, 4]
+    assert set(grads[0]["gradient_interaction"]["groups"]) == {"encoder", "conditioning", "action_head",
+                                                               "future_head", "trunk"}
+    a, b = load_checkpoint(logged["checkpoint"]), load_checkpoint(plain["checkpoint"])
+    assert all(torch.equal(a["model"][k], b["model"][k]) for k in a["model"])
