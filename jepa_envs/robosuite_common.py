@@ -7,6 +7,7 @@ rendered by robosuite).
 """
 from __future__ import annotations
 
+import copy
 import os
 from contextlib import contextmanager
 from typing import Any, Callable
@@ -15,6 +16,7 @@ from typing import Any, Callable
 os.environ.setdefault("MUJOCO_GL", "osmesa")
 os.environ.setdefault("PYOPENGL_PLATFORM", os.environ["MUJOCO_GL"])
 
+import mujoco
 import numpy as np
 from gymnasium import spaces
 
@@ -143,13 +145,22 @@ class RobosuiteTaskEnv(JEPAEnv):
         return abs_actions.abs_to_native(action, self.num_arms)
 
     def controller_pose(self) -> tuple[np.ndarray, np.ndarray]:
-        """Per arm, the current pose in the frame of the OSC controller: positions (n, 3), matrices (n, 3, 3)."""
+        """Per arm, the current pose in the frame of the OSC controller: positions (n, 3), matrices (n, 3, 3).
+
+        Read from a scratch copy of the simulation state, so asking changes nothing: the controller's own
+        ``update(force=True)`` would run ``mj_forward`` on the live data and leave its caches set, which moves
+        the following steps by ~1e-15 that grows to ~1e-8 m within an episode. The copy gives the same numbers
+        (the controller reads the same end-effector site after the same forward kinematics).
+        """
+        sim = self.backend.sim
+        model = sim.model._model
+        scratch = copy.copy(sim.data._data)   # MjData copies are deep
+        mujoco.mj_kinematics(model, scratch)
         pos, mats = [], []
         for robot in self.backend.robots:
-            ctrl = robot.controller
-            ctrl.update(force=True)
-            pos.append(np.array(ctrl.ee_pos))
-            mats.append(np.array(ctrl.ee_ori_mat))
+            site = sim.model.site_name2id(robot.controller.eef_name)
+            pos.append(np.array(scratch.site_xpos[site]))
+            mats.append(np.array(scratch.site_xmat[site]).reshape(3, 3))
         return np.stack(pos), np.stack(mats)
 
     def controller_goal(self) -> tuple[np.ndarray, np.ndarray]:

@@ -161,10 +161,18 @@ def cmd_audit(args) -> int:
 
 
 def cmd_robot(args) -> int:
+    from jepa_envs.real_robot.proxy import BridgeError
     from jepa_policy.robot import run_checkpoint_on_bridge
 
-    summary = run_checkpoint_on_bridge(args.checkpoint, args.address, args.episodes, seed=args.seed,
-                                       device=args.device, method=args.method, wait=not args.no_wait)
+    try:
+        summary = run_checkpoint_on_bridge(args.checkpoint, args.address, args.episodes, seed=args.seed,
+                                           device=args.device, method=args.method, wait=not args.no_wait,
+                                           asynchronous=args.asynchronous, replan_steps=args.replan_steps,
+                                           curve_server_key=args.curve_server_key,
+                                           curve_client_key=args.curve_client_key)
+    except (BridgeError, TimeoutError) as exc:   # busy, lost control, no bridge: the message names the fix
+        print(f"error: {exc}", file=sys.stderr)
+        return 1
     print(json.dumps(summary, indent=2, default=str))
     if args.json:
         Path(args.json).write_text(json.dumps(summary, indent=2, default=str))
@@ -255,6 +263,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--device", default="cpu", help="torch device of the policy")
     p.add_argument("--method", default="JEPA Policy", help="recorded in every episode's manifest")
     p.add_argument("--no-wait", action="store_true", help="do not wait for Enter before each episode")
+    p.add_argument("--async", dest="asynchronous", action="store_true",
+                   help="asynchronous execution: infer the next chunk while the current one executes")
+    p.add_argument("--replan-steps", type=int, help="--async: replan after this many actions (default n/2)")
+    p.add_argument("--curve-server-key", help="CurveZMQ: the bridge's public key file (jepa-robot-bridge keys)")
+    p.add_argument("--curve-client-key", help="CurveZMQ: this computer's secret key file")
     p.add_argument("--json", help="also write the summary to this file")
     p.set_defaults(func=cmd_robot)
     return parser

@@ -95,6 +95,20 @@ class Policy:
         decision = self._decide(want_future=want_future)
         return decision.actions, decision.z_hat
 
+    def decide_from(self, frames: list[dict], want_future: bool = True) -> Decision:
+        """Decide from an explicit history: the newest observations, oldest first, one per env step.
+
+        For loops that do not feed every frame through ``act`` (the asynchronous executor observes only when
+        it replans). Replaces the history and the queue; fewer frames than ``obs_steps`` are padded with the
+        first, as at an episode's start.
+        """
+        if not frames:
+            raise ValueError("decide_from needs at least one observation")
+        self.reset()
+        for frame in frames[-self.obs_steps:]:
+            self._push(frame)
+        return self._decide(want_future=want_future)
+
     @torch.inference_mode()
     def encode_future(self, obs: dict) -> np.ndarray:
         """Realized future latent z = E_rgb(o) of an observation ((D,) or (B, D)); needs only its images."""

@@ -16,7 +16,7 @@ import numpy as np
 
 import jepa_envs  # noqa: F401  (registers the simulation tasks the sim backend builds)
 from jepa_envs.real_robot.backends.sim import SimBackend
-from jepa_envs.real_robot.bridge import OperatorClient
+from jepa_operator import OperatorClient
 from jepa_envs.real_robot.proxy import RealRobotEnv
 
 

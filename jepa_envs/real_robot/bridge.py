@@ -3,29 +3,47 @@
 One event-loop thread owns the backend and both ZeroMQ sockets, so no backend call ever races another:
 
 * control socket (ROUTER): the one controlling client (``proxy.RealRobotEnv``) sends hello / reset / step /
-  chunk / heartbeat / bye; a second client is refused with ``busy``.
+  chunk / observe / stream / bye; a second client is refused with ``busy``.
 * operator socket (REP): e-stop, clear e-stop, confirm success or failure, home, status, shutdown
-  (``OperatorClient`` below, ``jepa-robot-bridge estop|confirm|...`` on the command line).
+  (``jepa_operator.OperatorClient``, ``jepa-robot-bridge estop|confirm|...`` on the command line); the same
+  commands from inside the bridge's process go through ``RobotBridge.command``.
 
 While a chunk executes, the loop keeps draining both sockets between actions, so an e-stop or a lost link
 stops the robot at the next action boundary (at most one control period), not after the chunk.
 Timing (Sec. 4.8): actions at ``task_spec.control_hz``, ``n_action_steps`` actions per chunk, a synchronous
-loop in which each chunk's frame-to-chunk latency (decision frame produced -> chunk received) is logged.
+loop in which each chunk's frame-to-chunk latency (decision frame produced -> chunk received) is logged. The
+asynchronous alternative (``stream``) executes a queue at the control rate on the bridge's clock while the
+client infers the next chunk, which replaces what is left of the queue from the step it arrives at.
+
+Input never stops the bridge: every message, of any framing and payload, is answered with a protocol error or
+dropped and counted (``status()["counters"]``).
+
+Liveness (docs/real_robot.md, "Lost link"): ZeroMQ's own heartbeats, sent and answered by libzmq's I/O threads
+in both processes, so a policy process busy in a long C call (which holds Python's GIL) still answers them.
+A connection that closes (the policy process died) or stays silent for ``link_timeout_s`` (host or network
+down) makes the robot HOLD: a running chunk stops at its next action, the session and the episode are kept.
+A client that comes back within ``link_grace_s`` resumes where it was (its connection sends ``resume`` naming
+the request it still waits for, and gets that reply again); after that the episode is interrupted and control
+is released, and the client is told so when it returns.
 """
 from __future__ import annotations
 
 import collections
 import dataclasses
+import hmac
 import logging
 import math
+import queue
 import secrets
 import threading
 import time
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Callable
 
 import numpy as np
 import zmq
+from zmq.utils.monitor import parse_monitor_message
 
 from jepa_envs.real_robot import protocol as P
 from jepa_envs.real_robot.backends.base import RobotBackend, StepResult
@@ -33,6 +51,8 @@ from jepa_envs.real_robot.episodes import EpisodeRecord, latency_stats
 from jepa_envs.real_robot.safety import ActionGuard, InvalidAction, SafetyConfig, validate_action, validate_chunk
 
 log = logging.getLogger(__name__)
+
+MAX_HISTORY = 16            # frames an ``observe`` request may ask for
 
 
 @dataclass
@@ -43,6 +63,9 @@ class BridgeConfig:
     operator_address: str = "tcp://127.0.0.1:5556"
     record_dir: str | None = None                    # per-episode HDF5 + JSON manifest; None: not written
     chunk_budget: int | None = None                  # None: the task's budget (see ``chunk_budget_for``)
+    observe_only: bool = False                       # serve observations; refuse every motion
+    curve_secret_key: str | None = None              # CurveZMQ: the bridge's key file (jepa-robot-bridge keys)
+    curve_authorized_dir: str | None = None          # CurveZMQ: public keys of the clients allowed to connect
 
 
 def chunk_budget_for(spec) -> int:
@@ -58,7 +81,19 @@ class _Session:
     identity: bytes
     client: str
     connected_at: float
-    last_seen: float
+    fd: int | None                  # the connection's socket descriptor (matched against disconnect events)
+    envelope: list                  # [] for DEALER clients, [b""] for REQ clients
+    last_seq: int = 0
+    held_since: float | None = None
+    last_reply: tuple[int, dict] | None = None   # (seq, reply): sent again when a reconnected client asks
+    next_probe: float = 0.0                       # when a quiet session's connection is checked next
+
+
+def _source_fd(frame: zmq.Frame) -> int | None:
+    try:
+        return int(frame.get(zmq.SRCFD))
+    except (zmq.ZMQError, AttributeError, TypeError, ValueError):   # libzmq without ZMQ_SRCFD
+        return None
 
 
 class RobotBridge:
@@ -71,26 +106,36 @@ class RobotBridge:
         self.spec = backend.task_spec
         self.safety = safety or SafetyConfig()
         self.config = config or BridgeConfig()
+        problems = self.safety.problems(self.spec.action_dim, backend.joint_count)
+        if problems:
+            raise ValueError("the safety configuration does not fit this robot: " + "; ".join(problems))
         self.guard = ActionGuard(self.safety, backend.action_low, backend.action_high)
         self.period = 1.0 / float(self.spec.control_hz)
         self.link_timeout = self.safety.resolved_link_timeout(self.spec.control_hz)
         self.heartbeat_interval = self.safety.resolved_heartbeat(self.spec.control_hz)
+        self.link_grace = float(self.safety.link_grace_s)
         self.chunk_budget = int(self.config.chunk_budget or chunk_budget_for(self.spec))
         self.on_confirmation_needed = on_confirmation_needed
         self._ctx = zmq.Context()
+        self._auth = None
         self._control: zmq.Socket | None = None
         self._operator: zmq.Socket | None = None
+        self._monitor: zmq.Socket | None = None
         self._poller = zmq.Poller()
         self._thread: threading.Thread | None = None
+        self._loop_thread_id: int | None = None
         self._stop = threading.Event()
+        self._commands: queue.Queue = queue.Queue()
         self.control_endpoint = ""
         self.operator_endpoint = ""
         # state below is touched only by the event-loop thread
         self._session: _Session | None = None
+        self._dropped: dict[bytes, dict] = {}         # identity -> why its session was dropped (told on return)
         self._episode: EpisodeRecord | None = None
         self._estop = False
         self._executing = False
-        self._abort_reason: str | None = None
+        self._abort_reason: str | None = None         # ends the episode (e-stop, watchdog, joint limit ...)
+        self._hold_reason: str | None = None          # stops the running chunk only (a held link)
         self._awaiting: tuple[bytes, dict] | None = None
         self._operator_outcome: bool | None = None
         self._prev_action: np.ndarray | None = None
@@ -99,7 +144,17 @@ class RobotBridge:
         self._actions_in_chunk = 0
         self._last_obs: dict | None = None
         self._last_info: dict = {}
+        self._recent: collections.deque = collections.deque(maxlen=MAX_HISTORY)   # (step, time, obs)
+        # asynchronous execution (``stream``)
+        self._streaming = False
+        self._queue: collections.deque = collections.deque()
+        self._next_tick = 0.0
+        self._observe_due = False
+        self._underflow_steps = 0
+        self._stream_waiting = False   # stream budget spent: the operator confirms the outcome
+        self._stream_reports: list[dict] = []
         self.events: list[dict] = []   # bridge-level log of safety events (link loss, watchdog, e-stop)
+        self.counters: collections.Counter = collections.Counter()   # malformed / replayed / undeliverable ...
         # steady-state frame-to-chunk latencies of all episodes (each episode's first chunk left out, Sec. 4.8)
         self.steady_latencies: collections.deque[float] = collections.deque(maxlen=100_000)
         self.saved_manifests: list[str] = []
@@ -109,16 +164,49 @@ class RobotBridge:
         """Open both sockets; endpoints with port ``*`` resolve to the port actually bound."""
         if self._control is not None:
             return
-        self._control = self._ctx.socket(zmq.ROUTER)
-        self._control.setsockopt(zmq.LINGER, 0)
-        self._control.bind(self.config.control_address)
-        self.control_endpoint = self._control.getsockopt_string(zmq.LAST_ENDPOINT)
+        control = self._ctx.socket(zmq.ROUTER)
+        control.setsockopt(zmq.LINGER, 0)
+        control.setsockopt(zmq.ROUTER_MANDATORY, 1)      # a reply to a vanished client fails instead of vanishing
+        control.setsockopt(zmq.MAXMSGSIZE, P.MAX_CONTROL_MESSAGE_BYTES)
+        control.setsockopt(zmq.HEARTBEAT_IVL, max(1, round(self.heartbeat_interval * 1000)))
+        control.setsockopt(zmq.HEARTBEAT_TIMEOUT, max(1, round(self.link_timeout * 1000)))
+        self._setup_curve(control)
+        control.bind(self.config.control_address)
+        self._control = control
+        self.control_endpoint = control.getsockopt_string(zmq.LAST_ENDPOINT)
+        self._monitor = control.get_monitor_socket(zmq.EVENT_DISCONNECTED)
         self._operator = self._ctx.socket(zmq.REP)
         self._operator.setsockopt(zmq.LINGER, 0)
+        self._operator.setsockopt(zmq.MAXMSGSIZE, P.MAX_OPERATOR_MESSAGE_BYTES)
         self._operator.bind(self.config.operator_address)
         self.operator_endpoint = self._operator.getsockopt_string(zmq.LAST_ENDPOINT)
-        self._poller.register(self._control, zmq.POLLIN)
-        self._poller.register(self._operator, zmq.POLLIN)
+        for sock in (self._control, self._operator, self._monitor):
+            self._poller.register(sock, zmq.POLLIN)
+        if self.config.curve_secret_key is None and not _is_loopback(self.control_endpoint):
+            log.warning("the control socket %s is reachable from the network without encryption: anyone who "
+                        "can see the traffic can read the session token; use CurveZMQ (--curve-keys) or an "
+                        "SSH tunnel (docs/real_robot.md, 'Network security')", self.control_endpoint)
+
+    def _setup_curve(self, sock: zmq.Socket) -> None:
+        if self.config.curve_secret_key is None:
+            return
+        import zmq.auth
+        from zmq.auth.thread import ThreadAuthenticator
+
+        if not zmq.has("curve"):
+            raise RuntimeError("this libzmq has no CURVE support; install pyzmq's wheels (they include it)")
+        public, secret = zmq.auth.load_certificate(self.config.curve_secret_key)
+        if secret is None:
+            raise ValueError(f"{self.config.curve_secret_key} holds no secret key; pass the bridge's "
+                             "'.key_secret' file made by `jepa-robot-bridge keys`")
+        authorized = self.config.curve_authorized_dir
+        if not authorized or not Path(authorized).is_dir():
+            raise ValueError("CurveZMQ needs curve_authorized_dir: a folder with the public key of every client "
+                             "allowed to connect (`jepa-robot-bridge keys` writes one)")
+        self._auth = ThreadAuthenticator(self._ctx)
+        self._auth.start()
+        self._auth.configure_curve(domain="*", location=str(authorized))
+        sock.curve_secretkey, sock.curve_publickey, sock.curve_server = secret, public, True
 
     def start(self) -> "RobotBridge":
         """Bind and run the event loop in a background thread (tests, bench); returns self."""
@@ -151,53 +239,150 @@ class RobotBridge:
         self.stop()
 
     def _loop(self) -> None:
+        self._loop_thread_id = threading.get_ident()
         try:
             while not self._stop.is_set():
-                self._pump(timeout_s=min(0.01, self.link_timeout / 4))
+                try:
+                    self._pump(timeout_s=self._poll_timeout())
+                except Exception:   # never reached by input (handled per message); a bug must not free the robot
+                    self.counters["loop_errors"] += 1
+                    log.exception("bridge event loop error; the robot holds")
+                    self._guarded(self.backend.hold)
+                    time.sleep(0.01)
         finally:
-            self.backend.hold()
+            self._guarded(self.backend.hold)
             if self._episode is not None and not self._episode.finished:
                 self._end_episode("interrupted", "bridge stopped")
-            for sock in (self._control, self._operator):
+            if self._control is not None:
+                try:
+                    self._control.disable_monitor()
+                except zmq.ZMQError:
+                    pass
+            for sock in (self._monitor, self._control, self._operator):
                 if sock is not None:
                     sock.close(linger=0)
+            if self._auth is not None:
+                self._auth.stop()
             self._ctx.term()
+
+    def _poll_timeout(self) -> float:
+        timeout = min(0.01, self.link_timeout / 4)
+        if self._streaming and self._episode_running():
+            timeout = min(timeout, max(0.0, self._next_tick - time.monotonic()))
+        return timeout
+
+    @staticmethod
+    def _guarded(fn: Callable, *args) -> None:
+        try:
+            fn(*args)
+        except Exception:
+            log.exception("backend call %s failed", getattr(fn, "__name__", fn))
 
     # ---------------------------------------------------------------- event pump
     def _pump(self, timeout_s: float) -> None:
         """Handle every pending message, then enforce the timing rules. Called between actions too."""
         events = dict(self._poller.poll(max(0, int(timeout_s * 1000))))
         while events:
+            if self._monitor in events:
+                self._serve_monitor()
             if self._control in events:
-                self._on_control(*self._control.recv_multipart())
+                self._serve_control()
             if self._operator in events:
-                self._on_operator(self._operator.recv())
+                self._serve_operator()
             events = dict(self._poller.poll(0))
+        self._serve_commands()
         self._check_timers()
 
+    def _serve_monitor(self) -> None:
+        event = parse_monitor_message(self._monitor.recv_multipart())
+        s = self._session
+        if event["event"] == zmq.EVENT_DISCONNECTED and s is not None and s.held_since is None:
+            if s.fd is not None and event["value"] == s.fd:
+                self._link_hold("the client's connection closed (process ended, or no heartbeat answer for "
+                                f"{self.link_timeout:.3f}s)")
+            elif s.fd is None and not self._send(s.identity, {"type": P.LINK, "state": "probe"}, s.envelope):
+                self._link_hold("the client's connection closed")
+
+    def _serve_commands(self) -> None:
+        while True:
+            try:
+                message, reply_box = self._commands.get_nowait()
+            except queue.Empty:
+                return
+            reply_box.put(self._answer_operator(message))
+
+    def command(self, message: dict, timeout_s: float = 5.0) -> dict:
+        """Run an operator command (``{"type": "confirm", "success": True}`` ...) from any thread of this process."""
+        if threading.get_ident() == self._loop_thread_id:
+            return self._answer_operator(message)
+        box: queue.Queue = queue.Queue(maxsize=1)
+        self._commands.put((message, box))
+        try:
+            return box.get(timeout=timeout_s)
+        except queue.Empty:
+            raise TimeoutError("the bridge's event loop did not answer; is it running?") from None
+
+    # ---------------------------------------------------------------- timers: link, watchdog, streaming
     def _check_timers(self) -> None:
         now = time.monotonic()
         s = self._session
-        if s is not None and now - s.last_seen > self.link_timeout:
-            self._safety_event("link_lost", f"no message from client {s.client!r} for "
-                                            f"{now - s.last_seen:.3f}s (limit {self.link_timeout:.3f}s)",
-                               last_seen=s.last_seen, detected=now)
-            self._session = None
-            self._awaiting = None
-            self._interrupt("link_lost")
-            return
-        if (self._episode_running() and not self._executing and self._awaiting is None
+        if s is not None and s.held_since is None and now >= s.next_probe:
+            # backstop for a closed connection whose event was missed (it closed before its last message was
+            # read, or this libzmq reports no descriptors): a notice to a connection that is gone fails at once
+            s.next_probe = now + self.link_timeout
+            if not self._send(s.identity, {"type": P.LINK, "state": "up"}, s.envelope, count=False):
+                self._link_hold("the client's connection is gone")
+        if s is not None and s.held_since is not None and now - s.held_since > self.link_grace:
+            self._drop_session(now)
+        if (self._episode_running() and not self._executing and self._awaiting is None and not self._stream_waiting
                 and now - self._last_command > self.safety.command_deadline_s):
             self._safety_event("watchdog", f"no valid command for {now - self._last_command:.3f}s "
                                            f"(deadline {self.safety.command_deadline_s}s)")
             self._interrupt("watchdog")
+        if (self._streaming or self._stream_waiting) and self._episode_running():
+            if self._operator_outcome is not None:
+                self._end_episode("success" if self._operator_outcome else "failure", "operator confirmed")
+            elif self._streaming and now >= self._next_tick:
+                self._stream_tick(now)
+
+    def _link_hold(self, why: str) -> None:
+        s = self._session
+        s.held_since = time.monotonic()
+        self._guarded(self.backend.hold)
+        self._queue.clear()
+        if self._executing:
+            self._hold_reason = "link_hold"
+        self._safety_event("link_hold", f"link to client {s.client!r} lost: {why}; the robot holds and the "
+                                        f"session is kept for {self.link_grace:.1f}s")
+
+    def _link_resume(self, identity: bytes, fd: int | None, envelope: list) -> None:
+        s = self._session
+        held = time.monotonic() - s.held_since
+        s.held_since, s.identity, s.fd, s.envelope = None, identity, fd, envelope
+        self._safety_event("link_resumed", f"client {s.client!r} back after {held:.3f}s; control resumes")
+
+    def _drop_session(self, now: float) -> None:
+        s = self._session
+        held = now - s.held_since
+        text = (f"the bridge dropped this client's session after its link was lost for {held:.1f}s (grace "
+                f"{self.link_grace:.1f}s); the running episode was interrupted and the robot holds")
+        self._safety_event("link_lost", f"no connection from client {s.client!r} for {held:.3f}s "
+                                        f"(grace {self.link_grace:.1f}s); control released",
+                           held_since=s.held_since, detected=now)
+        self._session = None
+        self._awaiting = None
+        self._interrupt("link_lost")
+        self._dropped[s.identity] = {"message": text, "time": now}
+        while len(self._dropped) > 16:
+            self._dropped.pop(next(iter(self._dropped)))
 
     def _episode_running(self) -> bool:
         return self._episode is not None and not self._episode.finished
 
     def _interrupt(self, reason: str) -> None:
         """Hold position, abort a running chunk at its next action, end the episode as interrupted."""
-        self.backend.hold()
+        self._guarded(self.backend.hold)
+        self._queue.clear()
         if self._executing:
             self._abort_reason = self._abort_reason or reason
         if self._episode_running():
@@ -206,66 +391,157 @@ class RobotBridge:
     def _safety_event(self, kind: str, text: str, **extra) -> None:
         event = {"kind": kind, "message": text, "time": time.time(), **extra}
         self.events.append(event)
+        del self.events[:-1000]
         log.warning("safety: %s", text)
-        if self._episode is not None:
+        if self._episode is not None and not self._episode.finished:
             self._episode.add_safety_event(self._episode.steps, {"kind": kind, "message": text})
 
     def _end_episode(self, outcome: str, reason: str) -> None:
         ep = self._episode
         ep.finish(outcome, reason)
+        self._streaming = self._stream_waiting = False
+        self._queue.clear()
         if self.config.record_dir:
-            self.saved_manifests.append(str(ep.save(self.config.record_dir)))
+            try:
+                self.saved_manifests.append(str(ep.save(self.config.record_dir)))
+            except OSError as exc:
+                self._safety_event("record_failed", f"could not write the episode record: {exc}")
 
     # ---------------------------------------------------------------- control socket
-    def _send(self, identity: bytes, message: dict) -> None:
-        # copy=False: observations are ~150 KB with three 128x128 cameras; let ZeroMQ own the buffer
-        self._control.send_multipart([identity, P.encode(message)], copy=False)
+    def _send(self, identity: bytes, message: dict, envelope: list = (), count: bool = True) -> bool:
+        """Send one message; False when the client is gone (or not reading), which is never an error here."""
+        try:
+            payload = P.encode(message)
+        except P.ProtocolError:
+            log.exception("a reply could not be encoded")
+            payload = P.encode(P.error(P.ERR_INTERNAL, "the bridge built a reply it cannot encode; see its log",
+                                       seq=message.get("seq")))
+        try:
+            # copy=False: observations are ~150 KB with three 128x128 cameras; let ZeroMQ own the buffer
+            self._control.send_multipart([identity, *envelope, payload], flags=zmq.NOBLOCK, copy=False)
+            return True
+        except zmq.ZMQError:   # EHOSTUNREACH: no such connection; EAGAIN: the client stopped reading
+            if count:
+                self.counters["undeliverable"] += 1
+            return False
 
-    def _on_control(self, identity: bytes, payload: bytes) -> None:
+    def _reply(self, identity: bytes, envelope: list, seq, message: dict) -> None:
+        """Answer a request; the controlling client's latest reply is kept for a ``resume`` after a reconnect."""
+        message = {**message, "seq": seq}
+        s = self._session
+        if s is not None and s.identity == identity and message["type"] != P.PENDING:
+            s.last_reply = (seq, message)
+        self._send(identity, message, envelope)
+
+    def _serve_control(self) -> None:
+        frames = self._control.recv_multipart(copy=False)
+        identity, parts, envelope = frames[0].bytes, frames[1:], []
+        if len(parts) >= 2 and len(parts[0]) == 0:   # a REQ socket: empty delimiter, then the request
+            envelope, parts = [b""], parts[1:]
+        if len(parts) != 1:
+            self.counters["malformed"] += 1
+            self._send(identity, P.error(P.ERR_BAD_MESSAGE, f"a request is one frame holding one msgpack map; "
+                                                            f"got {len(parts)} frames"), envelope)
+            return
+        try:
+            self._on_control(identity, parts[0].bytes, _source_fd(parts[0]), envelope)
+        except Exception as exc:   # input must never end the loop that guards the robot
+            self.counters["internal_errors"] += 1
+            log.exception("bridge failed on a control message")
+            self._executing = False
+            self._guarded(self.backend.hold)
+            self._safety_event("internal_error", f"{type(exc).__name__}: {exc}")
+            if self._episode_running():
+                self._end_episode("interrupted", f"bridge error: {exc}")
+            self._send(identity, P.error(P.ERR_INTERNAL, f"the bridge failed on this request ({type(exc).__name__}: "
+                                                         f"{exc}); the robot holds; see the bridge log"), envelope)
+
+    def _not_controlling(self, identity: bytes, seq) -> dict:
+        dropped = self._dropped.get(identity)
+        s = self._session
+        if dropped is not None:
+            text = (f"{dropped['message']} ({time.monotonic() - dropped['time']:.1f}s ago); call env.reconnect() "
+                    "to take control again, then env.reset() for a new episode")
+        elif s is not None:
+            text = f"this connection does not control the robot; client {s.client!r} does"
+        else:
+            text = "this connection does not control the robot; no client does (reconnect with hello)"
+        return {**P.error(P.ERR_NOT_CONTROLLING, text), "seq": seq}
+
+    def _on_control(self, identity: bytes, payload: bytes, fd: int | None, envelope: list) -> None:
         try:
             msg = P.decode(payload)
             P.check_version(msg)
         except P.ProtocolError as exc:
-            code = P.ERR_VERSION if "version" in str(exc) else P.ERR_BAD_MESSAGE
-            self._send(identity, P.error(code, str(exc)))
+            self.counters["malformed"] += 1
+            code = P.ERR_VERSION if "version mismatch" in str(exc) else P.ERR_BAD_MESSAGE
+            self._send(identity, P.error(code, str(exc)), envelope)
             return
         kind, seq = msg["type"], msg.get("seq")
         if kind == P.HELLO:
-            self._send(identity, {**self._on_hello(identity, msg), "seq": seq})
+            self._reply(identity, envelope, seq, self._on_hello(identity, msg, fd, envelope))
             return
         s = self._session
-        if s is None or msg.get("session") != s.token:
-            if kind == P.HEARTBEAT:
-                return
-            holder = f"client {s.client!r}" if s else "no client (reconnect with hello)"
-            self._send(identity, {**P.error(P.ERR_NOT_CONTROLLING,
-                                            f"this connection does not control the robot; {holder} does"), "seq": seq})
+        token = msg.get("session")
+        if s is None or not isinstance(token, str) or not hmac.compare_digest(token, s.token):
+            self.counters["not_controlling"] += 1
+            self._send(identity, self._not_controlling(identity, seq), envelope)
             return
-        s.last_seen = time.monotonic()
-        if kind == P.HEARTBEAT:
+        if seq is None:
+            self.counters["malformed"] += 1
+            self._send(identity, P.error(P.ERR_BAD_MESSAGE, f"{kind!r} needs a 'seq' above the session's last one"),
+                       envelope)
             return
-        if self._executing or self._awaiting is not None:
-            self._send(identity, {**P.error(P.ERR_BUSY, "a chunk is still executing; wait for its reply"),
-                                  "seq": seq})
+        if seq <= s.last_seq:
+            self.counters["replayed"] += 1
+            self._safety_event("replay", f"refused {kind!r} with seq {seq} from client {s.client!r}: not above "
+                                         f"the session's last seq {s.last_seq} (replayed or out of order)")
+            self._send(identity, {**P.error(P.ERR_REPLAY, f"seq {seq} is not above this session's last seq "
+                                                          f"{s.last_seq}: a replayed or out-of-order request is "
+                                                          "never executed"), "seq": seq}, envelope)
+            return
+        previous_seq, s.last_seq = s.last_seq, seq
+        if s.held_since is not None or s.identity != identity:
+            if s.held_since is not None:
+                self._link_resume(identity, fd, envelope)
+            s.identity, s.envelope = identity, envelope
+        if fd is not None:
+            s.fd = fd
+        s.next_probe = time.monotonic() + self.link_timeout
+        if kind == P.RESUME:
+            self._on_resume(identity, envelope, msg, previous_seq)
             return
         handlers = {P.RESET: self._on_reset, P.STEP: self._on_step, P.CHUNK: self._on_chunk,
+                    P.OBSERVE: self._on_observe, P.STREAM: self._on_stream,
                     P.RENDER_IMAGES: self._on_render, P.BYE: self._on_bye}
         if kind not in handlers:
-            self._send(identity, {**P.error(P.ERR_BAD_MESSAGE, f"unknown message type {kind!r}"), "seq": seq})
+            self._reply(identity, envelope, seq, P.error(P.ERR_BAD_MESSAGE, f"unknown message type {kind[:40]!r}"))
+            return
+        if kind != P.OBSERVE and (self._executing or self._awaiting is not None):
+            self._reply(identity, envelope, seq, P.error(P.ERR_BUSY, "a chunk is still executing; wait for its reply"))
+            return
+        if self.config.observe_only and kind in (P.RESET, P.STEP, P.CHUNK, P.STREAM):
+            self._reply(identity, envelope, seq, P.error(
+                P.ERR_OBSERVE_ONLY, "this bridge runs observe-only: actions and resets are disabled; restart it "
+                                    "without --observe-only to run episodes"))
             return
         try:
             reply = handlers[kind](identity, msg)
+        except (TypeError, ValueError, KeyError, OverflowError) as exc:   # a field of the wrong kind
+            self._guarded(self.backend.hold)
+            reply = P.error(P.ERR_BAD_MESSAGE, f"bad {kind!r} request ({type(exc).__name__}: {exc}); the robot holds")
         except Exception as exc:  # a backend or disk failure must not kill the loop that guards the robot
             log.exception("bridge failed to handle %s", kind)
+            self.counters["internal_errors"] += 1
             self._executing = False
-            self.backend.hold()
+            self._guarded(self.backend.hold)
             self._safety_event("internal_error", f"{type(exc).__name__}: {exc}")
             if self._episode_running():
                 self._end_episode("interrupted", f"bridge error: {exc}")
             reply = P.error(P.ERR_INTERNAL, f"the bridge failed on {kind!r} ({type(exc).__name__}: {exc}); the "
                                             "robot holds; see the bridge log")
         if reply is not None:
-            self._send(identity, {**reply, "seq": seq})
+            self._reply(identity, envelope, seq, reply)
 
     def describe(self) -> dict:
         """The task and limits a client needs to build its spaces (sent in the welcome message)."""
@@ -277,25 +553,54 @@ class RobotBridge:
             "action_low": self.guard.low, "action_high": self.guard.high,
             "control_hz": self.spec.control_hz, "chunk_budget": self.chunk_budget,
             "heartbeat_interval_s": self.heartbeat_interval, "link_timeout_s": self.link_timeout,
+            "link_grace_s": self.link_grace,
             "command_deadline_s": self.safety.command_deadline_s, "on_violation": self.safety.on_violation,
             "success_source": self.backend.success_source, "backend": type(self.backend).__name__,
+            "observe_only": self.config.observe_only,
         }
 
-    def _on_hello(self, identity: bytes, msg: dict) -> dict:
-        client = str(msg.get("client") or "anonymous")
+    def _on_hello(self, identity: bytes, msg: dict, fd: int | None, envelope: list) -> dict:
+        client = msg.get("client")
+        client = client[:200] if isinstance(client, str) and client else "anonymous"
         s = self._session
         if s is not None and s.identity != identity:
+            held = "" if s.held_since is None else (
+                f"; its link is lost and its session is kept for "
+                f"{max(0.0, self.link_grace - (time.monotonic() - s.held_since)):.1f}s more")
             return P.error(P.ERR_BUSY, f"the robot is already controlled by client {s.client!r} (connected "
-                                       f"{time.monotonic() - s.connected_at:.1f}s ago); only one client may "
+                                       f"{time.monotonic() - s.connected_at:.1f}s ago{held}); only one client may "
                                        "control it: close that client (env.close()) or wait until it disconnects")
         task = msg.get("task")
         if task and task not in (self.spec.name, self.spec.env_id):
             return P.error(P.ERR_TASK, f"this bridge serves task {self.spec.name!r}, the client asked for "
-                                       f"{task!r}; start the bridge with --task {task} or connect to the right one")
+                                       f"{str(task)[:80]!r}; start the bridge with --task {str(task)[:80]} or "
+                                       "connect to the right one")
         now = time.monotonic()
-        self._session = _Session(secrets.token_hex(8), identity, client, now, now)
+        seq = msg.get("seq") or 0
+        self._session = _Session(secrets.token_hex(16), identity, client, now, fd, list(envelope), last_seq=seq,
+                                 next_probe=now + self.link_timeout)
+        self._dropped.pop(identity, None)
         return {"type": P.WELCOME, "session": self._session.token, "protocol": P.PROTOCOL_VERSION,
                 **self.describe()}
+
+    def _on_resume(self, identity: bytes, envelope: list, msg: dict, previous_seq: int) -> None:
+        """A client's connection came back: answer the request it still waits for (``awaiting``: its seq)."""
+        s = self._session
+        awaiting = msg.get("awaiting")
+        if type(awaiting) is not int:
+            self._send(identity, P.error(P.ERR_BAD_MESSAGE, "resume needs 'awaiting': the seq of the request whose "
+                                                            "reply the client still waits for"), envelope)
+            return
+        if s.last_reply is not None and s.last_reply[0] == awaiting:
+            self._send(identity, s.last_reply[1], envelope)   # sent before (maybe into the closed connection)
+        elif self._awaiting is not None and self._awaiting[1]["seq"] == awaiting:
+            self._send(identity, {"type": P.PENDING, "seq": awaiting, "message": "still waiting for the operator "
+                                  "to confirm success or failure"}, envelope)
+        elif awaiting > previous_seq:   # the request itself never arrived
+            self._send(identity, {**P.error(P.ERR_LOST, f"request {awaiting} never reached the bridge (the "
+                                                        "connection dropped first); nothing of it was executed; "
+                                                        "send it again"), "seq": awaiting}, envelope)
+        # else: the request arrived and its reply is still being made; it goes to the new connection
 
     def _on_bye(self, identity: bytes, msg: dict) -> dict:
         if self._episode_running():
@@ -314,8 +619,13 @@ class RobotBridge:
         if self._episode_running():
             self._end_episode("interrupted", "reset before the episode ended")
         seed = msg.get("seed")
-        obs, info = self.backend.reset(None if seed is None else int(seed))
-        manifest = {**dict(msg.get("manifest") or {}), "seed": seed, "backend": type(self.backend).__name__,
+        if seed is not None and (type(seed) is not int or not 0 <= seed < 2**63):
+            raise ValueError(f"seed must be a non-negative integer or null, got {seed!r:.40}")
+        manifest = msg.get("manifest") or {}
+        if not isinstance(manifest, dict):
+            raise TypeError("manifest must be a map")
+        obs, info = self.backend.reset(seed)
+        manifest = {**manifest, "seed": seed, "backend": type(self.backend).__name__,
                     "protocol": P.PROTOCOL_VERSION, "safety": self.safety.model_dump(),
                     "client": self._session.client}
         self._episode = EpisodeRecord(task=self.spec.name, chunk_budget=self.chunk_budget,
@@ -324,8 +634,13 @@ class RobotBridge:
         self._operator_outcome = None
         self._prev_action = self.backend.current_action()
         self._actions_in_chunk = 0
+        self._streaming, self._stream_waiting, self._observe_due, self._underflow_steps = False, False, False, 0
+        self._queue.clear()
+        self._stream_reports = []
         self._last_obs, self._last_info = obs, info
         self._frame_time = self._last_command = time.monotonic()
+        self._recent.clear()
+        self._recent.append((0, self._frame_time, obs))
         return {"type": P.RESULT, "obs": obs, "info": self._info(info, [], executed=0)}
 
     def _on_step(self, identity: bytes, msg: dict) -> dict | None:
@@ -334,11 +649,143 @@ class RobotBridge:
     def _on_chunk(self, identity: bytes, msg: dict) -> dict | None:
         return self._run(identity, msg, chunk=True)
 
+    # ---------------------------------------------------------------- observe / stream (asynchronous execution)
+    def _on_observe(self, identity: bytes, msg: dict) -> dict:
+        """The newest ``history`` observations (oldest first; padded with the first frame, as in training)."""
+        history = msg.get("history", 1)
+        if type(history) is not int or not 1 <= history <= MAX_HISTORY:
+            raise ValueError(f"history must be an integer in [1, {MAX_HISTORY}]")
+        if self._observe_due:
+            self._observe_now()
+        if self._recent:
+            frames = list(self._recent)[-history:]
+        else:   # observe-only, or no episode yet: the robot as it is now
+            frames = [(0, time.monotonic(), self.backend.observe())]
+        frames = [frames[0]] * (history - len(frames)) + frames
+        ep = self._episode
+        reports, self._stream_reports = self._stream_reports, []
+        info = self._info(self._last_info, reports, executed=0)
+        info.update(step=ep.steps if ep is not None else 0, queue=len(self._queue), streaming=self._streaming,
+                    underflow_steps=self._underflow_steps,
+                    awaiting_confirmation=self._awaiting is not None or self._stream_waiting)
+        return {"type": P.RESULT, "obs_history": [f[2] for f in frames], "steps": [f[0] for f in frames],
+                "info": info}
+
+    def _stream_budget_spent(self) -> bool:
+        return self._episode.steps >= self.chunk_budget * self.spec.n_action_steps
+
+    def _on_stream(self, identity: bytes, msg: dict) -> dict:
+        ep = self._episode
+        if ep is None:
+            return P.error(P.ERR_NO_EPISODE, "no episode has started; call env.reset() first")
+        if ep.finished:
+            return self._ended_reply()
+        origin = msg.get("origin_step")
+        if type(origin) is not int or not 0 <= origin <= ep.steps:
+            raise ValueError(f"origin_step must be the step of the observation the chunk was predicted from "
+                             f"(0..{ep.steps}), got {origin!r:.40}")
+        try:
+            actions = validate_chunk(msg.get("actions"), self.spec.action_dim, self.backend.rotation6d_starts)
+        except InvalidAction as exc:
+            self._guarded(self.backend.hold)
+            self._queue.clear()
+            self._safety_event("invalid_action", str(exc))
+            return P.error(P.ERR_INVALID_ACTION, f"{exc}; the queue is emptied and the robot holds")
+        now = time.monotonic()
+        late = ep.steps - origin    # actions of this chunk whose time has already passed
+        origin_time = next((t for step, t, _ in reversed(self._recent) if step == origin), self._frame_time)
+        origin_obs = next((o for step, _, o in reversed(self._recent) if step == origin), self._last_obs)
+        ep.chunks += 1
+        ep.chunk_latency_s.append(now - origin_time)
+        if ep.chunks > 1:
+            self.steady_latencies.append(now - origin_time)
+        ep.add_decision_frame(origin_obs, step=origin)
+        self._queue = collections.deque(actions[late:])   # real-time chunking: replaces what is left
+        if not self._streaming:
+            self._streaming, self._next_tick = True, now
+        self._last_command = now
+        return {"type": P.RESULT, "accepted": len(self._queue), "late_steps": late, "step": ep.steps,
+                "underflow_steps": self._underflow_steps}
+
+    def _observe_now(self) -> None:
+        self._observe_due = False
+        obs = self.backend.observe()
+        self._set_frame(obs, self._last_info)
+
+    def _set_frame(self, obs: dict, info: dict) -> None:
+        self._frame_time = time.monotonic()
+        self._last_obs, self._last_info = obs, info
+        self._recent.append((self._episode.steps, self._frame_time, obs))
+
+    def _stream_tick(self, now: float) -> None:
+        """One control period of asynchronous execution: the next queued action, or a counted underflow."""
+        s = self._session
+        if self._executing or self._awaiting is not None or s is None or s.held_since is not None:
+            self._next_tick = now + self.period
+            return
+        self._next_tick = max(self._next_tick + self.period, now)   # never bursts to catch up
+        if self._observe_due:
+            self._observe_now()
+        if self._stream_budget_spent():
+            if self.backend.success_source == "sim":
+                self._end_episode("success" if self._last_info.get("is_success") else "failure",
+                                  "chunk budget spent")
+            else:   # the operator decides; the robot holds meanwhile
+                self._streaming, self._stream_waiting = False, True
+                self._guarded(self.backend.hold)
+                if self.on_confirmation_needed is not None:
+                    self.on_confirmation_needed(self._episode.summary())
+            return
+        if not self._queue:
+            self._underflow_steps += 1
+            self._guarded(self.backend.hold)
+            return
+        result, report, stop = self._execute(self._queue.popleft(), index=0)
+        if report is not None:
+            self._stream_reports.append(report)
+        if stop:
+            self._queue.clear()
+        if result is None:
+            return
+        if result.obs is None:
+            self._observe_due = True   # the frame of this slot is the one at its end
+        else:
+            self._set_frame(result.obs, result.info)
+        if self._abort_reason is not None and self._episode_running():
+            self._end_episode("interrupted", self._abort_reason)
+        elif result.terminated or result.truncated:
+            self._end_episode("success" if result.info.get("is_success") else "failure",
+                              "simulator ended the episode")
+        self._abort_reason = None
+
     # ---------------------------------------------------------------- execution
+    def _execute(self, action: np.ndarray, index: int) -> tuple[StepResult | None, dict | None, bool]:
+        """Check and run one validated action: (result or None when refused, violation report, stop the rest)."""
+        ep = self._episode
+        verdict = self.guard.check(action, self._prev_action)
+        report = None
+        if verdict.violations:
+            report = {"index": index, **verdict.report()}
+            self._safety_event("refused" if verdict.refused else "clipped", "; ".join(verdict.violations))
+        if verdict.refused:
+            self._guarded(self.backend.hold)
+            ep.add_action(action, None)
+            return None, report, True   # later actions assumed this one was reached
+        result = self.backend.apply(verdict.action)
+        self._prev_action = verdict.action
+        ep.add_action(action, verdict.action)
+        joint_problem = self.guard.joint_violation(self.backend.joint_positions())
+        if joint_problem:
+            self._safety_event("joint_limit", joint_problem)
+            self._interrupt("joint_limit")
+            self._abort_reason = self._abort_reason or "joint_limit"
+            return result, report, True
+        return result, report, False
+
     def _ended_reply(self) -> dict:
         ep = self._episode
         info = self._info(self._last_info, [], executed=0)
-        return {"type": P.RESULT, "obs": self.backend.observe(), "reward": 0.0,
+        return {"type": P.RESULT, "obs": self._last_obs, "reward": 0.0,
                 "terminated": ep.outcome == "success", "truncated": ep.outcome != "success", "info": info}
 
     def _info(self, base: dict, reports: list[dict], executed: int) -> dict:
@@ -359,6 +806,9 @@ class RobotBridge:
             return P.error(P.ERR_NO_EPISODE, "no episode has started; call env.reset() first")
         if ep.finished:
             return self._ended_reply()
+        if self._streaming:
+            return P.error(P.ERR_BAD_MESSAGE, "this episode streams its actions; send stream messages, or reset "
+                                              "to run it with step / chunk")
         dim = self.spec.action_dim
         try:
             if chunk:
@@ -366,7 +816,7 @@ class RobotBridge:
             else:
                 actions = validate_action(msg.get("action"), dim, self.backend.rotation6d_starts)[None]
         except InvalidAction as exc:
-            self.backend.hold()
+            self._guarded(self.backend.hold)
             self._safety_event("invalid_action", str(exc))
             self._last_command = time.monotonic()
             return P.error(P.ERR_INVALID_ACTION, f"{exc}; the robot holds position")
@@ -376,26 +826,21 @@ class RobotBridge:
             ep.chunk_latency_s.append(received - self._frame_time)
             if ep.chunks > 1:
                 self.steady_latencies.append(received - self._frame_time)
-        self._executing, self._abort_reason = True, None
+        self._executing, self._abort_reason, self._hold_reason = True, None, None
         reports: list[dict] = []
         total_reward, executed = 0.0, 0
         result: StepResult | None = None
         start = time.monotonic()
         try:
             for i, action in enumerate(actions):
-                if self._abort_reason is not None:
+                if self._abort_reason is not None or self._hold_reason is not None:
                     break
-                verdict = self.guard.check(action, self._prev_action)
-                if verdict.violations:
-                    reports.append({"index": i, **verdict.report()})
-                    self._safety_event("refused" if verdict.refused else "clipped", "; ".join(verdict.violations))
-                if verdict.refused:
-                    self.backend.hold()
-                    ep.add_action(action, None)
-                    break   # later actions of the chunk assumed this one was reached
-                result = self.backend.apply(verdict.action)
-                self._prev_action = verdict.action
-                ep.add_action(action, verdict.action)
+                step_result, report, stop = self._execute(action, i)
+                if report is not None:
+                    reports.append(report)
+                if step_result is None:
+                    break
+                result = step_result
                 executed += 1
                 total_reward += result.reward
                 if self.backend.realtime:
@@ -405,16 +850,10 @@ class RobotBridge:
                     self._pump(0)
                 if result.obs is None:
                     result.obs = self.backend.observe()
-                self._frame_time = time.monotonic()
-                self._last_obs, self._last_info = result.obs, result.info
+                self._set_frame(result.obs, result.info)
                 if not chunk:
                     self._actions_in_chunk = (self._actions_in_chunk + 1) % self.spec.n_action_steps
-                joint_problem = self.guard.joint_violation(self.backend.joint_positions())
-                if joint_problem:
-                    self._safety_event("joint_limit", joint_problem)
-                    self._interrupt("joint_limit")
-                    break
-                if result.terminated or result.truncated:
+                if stop or result.terminated or result.truncated:
                     break
         finally:
             self._executing = False
@@ -423,13 +862,17 @@ class RobotBridge:
             self._end_episode("interrupted", self._abort_reason)
         if chunk or self._actions_in_chunk == 0:
             ep.add_decision_frame(self._last_obs)
+        held, self._hold_reason = self._hold_reason, None
         if self._session is None:
-            return None   # the link was lost mid-chunk: nobody to answer
-        return self._finish_request(identity, msg, result, total_reward, reports, executed)
+            return None   # control was released meanwhile: nobody to answer
+        reply = self._finish_request(identity, msg, result, total_reward, reports, executed)
+        if reply is not None and held is not None:
+            reply["info"]["held"] = held   # the chunk stopped early on a held link; the episode goes on
+        return reply
 
     def _pace_until(self, deadline: float) -> None:
-        """Wait for the next action slot while serving both sockets (e-stop, heartbeats)."""
-        while self._abort_reason is None:
+        """Wait for the next action slot while serving both sockets (e-stop, link events)."""
+        while self._abort_reason is None and self._hold_reason is None:
             remaining = deadline - time.monotonic()
             if remaining <= 0:
                 break
@@ -450,13 +893,15 @@ class RobotBridge:
             elif self._operator_outcome is not None:
                 self._end_episode("success" if self._operator_outcome else "failure", "operator confirmed")
             elif budget_spent or sim_says_done:
+                s = self._session
+                envelope = s.envelope if s is not None else []
                 pending = {"type": P.RESULT, "reward": reward, "reports": reports, "executed": executed,
-                           "seq": msg.get("seq")}
+                           "seq": msg.get("seq"), "envelope": envelope}
                 self._awaiting = (identity, pending)
-                self.backend.hold()
+                self._guarded(self.backend.hold)
                 self._send(identity, {"type": P.PENDING, "seq": msg.get("seq"),
                                       "message": "chunk budget spent; waiting for the operator to confirm "
-                                                 "success or failure"})
+                                                 "success or failure"}, envelope)
                 if self.on_confirmation_needed is not None:
                     self.on_confirmation_needed(ep.summary())
                 return None
@@ -471,14 +916,39 @@ class RobotBridge:
                 "truncated": truncated, "info": info}
 
     # ---------------------------------------------------------------- operator socket
-    def _on_operator(self, payload: bytes) -> None:
+    def _serve_operator(self) -> None:
+        # REP: every request gets exactly one reply, or the socket would refuse all later ones
+        frames = self._operator.recv_multipart()
+        if len(frames) != 1:
+            self.counters["malformed"] += 1
+            reply = P.error(P.ERR_BAD_MESSAGE, f"an operator request is one frame; got {len(frames)}")
+        else:
+            try:
+                msg = P.decode(frames[0])
+                P.check_version(msg)
+            except P.ProtocolError as exc:
+                self.counters["malformed"] += 1
+                reply = P.error(P.ERR_BAD_MESSAGE, str(exc))
+            else:
+                reply = self._answer_operator(msg)
         try:
-            msg = P.decode(payload)
-            P.check_version(msg)
-            reply = self._operator_command(msg)
-        except (P.ProtocolError, ValueError) as exc:
-            reply = P.error(P.ERR_BAD_MESSAGE, str(exc))
-        self._operator.send(P.encode(reply))
+            payload = P.encode(reply)
+        except P.ProtocolError:
+            payload = P.encode(P.error(P.ERR_INTERNAL, "the bridge built a reply it cannot encode; see its log"))
+        self._operator.send(payload)
+
+    def _answer_operator(self, msg: dict) -> dict:
+        try:
+            return self._operator_command(msg)
+        except (ValueError, TypeError) as exc:
+            self.counters["malformed"] += 1
+            return P.error(P.ERR_BAD_MESSAGE, str(exc))
+        except Exception as exc:
+            self.counters["internal_errors"] += 1
+            log.exception("operator command failed")
+            self._guarded(self.backend.hold)
+            return P.error(P.ERR_INTERNAL, f"the bridge failed on this command ({type(exc).__name__}: {exc}); "
+                                           "the robot holds")
 
     def _operator_command(self, msg: dict) -> dict:
         kind = msg["type"]
@@ -489,14 +959,19 @@ class RobotBridge:
             if self._awaiting is not None:
                 identity, pending = self._awaiting
                 self._awaiting = None
-                self._send(identity, {**self._ended_reply(), "seq": pending["seq"]})
+                self._reply(identity, pending["envelope"], pending["seq"], self._ended_reply())
             return {"type": P.RESULT, "ok": True, "status": self.status()}
         if kind == P.OP_CLEAR_ESTOP:
             self._estop = False
             return {"type": P.RESULT, "ok": True, "status": self.status()}
         if kind == P.OP_CONFIRM:
-            return self._confirm(bool(msg.get("success")))
+            success = msg.get("success")
+            if not isinstance(success, bool):
+                raise ValueError("confirm needs 'success': true or false")
+            return self._confirm(success)
         if kind == P.OP_HOME:
+            if self.config.observe_only:
+                return P.error(P.ERR_OBSERVE_ONLY, "this bridge runs observe-only: it never moves the robot")
             if self._executing:
                 return P.error(P.ERR_BUSY, "a chunk is executing; e-stop first or wait for it to finish")
             if self._episode_running():
@@ -509,7 +984,8 @@ class RobotBridge:
         if kind == P.OP_SHUTDOWN:
             self._stop.set()
             return {"type": P.RESULT, "ok": True}
-        raise ValueError(f"unknown operator command {kind!r}; use estop, clear_estop, confirm, home, status")
+        raise ValueError(f"unknown operator command {kind[:40]!r}; use estop, clear_estop, confirm, home, status, "
+                         "shutdown")
 
     def _confirm(self, success: bool) -> dict:
         if self._awaiting is not None:
@@ -518,7 +994,7 @@ class RobotBridge:
             self._end_episode("success" if success else "failure", "operator confirmed")
             reply = self._finish_request(identity, pending, None, pending["reward"], pending["reports"],
                                          pending["executed"])
-            self._send(identity, {**reply, "seq": pending["seq"]})
+            self._reply(identity, pending["envelope"], pending["seq"], reply)
             return {"type": P.RESULT, "ok": True, "status": self.status()}
         if self._episode_running():
             # the goal was reached (or clearly failed) before the budget: the next reply ends the episode
@@ -529,69 +1005,26 @@ class RobotBridge:
     def status(self) -> dict:
         """A snapshot for operators: controlling client, episode progress, e-stop, latency summary."""
         ep = self._episode
+        s = self._session
         return {
             "task": self.spec.name,
-            "client": self._session.client if self._session else None,
+            "client": s.client if s else None,
+            "link": None if s is None else ("held" if s.held_since is not None else "up"),
             "estop": self._estop,
+            "observe_only": self.config.observe_only,
             "executing": self._executing,
+            "streaming": self._streaming,
             "awaiting_confirmation": self._awaiting is not None,
             "episode": None if ep is None else {
                 "episode_id": ep.episode_id, "outcome": ep.outcome, "reason": ep.reason, "steps": ep.steps,
-                "chunks": ep.chunks, "chunk_budget": self.chunk_budget,
+                "chunks": ep.chunks, "chunk_budget": self.chunk_budget, "underflow_steps": self._underflow_steps,
                 "frame_to_chunk_latency": latency_stats(ep.chunk_latency_s)},
             "frame_to_chunk_latency_all": latency_stats(list(self.steady_latencies), skip_first=False),
+            "counters": dict(self.counters),
             "events": [dict(e) for e in self.events[-20:]],
         }
 
 
-class OperatorClient:
-    """The operator's side: e-stop, confirm, home, status over the bridge's operator socket."""
-
-    def __init__(self, address: str, timeout_s: float = 5.0):
-        self.address = address
-        self._ctx = zmq.Context()
-        self._sock = self._ctx.socket(zmq.REQ)
-        self._sock.setsockopt(zmq.LINGER, 0)
-        self._sock.setsockopt(zmq.RCVTIMEO, int(timeout_s * 1000))
-        self._sock.connect(address)
-
-    def _call(self, message: dict) -> dict:
-        self._sock.send(P.encode(message))
-        try:
-            reply = P.decode(self._sock.recv())
-        except zmq.Again as exc:
-            raise TimeoutError(f"no robot bridge answered on the operator socket {self.address}; "
-                               "is `jepa-robot-bridge serve` running there?") from exc
-        if reply["type"] == P.ERROR:
-            raise RuntimeError(f"bridge refused {message['type']}: {reply['message']}")
-        return reply
-
-    def estop(self) -> dict:
-        """Latch the emergency stop: the robot holds now, mid-chunk included; no motion until cleared."""
-        return self._call({"type": P.OP_ESTOP})["status"]
-
-    def clear_estop(self) -> dict:
-        return self._call({"type": P.OP_CLEAR_ESTOP})["status"]
-
-    def confirm(self, success: bool) -> dict:
-        """Confirm the episode's outcome (at budget end, or early when the goal is reached)."""
-        return self._call({"type": P.OP_CONFIRM, "success": bool(success)})["status"]
-
-    def home(self) -> dict:
-        return self._call({"type": P.OP_HOME})["status"]
-
-    def status(self) -> dict:
-        return self._call({"type": P.OP_STATUS})["status"]
-
-    def shutdown(self) -> None:
-        self._call({"type": P.OP_SHUTDOWN})
-
-    def close(self) -> None:
-        self._sock.close(linger=0)
-        self._ctx.term()
-
-    def __enter__(self) -> "OperatorClient":
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.close()
+def _is_loopback(endpoint: str) -> bool:
+    host = endpoint.split("://", 1)[-1].rsplit(":", 1)[0]
+    return endpoint.startswith(("inproc://", "ipc://")) or host in ("127.0.0.1", "localhost", "[::1]", "::1")

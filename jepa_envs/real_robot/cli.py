@@ -1,27 +1,33 @@
-"""``jepa-robot-bridge``: serve a robot (default subcommand), benchmark the bridge, and operator commands.
+"""``jepa-robot-bridge``: serve a robot (default subcommand), check a set-up, dry-run, watch, benchmark.
 
     jepa-robot-bridge --backend sim --task PushT                 # simulated robot on tcp://127.0.0.1:5555
     jepa-robot-bridge --backend arx5 --config deploy/robot/arx5_cabinet.toml
+    jepa-robot-bridge check deploy/robot/arx5_cabinet.toml      # every length and bound, no hardware touched
+    jepa-robot-bridge --backend replay --episode EP.json [--config SETUP.toml]   # dry run of a recording
+    jepa-robot-bridge --backend arx5 --config ... --observe-only   # cameras and proprioception, no motion
+    jepa-robot-bridge observe --address tcp://robot-pc:5555       # watch what an observe-only bridge serves
+    jepa-robot-bridge keys DIR --client policy-pc                  # CurveZMQ keys for a network link
     jepa-robot-bridge bench                                      # loopback latency, three 128x128 cameras
     jepa-robot-bridge estop | clear-estop | home | status | shutdown [--operator tcp://host:5556]
     jepa-robot-bridge confirm success|failure [--operator ...]
 
-The policy side runs elsewhere: ``jepa-policy robot --address tcp://robot-pc:5555 --checkpoint ckpt.pt``.
+The console script answers the operator commands without importing this module (``jepa_operator.cli``); they
+also work here. The policy side runs elsewhere: ``jepa-policy robot --address tcp://robot-pc:5555
+--checkpoint ckpt.pt``.
 """
 from __future__ import annotations
 
 import argparse
-import json
 import logging
 import sys
-import threading
+import time
 import tomllib
 from pathlib import Path
 
-from jepa_envs.real_robot.safety import SafetyConfig
+from jepa_operator import DEFAULT_OPERATOR
+from jepa_operator.cli import OPERATOR_COMMANDS, run_operator_command
 
-SUBCOMMANDS = ("serve", "bench", "estop", "clear-estop", "confirm", "home", "status", "shutdown")
-DEFAULT_OPERATOR = "tcp://127.0.0.1:5556"
+SUBCOMMANDS = ("serve", "bench", "check", "observe", "keys") + OPERATOR_COMMANDS
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -29,23 +35,40 @@ def _parser() -> argparse.ArgumentParser:
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = parser.add_subparsers(dest="command")
     serve = sub.add_parser("serve", help="run the robot bridge (default)")
-    serve.add_argument("--backend", choices=("sim", "arx5"), default="sim")
+    serve.add_argument("--backend", choices=("sim", "arx5", "replay"), default="sim")
     serve.add_argument("--task", help="sim: any jepa_envs simulation task (PushT, Square, ...)")
     serve.add_argument("--config", help="arx5: set-up TOML (deploy/robot/arx5_cabinet.toml); sim: optional "
-                                        "TOML with a [safety] table")
+                                        "TOML with a [safety] table; replay: the set-up whose limits apply")
+    serve.add_argument("--episode", help="replay: the episode manifest (.json) a bridge recorded")
     serve.add_argument("--bind", help="control socket (default tcp://127.0.0.1:5555, arx5: from config)")
     serve.add_argument("--operator-bind", help=f"operator socket (default {DEFAULT_OPERATOR})")
     serve.add_argument("--image-size", type=int)
     serve.add_argument("--record-dir", help="write per-episode HDF5 + JSON manifests here")
     serve.add_argument("--chunk-budget", type=int, help="override the task's action-chunk budget")
-    serve.add_argument("--realtime", action="store_true", help="sim: pace actions at the task's control rate")
+    serve.add_argument("--realtime", action="store_true", help="sim, replay: pace actions at the task's control rate")
     serve.add_argument("--success-source", choices=("sim", "operator"), default="sim",
                        help="sim: take success from the simulator or rehearse operator confirmation")
     serve.add_argument("--camera-replicas", type=int, default=1,
                        help="sim: repeat each camera N times on the wire (payload benchmarks)")
     serve.add_argument("--on-violation", choices=("refuse", "clip"), help="override safety.on_violation")
+    serve.add_argument("--observe-only", action="store_true",
+                       help="serve cameras and proprioception; refuse every action, reset and homing")
+    serve.add_argument("--curve-keys", help="CurveZMQ on the control socket: the folder `keys` wrote")
     serve.add_argument("--no-prompt", action="store_true", help="never prompt on stdin for confirmation")
     serve.add_argument("-v", "--verbose", action="store_true")
+
+    check = sub.add_parser("check", help="validate a set-up file without touching any hardware")
+    check.add_argument("config", help="ARX-5 set-up TOML, or a TOML with a [safety] table for --task")
+    check.add_argument("--task", help="a simulation task to check a [safety] table against (builds the sim)")
+
+    observe = sub.add_parser("observe", help="watch the observations a bridge serves (observe-only or not)")
+    observe.add_argument("--address", default="tcp://127.0.0.1:5555")
+    observe.add_argument("--seconds", type=float, default=5.0)
+    observe.add_argument("--save", help="write the newest frame of every camera here as PNG")
+
+    keys = sub.add_parser("keys", help="make CurveZMQ keys: the bridge's pair and one pair per client")
+    keys.add_argument("folder")
+    keys.add_argument("--client", action="append", default=[], help="client name (repeat); default policy")
 
     bench = sub.add_parser("bench", help="round-trip latency over loopback vs the sim env in-process")
     bench.add_argument("--task", default="PushT")
@@ -55,28 +78,33 @@ def _parser() -> argparse.ArgumentParser:
     bench.add_argument("--chunks", type=int, default=40)
     bench.add_argument("--max-seconds", type=float, default=120.0)
     bench.add_argument("--json", help="also write the numbers to this file")
-
-    for name, text in (("estop", "latch the emergency stop (takes effect mid-chunk)"),
-                       ("clear-estop", "release the emergency stop"), ("home", "drive the robot home"),
-                       ("status", "print the bridge status"), ("shutdown", "stop the bridge")):
-        cmd = sub.add_parser(name, help=text)
-        cmd.add_argument("--operator", default=DEFAULT_OPERATOR)
-    confirm = sub.add_parser("confirm", help="confirm the episode outcome")
-    confirm.add_argument("outcome", choices=("success", "failure"))
-    confirm.add_argument("--operator", default=DEFAULT_OPERATOR)
     return parser
 
 
-def _safety_from_toml(path: str | None) -> SafetyConfig:
+def _read_toml(path: str | None) -> dict:
     if not path:
-        return SafetyConfig()
-    with Path(path).open("rb") as f:
-        return SafetyConfig.model_validate(tomllib.load(f).get("safety", {}))
+        return {}
+    file = Path(path)
+    if not file.is_file():
+        raise SystemExit(f"config file {path} not found")
+    try:
+        with file.open("rb") as f:
+            return tomllib.load(f)
+    except tomllib.TOMLDecodeError as exc:
+        raise SystemExit(f"{path} is not valid TOML: {exc}") from None
 
 
-def _prompt_operator(operator_address: str):
-    """Ask on stdin for the outcome of an episode whose chunk budget is spent; answer via the operator API."""
-    from jepa_envs.real_robot.bridge import OperatorClient
+def _safety_from_toml(path: str | None):
+    from jepa_envs.real_robot.safety import SafetyConfig
+
+    return SafetyConfig.model_validate(_read_toml(path).get("safety", {}))
+
+
+def _prompt_operator(bridge):
+    """Ask on stdin for the outcome of an episode whose chunk budget is spent; answer through the bridge."""
+    import threading
+
+    from jepa_envs.real_robot import protocol as P
 
     def ask(summary: dict) -> None:
         def run() -> None:
@@ -84,24 +112,52 @@ def _prompt_operator(operator_address: str):
             while answer not in ("y", "n"):
                 answer = input(f"\nEpisode {summary['episode_id']} ({summary['task']}, {summary['chunks']} chunks) "
                                "ended. Success? [y/n] ").strip().lower()[:1]
-            with OperatorClient(operator_address) as op:
-                op.confirm(answer == "y")
+            bridge.command({"type": P.OP_CONFIRM, "success": answer == "y"})
         threading.Thread(target=run, name="operator-prompt", daemon=True).start()
     return ask
+
+
+def _curve(folder: str | None) -> dict:
+    if not folder:
+        return {}
+    root = Path(folder)
+    secret, authorized = root / "bridge.key_secret", root / "authorized_clients"
+    if not secret.is_file() or not authorized.is_dir():
+        raise SystemExit(f"{folder} has no bridge.key_secret and authorized_clients/; make them with "
+                         f"`jepa-robot-bridge keys {folder}`")
+    return {"curve_secret_key": str(secret), "curve_authorized_dir": str(authorized)}
 
 
 def serve(args) -> int:
     from jepa_envs.real_robot.bridge import BridgeConfig, RobotBridge
 
+    curve = _curve(args.curve_keys)
     if args.backend == "arx5":
         if not args.config:
             raise SystemExit("--backend arx5 needs --config FILE (see deploy/robot/arx5_cabinet.toml)")
         from jepa_envs.real_robot.backends.arx5 import ARX5Backend, load_arx5_config
         setup = load_arx5_config(args.config)
         safety = setup.safety
+        curve = curve or ({"curve_secret_key": setup.curve_secret_key,
+                           "curve_authorized_dir": setup.curve_authorized_dir} if setup.curve_secret_key else {})
         backend = ARX5Backend(setup, image_size=args.image_size)
         config = BridgeConfig(args.bind or setup.control_address, args.operator_bind or setup.operator_address,
-                              args.record_dir or setup.record_dir, args.chunk_budget)
+                              args.record_dir or setup.record_dir, args.chunk_budget, args.observe_only, **curve)
+    elif args.backend == "replay":
+        if not args.episode:
+            raise SystemExit("--backend replay needs --episode MANIFEST.json (an episode a bridge recorded)")
+        from jepa_envs.real_robot.backends.replay import ReplayBackend
+        bounds, joints, safety = None, None, _safety_from_toml(None)
+        raw = _read_toml(args.config)
+        if "arms" in raw:   # the real set-up: its workspace, joint count and safety rules apply to the dry run
+            from jepa_envs.real_robot.backends.arx5 import JOINTS_PER_ARM, arx5_action_bounds, load_arx5_config
+            setup = load_arx5_config(args.config)
+            bounds, joints, safety = arx5_action_bounds(setup), JOINTS_PER_ARM * len(setup.arms), setup.safety
+        elif raw:
+            safety = _safety_from_toml(args.config)
+        backend = ReplayBackend(args.episode, bounds=bounds, joint_count=joints, realtime=args.realtime)
+        config = BridgeConfig(args.bind or "tcp://127.0.0.1:5555", args.operator_bind or DEFAULT_OPERATOR,
+                              args.record_dir, args.chunk_budget, args.observe_only, **curve)
     else:
         if not args.task:
             raise SystemExit("--backend sim needs --task NAME (e.g. PushT)")
@@ -111,16 +167,20 @@ def serve(args) -> int:
         backend = SimBackend(args.task, image_size=args.image_size, success_source=args.success_source,
                              realtime=args.realtime, camera_replicas=args.camera_replicas)
         config = BridgeConfig(args.bind or "tcp://127.0.0.1:5555", args.operator_bind or DEFAULT_OPERATOR,
-                              args.record_dir, args.chunk_budget)
+                              args.record_dir, args.chunk_budget, args.observe_only, **curve)
     if args.on_violation:
         safety = safety.model_copy(update={"on_violation": args.on_violation})
-    prompt = None
+    try:
+        bridge = RobotBridge(backend, safety, config)
+    except ValueError as exc:
+        backend.close()
+        raise SystemExit(f"error: {exc}") from None
     if not args.no_prompt and backend.success_source == "operator" and sys.stdin.isatty():
-        prompt = _prompt_operator(config.operator_address.replace("0.0.0.0", "127.0.0.1"))
-    bridge = RobotBridge(backend, safety, config, on_confirmation_needed=prompt)
+        bridge.on_confirmation_needed = _prompt_operator(bridge)
     bridge.bind()
+    mode = " (observe-only: no motion)" if config.observe_only else ""
     print(f"robot bridge v{_version()} serving {backend.task_spec.name} ({type(backend).__name__}) on "
-          f"{bridge.control_endpoint}, operator socket {bridge.operator_endpoint}", flush=True)
+          f"{bridge.control_endpoint}, operator socket {bridge.operator_endpoint}{mode}", flush=True)
     try:
         bridge.serve_forever()
     except KeyboardInterrupt:
@@ -135,47 +195,169 @@ def _version() -> int:
     return PROTOCOL_VERSION
 
 
-def operator(args) -> int:
-    from jepa_envs.real_robot.bridge import OperatorClient
+def check(args) -> int:
+    """Validate a set-up file: every list length and bound, addresses, keys, record folder; no hardware."""
+    from pydantic import ValidationError
 
-    with OperatorClient(args.operator) as op:
+    from jepa_envs.real_robot.safety import SafetyConfig
+
+    raw = _read_toml(args.config)
+    errors: list[str] = []
+    notes: list[str] = []
+    if "arms" in raw or "cameras" in raw:
+        from jepa_envs.real_robot.backends.arx5 import JOINTS_PER_ARM, ARX5Config
+        from jepa_envs.spec import get_task_spec
         try:
-            result = _operator_call(op, args)
-        except (RuntimeError, TimeoutError) as exc:
-            print(f"error: {exc}", file=sys.stderr)
-            return 1
-    print(json.dumps(result, indent=2, default=str))
+            setup = ARX5Config.model_validate(raw)
+        except ValidationError as exc:
+            errors += [f"{'.'.join(map(str, e['loc'])) or 'config'}: {e['msg']}" for e in exc.errors()]
+        else:
+            spec = get_task_spec(setup.task)
+            notes.append(f"task {spec.name}: {spec.action_dim}-D actions, arms {list(spec.extra['arms'])}, "
+                         f"{JOINTS_PER_ARM * len(setup.arms)} joints, cameras {list(spec.cameras)}")
+            serials = [c.serial for c in setup.cameras]
+            if len(set(serials)) != len(serials):
+                errors.append(f"cameras: the same serial is listed twice ({serials})")
+            errors += _address_problems(setup.control_address, setup.operator_address, setup.curve_secret_key,
+                                        notes)
+            errors += _record_dir_problems(setup.record_dir)
+            for key in (setup.curve_secret_key, setup.curve_authorized_dir):
+                if key is not None and not Path(key).exists():
+                    errors.append(f"{key} does not exist; make the keys with `jepa-robot-bridge keys`")
+    else:
+        if not args.task:
+            raise SystemExit("a file without [[arms]] is a [safety] table for a simulation task: add --task NAME")
+        try:
+            safety = SafetyConfig.model_validate(raw.get("safety", {}))
+        except ValidationError as exc:
+            errors += [f"safety.{'.'.join(map(str, e['loc']))}: {e['msg']}" for e in exc.errors()]
+        else:
+            import jepa_envs  # noqa: F401  (registers the tasks)
+            from jepa_envs.real_robot.backends.sim import SimBackend
+            backend = SimBackend(args.task)
+            try:
+                errors += safety.problems(backend.task_spec.action_dim, backend.joint_count)
+                notes.append(f"task {backend.task_spec.name}: {backend.task_spec.action_dim}-D actions, "
+                             f"{backend.joint_count or 'no'} joints")
+            finally:
+                backend.close()
+    for note in notes:
+        print(f"ok: {note}")
+    for error in errors:
+        print(f"error: {error}")
+    print(f"{args.config}: " + ("OK, nothing touched" if not errors else f"{len(errors)} problem(s); fix them "
+                                                                          "before starting the bridge"))
+    return 0 if not errors else 1
+
+
+def _address_problems(control: str, operator: str, curve: str | None, notes: list[str]) -> list[str]:
+    from jepa_envs.real_robot.bridge import _is_loopback
+
+    problems = []
+    for name, address in (("control_address", control), ("operator_address", operator)):
+        if not address.startswith(("tcp://", "ipc://", "inproc://")) or (
+                address.startswith("tcp://") and not address.rsplit(":", 1)[-1].replace("*", "1").isdigit()):
+            problems.append(f"{name} {address!r} is not a ZeroMQ endpoint like tcp://127.0.0.1:5555")
+    if not _is_loopback(operator):
+        problems.append(f"operator_address {operator!r} is reachable from the network; operator commands "
+                        "(e-stop, home, confirm) must come from the robot computer: use tcp://127.0.0.1:PORT")
+    if not _is_loopback(control) and curve is None:
+        notes.append(f"WARNING control_address {control} is reachable from the network without encryption; the "
+                     "session token travels in clear: set curve_secret_key/curve_authorized_dir or use an SSH "
+                     "tunnel (docs/real_robot.md, 'Network security')")
+    return problems
+
+
+def _record_dir_problems(record_dir: str) -> list[str]:
+    folder = Path(record_dir)
+    parent = folder if folder.exists() else next((p for p in folder.parents if p.exists()), Path("."))
+    import os
+    if not os.access(parent, os.W_OK):
+        return [f"record_dir {record_dir}: {parent} is not writable by this user"]
+    return []
+
+
+def observe(args) -> int:
+    """Print what a bridge serves (rates, shapes, proprioception) for a while; save the newest frames."""
+    import numpy as np
+
+    from jepa_envs.real_robot.proxy import RealRobotEnv
+
+    env = RealRobotEnv(address=args.address, client_name="observer")
+    try:
+        count, start = 0, time.monotonic()
+        frames: list[dict] = []
+        while time.monotonic() - start < args.seconds:
+            frames, info = env.observe()
+            count += 1
+        elapsed = time.monotonic() - start
+        obs = frames[-1]
+        print(f"{env.task_spec.name}: {count} observations in {elapsed:.1f}s ({count / elapsed:.1f}/s)")
+        for key, value in obs.items():
+            summary = f"{value.dtype}{list(value.shape)}"
+            if value.dtype != np.uint8:
+                summary += " " + np.array2string(value, precision=4, suppress_small=True)
+            print(f"  {key}: {summary}")
+        if args.save:
+            from PIL import Image
+            Path(args.save).mkdir(parents=True, exist_ok=True)
+            for key in env.task_spec.image_keys:
+                Image.fromarray(obs[key]).save(Path(args.save) / f"{key}.png")
+            print(f"frames written to {args.save}")
+    finally:
+        env.close()
     return 0
 
 
-def _operator_call(op, args) -> dict:
-    if args.command == "shutdown":
-        op.shutdown()
-        return {"shutdown": True}
-    calls = {"estop": op.estop, "clear-estop": op.clear_estop, "home": op.home, "status": op.status,
-             "confirm": lambda: op.confirm(args.outcome == "success")}
-    return calls[args.command]()
+def keys(args) -> int:
+    """CurveZMQ certificates: bridge.key(_secret), <client>.key(_secret), authorized_clients/<client>.key."""
+    import shutil
+
+    import zmq.auth
+
+    root = Path(args.folder)
+    authorized = root / "authorized_clients"
+    authorized.mkdir(parents=True, exist_ok=True)
+    zmq.auth.create_certificates(root, "bridge")
+    for name in args.client or ["policy"]:
+        public, _ = zmq.auth.create_certificates(root, name)
+        shutil.copy(public, authorized / Path(public).name)
+    for secret in root.glob("*.key_secret"):
+        secret.chmod(0o600)
+    print(f"keys in {root}: the robot computer keeps bridge.key_secret and authorized_clients/; each policy "
+          f"computer gets bridge.key and its own <name>.key_secret "
+          f"(serve --curve-keys {root}; jepa-policy robot --curve-server-key {root / 'bridge.key'} "
+          f"--curve-client-key {root / ((args.client or ['policy'])[0] + '.key_secret')})")
+    return 0
 
 
 def main(argv: list[str] | None = None) -> int:
-    """Entry point of ``jepa-robot-bridge``; without a subcommand it serves."""
+    """Entry point of ``python -m jepa_envs.real_robot.cli``; without a subcommand it serves."""
     argv = list(sys.argv[1:] if argv is None else argv)
+    if argv and argv[0] in OPERATOR_COMMANDS:
+        return run_operator_command(argv)
     if not argv or argv[0] not in SUBCOMMANDS + ("-h", "--help"):
         argv = ["serve", *argv]
     args = _parser().parse_args(argv)
     if args.command == "serve":
         logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING,
                             format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+        from pydantic import ValidationError
+
         from jepa_envs.real_robot.backends.base import BackendUnavailable
         try:
             return serve(args)
-        except BackendUnavailable as exc:
+        except (BackendUnavailable, FileNotFoundError, ValidationError) as exc:
             print(f"error: {exc}", file=sys.stderr)
             return 2
-    if args.command == "bench":
-        from jepa_envs.real_robot.bench import run_bench
-        return run_bench(args)
-    return operator(args)
+    if args.command == "check":
+        return check(args)
+    if args.command == "observe":
+        return observe(args)
+    if args.command == "keys":
+        return keys(args)
+    from jepa_envs.real_robot.bench import run_bench
+    return run_bench(args)
 
 
 if __name__ == "__main__":

@@ -55,8 +55,9 @@ class EpisodeRecord:
     reason: str = ""
     ended_at: float | None = None
 
-    def add_decision_frame(self, obs: dict[str, np.ndarray]) -> None:
-        self.decision_steps.append(self.steps)
+    def add_decision_frame(self, obs: dict[str, np.ndarray], step: int | None = None) -> None:
+        """Log the frame a decision was made from (``step``: its episode step; default the current one)."""
+        self.decision_steps.append(self.steps if step is None else int(step))
         self.decision_obs.append({k: np.array(v, copy=True) for k, v in obs.items()})
 
     def add_action(self, requested: np.ndarray, executed: np.ndarray | None) -> None:

@@ -1,8 +1,11 @@
 """Wire protocol between the robot bridge and its clients (ZeroMQ frames carrying msgpack maps).
 
-Every message is one msgpack map with ``"v"`` (the protocol version) and ``"type"``. Numpy arrays travel as
-``{"__nd__": True, "dtype": "<u1", "shape": [...], "data": <raw bytes>}``; nothing is ever pickled, and object
-dtypes are refused on both ends. The full message catalogue is in ``docs/real_robot.md``.
+Every message is one ZeroMQ frame holding one msgpack map with ``"v"`` (the protocol version) and ``"type"``
+(a string). Numpy arrays travel as ``{"__nd__": True, "dtype": "<u1", "shape": [...], "data": <raw bytes>}``;
+nothing is ever pickled, and object dtypes are refused on both ends. Requests that act on the robot carry a
+``"seq"`` that grows within a session, so the bridge can refuse a replayed or out-of-order request. The full
+message catalogue is in ``docs/real_robot.md``; the operator's side of it is spoken by the import-light
+``jepa_operator`` package, which holds the protocol version and the operator messages.
 """
 from __future__ import annotations
 
@@ -11,29 +14,30 @@ from typing import Any
 import msgpack
 import numpy as np
 
-PROTOCOL_VERSION = 1
+# the protocol version and the operator messages live in the import-light operator package (one home)
+from jepa_operator import (ERROR, OP_CLEAR_ESTOP, OP_CONFIRM, OP_ESTOP, OP_HOME, OP_SHUTDOWN,  # noqa: F401
+                           OP_STATUS, PROTOCOL_VERSION, RESULT)
+
+# size limits: a message above them is dropped by ZeroMQ before it is read (a chunk is a few KB; an operator
+# command a few bytes); nothing a host on the network sends can make the bridge allocate more than this
+MAX_CONTROL_MESSAGE_BYTES = 16 * 1024 * 1024
+MAX_OPERATOR_MESSAGE_BYTES = 64 * 1024
+MAX_SEQ = 2**63 - 1
 
 # client -> bridge (control socket, ZeroMQ DEALER -> ROUTER)
 HELLO = "hello"
 RESET = "reset"
 STEP = "step"
 CHUNK = "chunk"
-HEARTBEAT = "heartbeat"
+OBSERVE = "observe"      # the newest observations (observe-only mode, the asynchronous executor)
+STREAM = "stream"        # asynchronous execution: replace the queue of actions still to run
+RESUME = "resume"        # a reconnected connection asks again for the reply of request ``awaiting``
 RENDER_IMAGES = "render_images"
 BYE = "bye"
 # bridge -> client
 WELCOME = "welcome"
-RESULT = "result"
 PENDING = "pending"  # reply deferred: waiting for the operator's confirmation
-ERROR = "error"
-# operator -> bridge (operator socket, ZeroMQ REQ -> REP)
-OP_ESTOP = "estop"
-OP_CLEAR_ESTOP = "clear_estop"
-OP_CONFIRM = "confirm"
-OP_HOME = "home"
-OP_STATUS = "status"
-OP_SHUTDOWN = "shutdown"
-
+LINK = "link"        # bridge -> client notice (never a reply): the link was held or resumed; clients skip it
 # error codes a client can act on
 ERR_VERSION = "version_mismatch"
 ERR_BUSY = "busy"
@@ -44,6 +48,9 @@ ERR_ESTOP = "estop_latched"
 ERR_TASK = "task_mismatch"
 ERR_NO_EPISODE = "no_episode"
 ERR_INTERNAL = "internal_error"
+ERR_REPLAY = "replayed_or_stale"   # a seq not above the session's last one
+ERR_OBSERVE_ONLY = "observe_only"  # the bridge serves observations only; actions are disabled
+ERR_LOST = "request_lost"          # the request never arrived (the connection dropped first); send it again
 
 
 class ProtocolError(RuntimeError):
@@ -96,6 +103,11 @@ def decode(payload: bytes) -> dict:
         raise ProtocolError(f"undecodable message ({type(exc).__name__}: {exc})") from exc
     if not isinstance(message, dict) or "type" not in message or "v" not in message:
         raise ProtocolError("a message must be a map with 'v' and 'type'")
+    if not isinstance(message["type"], str):
+        raise ProtocolError(f"'type' must be a string, got {type(message['type']).__name__}")
+    seq = message.get("seq")
+    if seq is not None and (type(seq) is not int or not 0 <= seq <= MAX_SEQ):
+        raise ProtocolError(f"'seq' must be an integer in [0, 2**63), got {seq!r:.40}")
     return message
 
 

@@ -4,20 +4,25 @@
 and action conventions as the simulated envs (a Dict of ``<camera>_image`` uint8 and float32 low-dim keys,
 absolute actions, ``info["is_success"]``). For the real robot ``is_success`` is the operator's confirmation
 at episode end. ``step_chunk`` sends a whole action chunk in one round trip (the paper's synchronous loop,
-Sec. 4.8). A background thread heartbeats on its own socket so the bridge notices a dead policy process
-within one control period.
+Sec. 4.8); ``observe`` and ``stream`` drive the asynchronous loop (``executor.AsyncChunkExecutor``).
+
+Liveness needs no thread here: libzmq's I/O thread answers the bridge's heartbeats, also while this process
+is busy in a long call. The connection keeps one routing id for its lifetime, so after a network drop it
+reconnects as the same client and the bridge delivers a reply it held back; a client whose session the
+bridge dropped gets ``LostControl`` with the reason and can call ``reconnect()``.
 """
 from __future__ import annotations
 
 import dataclasses
 import os
+import secrets
 import socket
-import threading
 import time
 
 import numpy as np
 import zmq
 from gymnasium import spaces
+from zmq.utils.monitor import parse_monitor_message
 
 from jepa_envs.base import JEPAEnv
 from jepa_envs.real_robot import protocol as P
@@ -40,6 +45,14 @@ class ActionRefused(BridgeError, ValueError):
     """The bridge refused an action that can never be executed (NaN, wrong shape, degenerate rotation)."""
 
 
+class LostControl(BridgeError):
+    """This client does not (or no longer) control the robot; the message says why. ``reconnect()`` retries."""
+
+
+class RequestLost(BridgeError):
+    """The connection dropped before the request reached the bridge: nothing of it ran; send it again."""
+
+
 def spec_from_welcome(welcome: dict) -> TaskSpec:
     """Rebuild the bridge's TaskSpec from its welcome message."""
     raw = dict(welcome["spec"])
@@ -56,27 +69,37 @@ class RealRobotEnv(JEPAEnv):
 
     def __init__(self, task: str | None = None, address: str = "tcp://127.0.0.1:5555",
                  timeout_s: float = 30.0, client_name: str | None = None, manifest: dict | None = None,
-                 confirmation_timeout_s: float = 900.0, render_mode: str | None = None):
+                 confirmation_timeout_s: float = 900.0, render_mode: str | None = None,
+                 curve_server_key: str | None = None, curve_client_key: str | None = None):
         self.address = address
         self.timeout_s = float(timeout_s)
         self.confirmation_timeout_s = float(confirmation_timeout_s)
         self.manifest = dict(manifest or {})
+        self._task = task
+        self._client = client_name or f"{socket.gethostname()}:{os.getpid()}"
         self._ctx = zmq.Context()
         self._sock = self._ctx.socket(zmq.DEALER)
         self._sock.setsockopt(zmq.LINGER, 0)
+        # one routing id for the connection's lifetime: a reconnect after a network drop is the same client
+        self._sock.setsockopt(zmq.ROUTING_ID, b"jepa-" + secrets.token_bytes(12))
+        self._sock.setsockopt(zmq.RECONNECT_IVL, 20)
+        self._sock.setsockopt(zmq.RECONNECT_IVL_MAX, 500)
+        _setup_curve_client(self._sock, curve_server_key, curve_client_key)
+        # the connection's own events: a second handshake means it dropped and came back (``_request`` resumes)
+        self._monitor = self._sock.get_monitor_socket(zmq.EVENT_HANDSHAKE_SUCCEEDED)
+        self._handshakes = 0
+        self._poller = zmq.Poller()
+        self._poller.register(self._sock, zmq.POLLIN)
+        self._poller.register(self._monitor, zmq.POLLIN)
         self._sock.connect(address)
         self._seq = 0
         self._closed = False
-        self._hb_thread: threading.Thread | None = None
-        self._hb_stop = threading.Event()
-        client = client_name or f"{socket.gethostname()}:{os.getpid()}"
+        self.session: str | None = None
         try:
-            welcome = self._request({"type": P.HELLO, "task": task, "client": client}, timeout_s=self.timeout_s)
+            welcome = self._hello()
         except BaseException:
             self._close_sockets()
             raise
-        self.session = welcome["session"]
-        self.welcome = welcome
         spec = spec_from_welcome(welcome)
         super().__init__(spec, render_mode=render_mode)
         self.metadata = {**self.metadata, "render_fps": spec.control_hz}
@@ -85,7 +108,21 @@ class RealRobotEnv(JEPAEnv):
         self.chunk_budget = int(welcome["chunk_budget"])
         self._last_obs: dict | None = None
         self._last_obs_time = time.monotonic()
-        self._start_heartbeat(float(welcome["heartbeat_interval_s"]))
+
+    def _hello(self) -> dict:
+        self.session = None
+        welcome = self._request({"type": P.HELLO, "task": self._task, "client": self._client},
+                                timeout_s=self.timeout_s)
+        self.session = welcome["session"]
+        self.welcome = welcome
+        return welcome
+
+    def reconnect(self) -> None:
+        """Take control again after ``LostControl`` (the bridge refuses with ``BridgeBusy`` if another client
+        took it meanwhile); call ``reset`` next: the interrupted episode is over."""
+        welcome = self._hello()
+        if welcome["spec"]["name"] != self.task_spec.name:
+            raise P.ProtocolError(f"the bridge now serves {welcome['spec']['name']!r}, not {self.task_spec.name!r}")
 
     # ------------------------------------------------------------ transport
     def _request(self, message: dict, timeout_s: float | None = None) -> dict:
@@ -96,17 +133,29 @@ class RealRobotEnv(JEPAEnv):
         if getattr(self, "session", None) is not None:
             message["session"] = self.session
         self._sock.send(P.encode(message))
+        answers = {self._seq}   # the request's seq and those of the resumes sent for it
         timeout = self.timeout_s if timeout_s is None else timeout_s
         deadline = time.monotonic() + timeout
         while True:
             remaining = deadline - time.monotonic()
-            if remaining <= 0 or not self._sock.poll(int(remaining * 1000)):
+            events = dict(self._poller.poll(int(remaining * 1000))) if remaining > 0 else {}
+            if not events:
                 raise TimeoutError(f"the robot bridge at {self.address} did not answer {message['type']!r} within "
                                    f"{timeout:.1f}s; check that `jepa-robot-bridge serve` runs there (and, "
                                    "at an episode's end, that the operator confirmed its outcome)")
+            if self._monitor in events:
+                if self._reconnected() and self.session is not None and message["type"] != P.HELLO:
+                    # the connection dropped and came back: ask again for the reply this request waits for
+                    self._seq += 1
+                    answers.add(self._seq)
+                    self._sock.send(P.encode({"type": P.RESUME, "seq": self._seq, "session": self.session,
+                                              "awaiting": message["seq"]}))
+                continue
+            if self._sock not in events:
+                continue
             reply = P.decode(self._sock.recv())
-            if reply.get("seq") not in (None, self._seq):
-                continue   # a late answer to a request that already timed out
+            if reply["type"] == P.LINK or reply.get("seq") not in answers | {None}:
+                continue   # a link notice, or a late answer to a request that already timed out
             if reply["type"] == P.PENDING:
                 # the operator decides now; the bridge keeps watching the link meanwhile
                 deadline = time.monotonic() + self.confirmation_timeout_s
@@ -120,32 +169,28 @@ class RealRobotEnv(JEPAEnv):
                     raise ActionRefused(code, text)
                 if code == P.ERR_VERSION:
                     raise P.ProtocolError(text)
+                if code == P.ERR_NOT_CONTROLLING:
+                    raise LostControl(code, text)
+                if code == P.ERR_LOST:
+                    raise RequestLost(code, text)
                 raise BridgeError(code, text)
             P.check_version(reply)
             return reply
 
-    def _start_heartbeat(self, interval_s: float) -> None:
-        hb = self._ctx.socket(zmq.DEALER)
-        hb.setsockopt(zmq.LINGER, 0)
-        hb.connect(self.address)
-        beat = P.encode({"type": P.HEARTBEAT, "session": self.session})
-
-        def run() -> None:
-            try:
-                while not self._hb_stop.wait(interval_s):
-                    hb.send(beat, flags=zmq.NOBLOCK)
-            except zmq.ZMQError:
-                pass   # the context is being torn down by close()
-            finally:
-                hb.close(linger=0)
-
-        self._hb_thread = threading.Thread(target=run, name="robot-heartbeat", daemon=True)
-        self._hb_thread.start()
+    def _reconnected(self) -> bool:
+        """Read one connection event; True when it is a handshake after the first (a reconnection)."""
+        event = parse_monitor_message(self._monitor.recv_multipart())
+        if event["event"] != zmq.EVENT_HANDSHAKE_SUCCEEDED:
+            return False
+        self._handshakes += 1
+        return self._handshakes > 1
 
     def _close_sockets(self) -> None:
-        self._hb_stop.set()
-        if self._hb_thread is not None:
-            self._hb_thread.join(timeout=2)
+        try:
+            self._sock.disable_monitor()
+        except zmq.ZMQError:
+            pass
+        self._monitor.close(linger=0)
         self._sock.close(linger=0)
         self._ctx.term()
 
@@ -179,6 +224,19 @@ class RealRobotEnv(JEPAEnv):
                                "client_latency_s": latency})
         return self._result(reply)
 
+    def observe(self, history: int = 1) -> tuple[list[dict], dict]:
+        """The newest ``history`` observations, oldest first, and the bridge's info (``step``: the newest one's
+        episode step, ``queue``, ``underflow_steps``, ``outcome`` ...). Moves nothing."""
+        reply = self._request({"type": P.OBSERVE, "history": int(history)})
+        return [self._typed_obs(o) for o in reply["obs_history"]], reply["info"]
+
+    def stream(self, actions, origin_step: int) -> dict:
+        """Asynchronous execution: replace the bridge's queue with this chunk, predicted from the observation of
+        episode step ``origin_step``. The bridge drops the actions whose time has passed (``late_steps``) and
+        runs the rest at the control rate; returns ``accepted``, ``late_steps``, ``step``, ``underflow_steps``."""
+        return self._request({"type": P.STREAM, "actions": np.asarray(actions, dtype=np.float64),
+                              "origin_step": int(origin_step)})
+
     def _result(self, reply: dict):
         obs = self._typed_obs(reply["obs"])
         return obs, float(reply["reward"]), bool(reply["terminated"]), bool(reply["truncated"]), reply["info"]
@@ -198,10 +256,27 @@ class RealRobotEnv(JEPAEnv):
         if self._closed:
             return
         try:
-            self._request({"type": P.BYE}, timeout_s=2.0)
+            if self.session is not None:
+                self._request({"type": P.BYE}, timeout_s=2.0)
         except (TimeoutError, BridgeError):
             pass   # the bridge is gone or already dropped us; it holds the robot either way
         self._closed = True
         self._close_sockets()
         super().close()
 
+
+
+def _setup_curve_client(sock: zmq.Socket, server_key: str | None, client_key: str | None) -> None:
+    """CurveZMQ: encrypt and authenticate the connection (keys from ``jepa-robot-bridge keys``)."""
+    if server_key is None and client_key is None:
+        return
+    if server_key is None or client_key is None:
+        raise ValueError("CurveZMQ needs both curve_server_key (the bridge's public key file) and "
+                         "curve_client_key (this client's secret key file)")
+    import zmq.auth
+
+    server_public, _ = zmq.auth.load_certificate(server_key)
+    public, secret = zmq.auth.load_certificate(client_key)
+    if secret is None:
+        raise ValueError(f"{client_key} holds no secret key; pass the client's '.key_secret' file")
+    sock.curve_serverkey, sock.curve_publickey, sock.curve_secretkey = server_public, public, secret

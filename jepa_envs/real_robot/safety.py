@@ -32,15 +32,67 @@ class SafetyConfig(BaseModel):
     joint_low: list[float] | None = None  # per joint of all arms, checked on measured joint positions
     joint_high: list[float] | None = None
     command_deadline_s: float = 2.0       # watchdog: longest silence between commands inside an episode
-    link_timeout_s: float | None = None   # lost link: default one control period
-    heartbeat_interval_s: float | None = None  # default a quarter of the link timeout
+    link_timeout_s: float | None = None   # a silent connection is closed after this: default one control period
+    heartbeat_interval_s: float | None = None  # ZeroMQ heartbeat (PING) interval: default a quarter of the above
+    link_grace_s: float = 5.0             # a lost link holds the robot; control is released after this long
 
-    @field_validator("command_deadline_s")
+    @field_validator("command_deadline_s", "link_grace_s")
     @classmethod
-    def _positive_deadline(cls, v: float) -> float:
+    def _positive_seconds(cls, v: float, info) -> float:
         if v <= 0:
-            raise ValueError("command_deadline_s must be > 0 seconds")
+            raise ValueError(f"{info.field_name} must be > 0 seconds")
         return v
+
+    @field_validator("link_timeout_s", "heartbeat_interval_s")
+    @classmethod
+    def _positive_or_default(cls, v: float | None, info) -> float | None:
+        if v is not None and v <= 0:
+            raise ValueError(f"{info.field_name} must be > 0 seconds (or left out for the default)")
+        return v
+
+    def problems(self, action_dim: int, n_joints: int | None) -> list[str]:
+        """Every length or bound that does not fit a robot with ``action_dim`` actions and ``n_joints`` joints.
+
+        ``n_joints`` None: the backend measures no joints (PushT), so joint limits must be absent. Checked by
+        the bridge before it opens any socket and by ``jepa-robot-bridge check`` before any hardware is touched.
+        """
+        out: list[str] = []
+
+        def length(name: str, value, want: int, unit: str) -> None:
+            if value is not None and len(value) != want:
+                out.append(f"safety.{name} has {len(value)} entries; this task needs {want} (one per {unit})")
+
+        length("action_low", self.action_low, action_dim, "action dimension")
+        length("action_high", self.action_high, action_dim, "action dimension")
+        if isinstance(self.max_step_delta, list):
+            length("max_step_delta", self.max_step_delta, action_dim, "action dimension, or one number for all")
+        delta = self.max_step_delta
+        if delta is not None and any(d <= 0 for d in (delta if isinstance(delta, list) else [delta])):
+            out.append("safety.max_step_delta must be > 0 in every dimension")
+        for name, value in (("action_low", self.action_low), ("action_high", self.action_high),
+                            ("joint_low", self.joint_low), ("joint_high", self.joint_high),
+                            ("max_step_delta", delta if isinstance(delta, list) else None)):
+            if value is not None and not all(np.isfinite(value)):
+                out.append(f"safety.{name} has NaN or infinite entries")
+        if self.action_low is not None and self.action_high is not None and len(self.action_low) == len(
+                self.action_high) and any(lo > hi for lo, hi in zip(self.action_low, self.action_high)):
+            out.append("safety.action_low must be <= action_high in every dimension")
+        if n_joints is None:
+            if self.joint_low is not None or self.joint_high is not None:
+                out.append("safety.joint_low/joint_high are set but this robot reports no joints; remove them")
+        else:
+            length("joint_low", self.joint_low, n_joints, "joint of all arms")
+            length("joint_high", self.joint_high, n_joints, "joint of all arms")
+            if self.joint_low is not None and self.joint_high is not None and len(self.joint_low) == len(
+                    self.joint_high) and any(lo >= hi for lo, hi in zip(self.joint_low, self.joint_high)):
+                out.append("safety.joint_low must be below joint_high for every joint")
+        for rot in self.rotation6d_starts:
+            if not 0 <= rot <= action_dim - 6:
+                out.append(f"safety.rotation6d_starts entry {rot} leaves no room for 6 rotation numbers "
+                           f"in a {action_dim}-D action")
+        if self.heartbeat_interval_s and self.link_timeout_s and self.heartbeat_interval_s >= self.link_timeout_s:
+            out.append("safety.heartbeat_interval_s must be below link_timeout_s (several heartbeats per timeout)")
+        return out
 
     def resolved_link_timeout(self, control_hz: float) -> float:
         return float(self.link_timeout_s) if self.link_timeout_s else 1.0 / float(control_hz)

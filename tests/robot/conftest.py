@@ -5,9 +5,10 @@ import pytest
 
 import jepa_envs  # noqa: F401
 from jepa_envs.real_robot.backends.sim import SimBackend
-from jepa_envs.real_robot.bridge import BridgeConfig, OperatorClient, RobotBridge
+from jepa_envs.real_robot.bridge import BridgeConfig, RobotBridge
 from jepa_envs.real_robot.proxy import RealRobotEnv
 from jepa_envs.real_robot.safety import SafetyConfig
+from jepa_operator import OperatorClient
 
 # generous timing for tests not about timing: the machine is shared and may stall threads for a while
 RELAXED = {"link_timeout_s": 2.0, "command_deadline_s": 60.0}
@@ -22,11 +23,11 @@ class Robot:
 
     def bridge(self, task: str = "PushT", chunk_budget: int | None = None, realtime: bool = False,
                success_source: str = "sim", image_size: int | None = None, camera_replicas: int = 1,
-               **safety) -> RobotBridge:
-        backend = SimBackend(task, image_size=image_size, realtime=realtime, success_source=success_source,
-                             camera_replicas=camera_replicas)
+               backend=None, observe_only: bool = False, curve: dict | None = None, **safety) -> RobotBridge:
+        backend = backend or SimBackend(task, image_size=image_size, realtime=realtime,
+                                        success_source=success_source, camera_replicas=camera_replicas)
         config = BridgeConfig("tcp://127.0.0.1:*", "tcp://127.0.0.1:*", str(self.tmp_path / "episodes"),
-                              chunk_budget)
+                              chunk_budget, observe_only, **(curve or {}))
         bridge = RobotBridge(backend, SafetyConfig(**{**RELAXED, **safety}), config).start()
         self._closers.append(bridge.close)
         return bridge

@@ -78,13 +78,13 @@ def test_bench_prints_numbers(capsys, tmp_path):
 
 
 def test_serve_prompt_confirms_through_operator_api(robot, monkeypatch):
-    """The stdin prompt of `serve` answers a budget-spent episode through the operator socket."""
+    """The stdin prompt of `serve` answers a budget-spent episode through the bridge's command queue."""
     from jepa_envs.real_robot.cli import _prompt_operator
 
     answers = iter(["maybe", "y"])   # an unclear answer is asked again
     monkeypatch.setattr("builtins.input", lambda prompt: next(answers))
     bridge = robot.bridge(chunk_budget=1, success_source="operator")
-    bridge.on_confirmation_needed = _prompt_operator(bridge.operator_endpoint)
+    bridge.on_confirmation_needed = _prompt_operator(bridge)
     env = robot.client(bridge)
     obs, _ = env.reset(seed=0)
     _, _, terminated, truncated, info = env.step_chunk(np.tile(obs["agent_pos"], (8, 1)))

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import json
+import time
 from pathlib import Path
 
 import pytest
@@ -31,7 +32,7 @@ def test_run_episodes_counts_success_and_tags_manifests(robot):
     seen = []
     summary = run_episodes(env, policy, episodes=2, seed=5, manifest={"checkpoint": "scripted"},
                            before_episode=seen.append)
-    assert seen == [0, 1] and policy.resets == 2
+    assert seen == [0, 1] and policy.resets == 3 + 2   # three around the warm-up, then one per episode
     assert [e["steps"] for e in summary["episodes"]] == [16, 16]   # 2 chunks of 8 actions each
     assert summary["success_rate"] == 0.0 and summary["successes"] == 0
     manifest, _ = load_episode(summary["episodes"][1]["episode_manifest"])
@@ -63,3 +64,29 @@ def test_cli_run_with_a_trained_checkpoint(robot, pusht_demo_file, tmp_path, cap
     assert manifest["manifest"]["method"] == "JEPA Policy" and arrays["obs/top_image"].shape[1:] == (32, 32, 3)
     with pytest.raises(SystemExit, match="not found"):
         main(["robot", "--checkpoint", str(tmp_path / "missing.pt")])
+
+
+class SlowFirstCall(ReplayPolicy):
+    """A policy whose first call pays a one-off cost longer than the bridge's watchdog allows."""
+
+    def __init__(self, first_call_s: float):
+        super().__init__()
+        self.first_call_s, self.calls = first_call_s, 0
+
+    def act(self, obs):
+        self.calls += 1
+        if self.calls == 1:
+            time.sleep(self.first_call_s)
+        return super().act(obs)
+
+
+def test_warm_up_keeps_the_first_call_out_of_the_episode(robot):
+    """The first policy call (kernels, caches) takes longer than the watchdog: warmed up before the episode
+    it costs nothing there; without the warm-up the watchdog ends the episode on its first decision."""
+    bridge = robot.bridge(chunk_budget=1, command_deadline_s=0.5)
+    env = robot.client(bridge)
+    cold = run_episodes(env, SlowFirstCall(0.9), episodes=1, warmup=False)
+    assert cold["episodes"][0]["interrupted"] == "watchdog"
+    warm = run_episodes(env, SlowFirstCall(0.9), episodes=1)
+    assert warm["warmup_s"] >= 0.9 and warm["episodes"][0]["interrupted"] == ""
+    assert warm["episodes"][0]["steps"] == 8 and warm["episodes"][0]["outcome"] == "failure"

@@ -46,5 +46,5 @@ def test_truncated_payload_and_garbage_refused():
 
 def test_version_check_names_both_versions():
     P.check_version({"v": P.PROTOCOL_VERSION, "type": "hello"})
-    with pytest.raises(P.ProtocolError, match=r"peer speaks v99.*speaks v1"):
+    with pytest.raises(P.ProtocolError, match=rf"peer speaks v99.*speaks v{P.PROTOCOL_VERSION}"):
         P.check_version({"v": 99, "type": "hello"})

@@ -47,6 +47,9 @@ def import_hardware_sdks():
     return tuple(modules)
 
 
+JOINTS_PER_ARM = 6   # X5 and L5 arms: six revolute joints (the gripper is not a joint here)
+
+
 class ArmConfig(BaseModel):
     model_config = ConfigDict(extra="forbid")
     name: str            # "left" | "right", matches task_spec.extra["arms"]
@@ -72,10 +75,12 @@ class ARX5Config(BaseModel):
     cameras: list[CameraConfig]
     workspace_low: list[float]    # x, y, z lower bound (m) of every arm's end effector, arm base frame
     workspace_high: list[float]
-    control_address: str = "tcp://0.0.0.0:5555"
+    control_address: str = "tcp://127.0.0.1:5555"   # loopback unless set: docs/real_robot.md, "Network security"
     operator_address: str = "tcp://127.0.0.1:5556"
     record_dir: str = "robot_episodes"
     safety: SafetyConfig = SafetyConfig()
+    curve_secret_key: str | None = None       # CurveZMQ on the control socket (jepa-robot-bridge keys)
+    curve_authorized_dir: str | None = None
 
     @field_validator("workspace_low", "workspace_high")
     @classmethod
@@ -99,6 +104,11 @@ class ARX5Config(BaseModel):
             raise ValueError(f"task {spec.name} needs cameras {list(spec.cameras)}; add {sorted(missing)}")
         if any(lo >= hi for lo, hi in zip(self.workspace_low, self.workspace_high)):
             raise ValueError("workspace_low must be below workspace_high on x, y and z")
+        problems = self.safety.problems(spec.action_dim, JOINTS_PER_ARM * len(self.arms))
+        if problems:
+            raise ValueError("; ".join(problems))
+        if (self.curve_secret_key is None) != (self.curve_authorized_dir is None):
+            raise ValueError("CurveZMQ needs both curve_secret_key and curve_authorized_dir (or neither)")
         return self
 
 
@@ -109,6 +119,14 @@ def load_arx5_config(path: str | Path) -> ARX5Config:
         raise FileNotFoundError(f"ARX-5 config {path} not found; start from deploy/robot/arx5_cabinet.toml")
     with path.open("rb") as f:
         return ARX5Config.model_validate(tomllib.load(f))
+
+
+def arx5_action_bounds(config: ARX5Config) -> tuple[np.ndarray, np.ndarray]:
+    """Per-dimension action bounds of a set-up: the workspace box, r6 in [-1, 1], gripper in [0, 1], per arm."""
+    arms = len(get_task_spec(config.task).extra["arms"])
+    low = np.concatenate([config.workspace_low, -np.ones(6), [0.0]])
+    high = np.concatenate([config.workspace_high, np.ones(6), [1.0]])
+    return np.tile(low, arms), np.tile(high, arms)
 
 
 def pose6d_to_action(pose_6d: np.ndarray, gripper01: float) -> np.ndarray:
@@ -179,10 +197,7 @@ class ARX5Backend(RobotBackend):
                              for n in self._arm_names]
         self._gripper_width = [c.get_robot_config().gripper_width for c in self._controllers]
         self._streams = [_CameraStream(rs, cam) for cam in config.cameras if cam.name in spec.cameras]
-        per_arm_low = np.concatenate([config.workspace_low, -np.ones(6), [0.0]])
-        per_arm_high = np.concatenate([config.workspace_high, np.ones(6), [1.0]])
-        self._low = np.tile(per_arm_low, len(self._arm_names))
-        self._high = np.tile(per_arm_high, len(self._arm_names))
+        self._low, self._high = arx5_action_bounds(config)
         self._render = True
         self._period = 1.0 / spec.control_hz
 
@@ -226,7 +241,12 @@ class ARX5Backend(RobotBackend):
         return np.concatenate(parts)
 
     def joint_positions(self) -> np.ndarray:
-        return np.concatenate([np.asarray(c.get_joint_state().pos(), np.float64) for c in self._controllers])
+        return np.concatenate([np.asarray(c.get_joint_state().pos(), np.float64)[:JOINTS_PER_ARM]
+                               for c in self._controllers])
+
+    @property
+    def joint_count(self) -> int:
+        return JOINTS_PER_ARM * len(self._controllers)
 
     def _command(self, action: np.ndarray, lead_s: float) -> None:
         for i, (controller, width) in enumerate(zip(self._controllers, self._gripper_width)):

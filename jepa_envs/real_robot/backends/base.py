@@ -83,6 +83,11 @@ class RobotBackend(ABC):
         """Measured joint positions of all arms, None for backends without joints."""
         return None
 
+    @property
+    def joint_count(self) -> int | None:
+        """How many joints ``joint_positions`` reports (the length joint limits must have), None: no joints."""
+        return None
+
     def set_render_images(self, enabled: bool) -> None:
         """Skip (False) or produce (True) camera images on the following steps."""
 

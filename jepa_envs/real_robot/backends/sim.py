@@ -86,7 +86,10 @@ class SimBackend(RobotBackend):
         return StepResult(obs, float(reward), bool(terminated), bool(truncated), dict(info))
 
     def current_action(self) -> np.ndarray | None:
-        """robosuite tasks: the absolute action that keeps every arm where it is (open gripper)."""
+        """robosuite tasks: the absolute action that keeps every arm where it is (open gripper).
+
+        Reading it changes nothing in the simulation (``controller_pose`` works on a copy of the state), so a
+        seeded episode through the bridge reaches exactly the states it reaches in-process."""
         base = self.env.unwrapped
         if getattr(base, "action_mode", None) == "abs" and hasattr(base, "hold_action"):
             return np.asarray(base.hold_action(), np.float64)
@@ -99,6 +102,13 @@ class SimBackend(RobotBackend):
             return None
         return np.concatenate([np.asarray(r._joint_positions, np.float64) for r in robots])
 
+    @property
+    def joint_count(self) -> int | None:
+        robots = getattr(getattr(self.env.unwrapped, "backend", None), "robots", None)
+        if not robots:
+            return None
+        return sum(len(r.joint_indexes) for r in robots)
+
     def hold(self) -> None:
         """Nothing moves in a simulator between steps, so holding is not stepping."""
 
@@ -106,8 +116,9 @@ class SimBackend(RobotBackend):
         """A simulator is homed by its next reset; nothing moves until then."""
 
     def observe(self) -> dict[str, np.ndarray]:
+        """The current observation; a simulator observed before any reset starts at seed 0 (observe-only mode)."""
         if self._obs is None:
-            raise RuntimeError("the simulated robot has not been reset yet; send a reset first")
+            self.reset(0)
         return self._obs
 
     def set_render_images(self, enabled: bool) -> None:

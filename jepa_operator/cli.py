@@ -1,0 +1,71 @@
+"""``jepa-robot-bridge``: operator commands answered here, everything else handed to the full command line.
+
+    jepa-robot-bridge estop | clear-estop | home | status | shutdown [--operator tcp://host:5556]
+    jepa-robot-bridge confirm success|failure [--operator ...]
+    jepa-robot-bridge serve | check | bench | keys | observe ...   (jepa_envs.real_robot.cli)
+
+The operator commands import only ZeroMQ and msgpack, so an e-stop is sent within tens of milliseconds of
+pressing Enter. Other subcommands need the simulator, numpy and the safety models; for them this process
+replaces itself with ``python -m jepa_envs.real_robot.cli`` (a new program, not an import), which keeps this
+package free of the heavy stack.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+
+from jepa_operator import DEFAULT_OPERATOR, OperatorClient, OperatorError
+
+OPERATOR_COMMANDS = ("estop", "clear-estop", "confirm", "home", "status", "shutdown")
+
+
+def _parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="jepa-robot-bridge", description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    sub = parser.add_subparsers(dest="command", required=True)
+    for name, text in (("estop", "latch the emergency stop (takes effect mid-chunk)"),
+                       ("clear-estop", "release the emergency stop"), ("home", "drive the robot home"),
+                       ("status", "print the bridge status"), ("shutdown", "stop the bridge")):
+        cmd = sub.add_parser(name, help=text)
+        cmd.add_argument("--operator", default=DEFAULT_OPERATOR, help=f"operator socket (default {DEFAULT_OPERATOR})")
+        cmd.add_argument("--timeout", type=float, default=5.0, help="seconds to wait for the bridge")
+    confirm = sub.add_parser("confirm", help="confirm the episode outcome")
+    confirm.add_argument("outcome", choices=("success", "failure"))
+    confirm.add_argument("--operator", default=DEFAULT_OPERATOR)
+    confirm.add_argument("--timeout", type=float, default=5.0)
+    return parser
+
+
+def run_operator_command(argv: list[str]) -> int:
+    args = _parser().parse_args(argv)
+    with OperatorClient(args.operator, timeout_s=args.timeout) as op:
+        try:
+            if args.command == "shutdown":
+                op.shutdown()
+                result = {"shutdown": True}
+            else:
+                calls = {"estop": op.estop, "clear-estop": op.clear_estop, "home": op.home, "status": op.status,
+                         "confirm": lambda: op.confirm(args.outcome == "success")}
+                result = calls[args.command]()
+        except (OperatorError, TimeoutError) as exc:
+            print(f"error: {exc}", file=sys.stderr)
+            return 1
+    print(json.dumps(result, indent=2, default=str))
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Entry point of ``jepa-robot-bridge``."""
+    argv = list(sys.argv[1:] if argv is None else argv)
+    if argv and argv[0] in OPERATOR_COMMANDS:
+        return run_operator_command(argv)
+    command = [sys.executable, "-m", "jepa_envs.real_robot.cli", *argv]
+    sys.stdout.flush()
+    sys.stderr.flush()
+    os.execv(sys.executable, command)   # does not return
+
+
+if __name__ == "__main__":
+    sys.exit(main())
