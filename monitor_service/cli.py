@@ -57,7 +57,13 @@ def cmd_serve(args) -> int:
 def cmd_db(args) -> int:
     from monitor_service import db
 
-    engine = db.make_engine(_settings(args).database_url)
+    url = _settings(args).database_url
+    if args.action in ("backup", "restore"):
+        if not args.path:
+            raise SystemExit(f"db {args.action} needs a file: jepa-monitor db {args.action} FILE")
+        (db.backup_sqlite if args.action == "backup" else db.restore_sqlite)(url, args.path)
+        print(f"{'backed up to' if args.action == 'backup' else 'restored from'} {args.path}")
+    engine = db.make_engine(url)
     if args.action == "upgrade":
         db.upgrade(engine)
     elif args.action == "prune":
@@ -222,8 +228,9 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--log-level", default="info")
     s.set_defaults(func=cmd_serve)
 
-    s = sub.add_parser("db", help="schema migrations (upgrade, current) and housekeeping (prune)")
-    s.add_argument("action", choices=["upgrade", "current", "prune"])
+    s = sub.add_parser("db", help="schema migrations (upgrade, current), housekeeping (prune), backup, restore")
+    s.add_argument("action", choices=["upgrade", "current", "prune", "backup", "restore"])
+    s.add_argument("path", nargs="?", help="backup / restore: the backup file (SQLite)")
     s.add_argument("--older-than-days", type=float, default=7.0, help="prune: idempotency keys older than this")
     s.set_defaults(func=cmd_db)
 

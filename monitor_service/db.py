@@ -242,3 +242,39 @@ def prune_idempotency_keys(engine: Engine, older_than_days: float) -> int:
     cutoff = utcnow() - dt.timedelta(days=older_than_days)
     with engine.begin() as conn:
         return conn.execute(delete(IdempotencyKey).where(IdempotencyKey.created_at < cutoff)).rowcount
+
+
+def _sqlite_path(url: str, action: str) -> str:
+    if not url.startswith("sqlite:///"):
+        raise SystemExit(f"db {action} handles SQLite files; for PostgreSQL use pg_dump / pg_restore "
+                         "(deploy/RUNBOOK.md, 'Backup and restore')")
+    return url[len("sqlite:///"):]
+
+
+def backup_sqlite(url: str, target: str) -> None:
+    """A consistent copy of a live SQLite database (SQLite's online backup; safe while the service writes)."""
+    import sqlite3
+
+    source = _sqlite_path(url, "backup")
+    if not Path(source).is_file():
+        raise SystemExit(f"no database at {source}; check JEPA_MONITOR_DATABASE_URL / --database-url")
+    with sqlite3.connect(source) as src, sqlite3.connect(target) as dst:
+        src.backup(dst)
+
+
+def restore_sqlite(url: str, backup: str) -> None:
+    """Replace the database with a backup; stop the service first. Refuses a file that is not a monitor backup."""
+    import sqlite3
+
+    target = _sqlite_path(url, "restore")
+    if not Path(backup).is_file():
+        raise SystemExit(f"backup {backup} not found")
+    try:
+        with sqlite3.connect(f"file:{backup}?mode=ro", uri=True) as src:
+            tables = {row[0] for row in src.execute("SELECT name FROM sqlite_master WHERE type = 'table'")}
+    except sqlite3.DatabaseError as exc:
+        raise SystemExit(f"{backup} is not an SQLite database ({exc})") from None
+    if not {"alembic_version", "episodes", "api_keys"} <= tables:
+        raise SystemExit(f"{backup} is not a monitor database (no alembic_version / episodes / api_keys tables)")
+    with sqlite3.connect(backup) as src, sqlite3.connect(target) as dst:
+        src.backup(dst)

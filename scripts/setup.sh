@@ -27,6 +27,18 @@ if [ -n "$need_apt" ]; then
   $SUDO apt-get update -qq
   DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq $need_apt >/dev/null
 fi
+# promtool checks deploy/monitor's Prometheus files. It comes from Debian's prometheus package, unpacked into
+# .cache/tools rather than installed: installing it would also enable a Prometheus server on this machine.
+if ! command -v promtool >/dev/null 2>&1 && [ ! -x .cache/tools/promtool ]; then
+  echo "[setup] promtool (from Debian's prometheus package, unpacked into .cache/tools)"
+  PROM_TMP=$(mktemp -d)
+  (cd "$PROM_TMP" && apt-get download prometheus >/dev/null 2>&1) \
+    || { $SUDO apt-get update -qq && (cd "$PROM_TMP" && apt-get download prometheus >/dev/null); }
+  dpkg-deb -x "$PROM_TMP"/prometheus_*.deb "$PROM_TMP/root"
+  mkdir -p .cache/tools
+  cp "$PROM_TMP/root/usr/bin/promtool" .cache/tools/promtool
+  rm -rf "$PROM_TMP"
+fi
 
 # Keep an existing torch (a CUDA build on a GPU machine); otherwise pin the CPU build so no CUDA wheels are pulled.
 if ! "$PY" -c "import torch" 2>/dev/null; then

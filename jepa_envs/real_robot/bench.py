@@ -4,6 +4,10 @@ A bridge serving a simulation task runs in a child process (two processes, as on
 times ``step`` (one action) and ``step_chunk`` (8 actions) round trips. The same backend is timed in-process
 for the reference. Images: ``--cameras`` streams of ``--image-size`` pixels (default three 128x128, the real
 robot's payload, Sec. 4.8). Run time is bounded by ``--max-seconds``.
+
+It also times the operator's e-stop command from process start to exit, side by side: the console script's
+import-light path (``jepa_operator``) and the full command line (``jepa_envs.real_robot.cli``, which imports
+numpy, gymnasium and the safety models), ``--estop-runs`` times each, interleaved, against the bench bridge.
 """
 from __future__ import annotations
 
@@ -87,6 +91,25 @@ def _time_bridge(env, actions: np.ndarray, steps: int, chunks: int, n: int, dead
     return step_s, chunk_s
 
 
+def time_estop_commands(operator: str, runs: int) -> dict:
+    """Process start to exit of ``estop`` through each entry point, interleaved (same load for both)."""
+    commands = {"jepa_operator": [sys.executable, "-m", "jepa_operator.cli", "estop", "--operator", operator],
+                "full_cli": [sys.executable, "-m", "jepa_envs.real_robot.cli", "estop", "--operator", operator],
+                "bare_python": [sys.executable, "-c", "pass"]}
+    samples: dict[str, list[float]] = {name: [] for name in commands}
+    for _ in range(runs):
+        for name, command in commands.items():
+            t0 = time.perf_counter()
+            subprocess.run(command, check=True, capture_output=True)
+            samples[name].append(time.perf_counter() - t0)
+    out = {"runs": runs}
+    for name, values in samples.items():
+        x = np.asarray(values, np.float64) * 1e3
+        out[name] = {"p50_ms": float(np.median(x)) if x.size else None,
+                     "p90_ms": float(np.percentile(x, 90)) if x.size else None}
+    return out
+
+
 def run_bench(args) -> int:
     """Run the benchmark described in the module docstring and print its numbers."""
     deadline = time.monotonic() + args.max_seconds
@@ -116,7 +139,9 @@ def run_bench(args) -> int:
             br_step, br_chunk = _time_bridge(env, actions, args.steps, args.chunks, n, deadline)
         finally:
             env.close()
+        estop = time_estop_commands(operator, args.estop_runs)
         with OperatorClient(operator) as op:
+            op.clear_estop()
             status = op.status()
             op.shutdown()
         server.wait(timeout=30)
@@ -130,6 +155,7 @@ def run_bench(args) -> int:
         "in_process": {"step": percentiles_ms(in_step), "chunk": percentiles_ms(in_chunk)},
         "bridge": {"step": percentiles_ms(br_step), "chunk": percentiles_ms(br_chunk)},
         "bridge_frame_to_chunk": status["frame_to_chunk_latency_all"],
+        "estop_command": estop,
     }
     for level in ("step", "chunk"):
         result[f"overhead_{level}_p50_ms"] = (result["bridge"][level]["p50_ms"]
@@ -150,6 +176,12 @@ def run_bench(args) -> int:
     if f2c["count"]:
         print(f"bridge-side frame-to-chunk latency (no policy, steady state): median {f2c['median_ms']:.3f} ms, "
               f"p95 {f2c['p95_ms']:.3f} ms over {f2c['count']} chunks")
+    if estop["runs"]:
+        light, full = estop["jepa_operator"], estop["full_cli"]
+        print(f"`jepa-robot-bridge estop`, process start to exit over {estop['runs']} runs (median, p90): "
+              f"operator entry point {light['p50_ms']:.0f} / {light['p90_ms']:.0f} ms, full command line "
+              f"{full['p50_ms']:.0f} / {full['p90_ms']:.0f} ms (x{full['p50_ms'] / light['p50_ms']:.1f}); "
+              f"bare python {estop['bare_python']['p50_ms']:.0f} ms")
     if args.json:
         with open(args.json, "w") as f:
             json.dump(result, f, indent=2)

@@ -77,6 +77,7 @@ def _parser() -> argparse.ArgumentParser:
     bench.add_argument("--steps", type=int, default=300)
     bench.add_argument("--chunks", type=int, default=40)
     bench.add_argument("--max-seconds", type=float, default=120.0)
+    bench.add_argument("--estop-runs", type=int, default=10, help="time the e-stop command this many times")
     bench.add_argument("--json", help="also write the numbers to this file")
     return parser
 

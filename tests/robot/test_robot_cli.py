@@ -65,9 +65,9 @@ def test_serve_argument_errors():
 
 def test_bench_prints_numbers(capsys, tmp_path):
     out_json = tmp_path / "bench.json"
-    assert main(["bench", "--steps", "20", "--chunks", "4", "--json", str(out_json)]) == 0
+    assert main(["bench", "--steps", "20", "--chunks", "4", "--estop-runs", "2", "--json", str(out_json)]) == 0
     text = capsys.readouterr().out
-    assert "3 camera(s) of 128x128" in text and "overhead per chunk" in text
+    assert "3 camera(s) of 128x128" in text and "overhead per chunk" in text and "operator entry point" in text
     result = json.loads(out_json.read_text())
     assert result["obs_payload_bytes"] == 3 * 128 * 128 * 3 + 2 * 4
     for where in ("in_process", "bridge"):
@@ -75,6 +75,8 @@ def test_bench_prints_numbers(capsys, tmp_path):
         assert 0 < result[where]["step"]["p50_ms"] <= result[where]["step"]["p99_ms"]
     # 20 steps make 3 decision chunks, then 4 chunks in a new episode; each episode's first is left out
     assert result["bridge_frame_to_chunk"]["count"] == (3 - 1) + (4 - 1)
+    estop = result["estop_command"]
+    assert estop["runs"] == 2 and 0 < estop["jepa_operator"]["p50_ms"] < estop["full_cli"]["p50_ms"]
 
 
 def test_serve_prompt_confirms_through_operator_api(robot, monkeypatch):
