@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import gymnasium as gym
 
+from jepa_envs.entry import creator
 from jepa_envs.spec import TaskSpec, all_task_specs, get_task_spec, register_task
 
 _ENTRY_POINTS = {
@@ -23,7 +24,7 @@ def _register_all() -> None:
             continue
         gym.register(
             id=spec.env_id,
-            entry_point=_ENTRY_POINTS[spec.suite],
+            entry_point=creator(_ENTRY_POINTS[spec.suite]),
             max_episode_steps=spec.max_episode_steps,
             kwargs={"task": spec.name},
             disable_env_checker=True,

@@ -3,12 +3,16 @@
 Same conventions as the robomimic tasks: ``agentview_image`` / ``robot0_eye_in_hand_image`` the right way up,
 float32 proprioception, absolute (10-D) or LIBERO's native delta (7-D) OSC_POSE actions. Resets start from
 LIBERO's fixed initial states of the task (50 per task), chosen by the seed or by
-``options={"init_state_id": i}``, followed by the few still steps LIBERO's own evaluation takes to let objects
+``options={"init_state_id": i}`` (the fixtures, which LIBERO's states leave out, placed by a seed of ``i``: the
+same id is the same scene), followed by the few still steps LIBERO's own evaluation takes to let objects
 settle. Default image size 84 (the paper's); pass ``image_size=128`` for LIBERO-native frames.
 """
 from __future__ import annotations
 
 import os
+from contextlib import contextmanager
+
+import numpy as np
 
 from jepa_envs.libero_setup import check_assets, ensure_libero_config
 from jepa_envs.robosuite_common import RobosuiteTaskEnv, check_action_mode, set_control_delta
@@ -16,6 +20,19 @@ from jepa_envs.spec import get_task_spec
 
 BENCHMARK = "libero_10"
 SETTLE_STEPS = 5  # still steps after loading an initial state, as in LIBERO's evaluation (lifelong/metric.py)
+FIXTURE_SEED = 20_240_000  # + init_state_id: where the fixtures stand in that initial state
+
+
+@contextmanager
+def _global_numpy_seed(seed: int):
+    """Seed numpy's global generator (robosuite's and LIBERO's placement samplers draw from it) for a block, then
+    put its state back, so the caller's random stream is untouched."""
+    state = np.random.get_state()
+    np.random.seed(seed)
+    try:
+        yield
+    finally:
+        np.random.set_state(state)
 
 
 class LiberoEnv(RobosuiteTaskEnv):
@@ -59,13 +76,17 @@ class LiberoEnv(RobosuiteTaskEnv):
                          success_fn=self.libero_env.check_success)
 
     def _backend_reset(self, options: dict | None) -> dict:
-        self.libero_env.reset()
         init_id = (options or {}).get("init_state_id")
         if init_id is None:
             init_id = int(self.np_random.integers(len(self.init_states)))
         if not 0 <= int(init_id) < len(self.init_states):
             raise ValueError(f"init_state_id must be in [0, {len(self.init_states)}), got {init_id}")
         self.init_state_id = int(init_id)
+        # LIBERO's stored initial states hold the movable objects (qpos), not the fixtures (the stove is a fixed
+        # body placed by the reset's sampler into model.body_pos): seed that placement by the initial state's id,
+        # so the same id is the same scene every time.
+        with _global_numpy_seed(FIXTURE_SEED + self.init_state_id):
+            self.libero_env.reset()
         raw = self.libero_env.set_init_state(self.init_states[self.init_state_id])
         if SETTLE_STEPS:
             rendering = self.render_images

@@ -8,13 +8,14 @@ rendered by robosuite).
 from __future__ import annotations
 
 import copy
-import os
 from contextlib import contextmanager
 from typing import Any, Callable
 
-# Headless software rendering unless the user chose a backend; must precede the first mujoco/robosuite import.
-os.environ.setdefault("MUJOCO_GL", "osmesa")
-os.environ.setdefault("PYOPENGL_PLATFORM", os.environ["MUJOCO_GL"])
+from jepa_envs.render import use_renderer
+
+# The user's MUJOCO_GL, else the measured fastest backend with identical frames (jepa_envs/render.py); this must
+# precede the first mujoco/robosuite import.
+use_renderer()
 
 import mujoco
 import numpy as np

@@ -8,6 +8,7 @@ model's top-level parts during one decision, not assumed.
 from __future__ import annotations
 
 import contextlib
+import os
 import resource
 import time
 
@@ -15,9 +16,12 @@ import numpy as np
 import torch
 from torch.optim.swa_utils import AveragedModel, get_ema_multi_avg_fn
 
+from jepa_envs.pool import available_cores
 from jepa_envs.spec import get_task_spec
 from jepa_policy.checkpoint import build_model
 from jepa_policy.config import ModelConfig
+from jepa_policy.evaluate import evaluate, make_pool
+from jepa_policy.policy import Policy
 from jepa_policy.train import load_config, resolve_device
 
 
@@ -226,3 +230,54 @@ def format_train(result: dict) -> str:
             f"({result['device_name']}): batch {result['batch_size']}, {result['image_size']}px, "
             f"{result['params_m']:.2f} M params, {result['s_per_step']:.3f} s/step, "
             f"{result['samples_per_s']:.1f} samples/s, {mem}")
+
+
+def bench_rollouts(task: str = "PushT", workers: int | None = None, episodes: int = 8, num_envs: int = 4,
+                   max_steps: int = 60, repeats: int = 2, preset: str = "cpu", image_size: int | None = None) -> dict:
+    """Episodes per minute of full rollouts (env steps and frames in the workers, a JEPA model acting on each
+    round's batch in this process) with 1 worker and with ``workers`` workers, interleaved; persistent pools,
+    so process start-up is reported apart. A randomly initialised model of the preset's shape acts: the
+    throughput of evaluation, not a success rate. Also checks that both pools give identical records."""
+    torch.set_num_threads(1)   # the policy's share; the workers get the rest of the cores
+    workers = available_cores() if workers is None else workers
+    spec = get_task_spec(task)
+    cfg = load_config(task, preset)
+    size = image_size or cfg.image_size or spec.image_size
+    spec = spec.with_image_size(size)
+    model = _ema_model(spec, "jepa", torch.device("cpu"), **{k: v for k, v in cfg.model.items()
+                                                            if k not in ("image_size",)})
+    policy = Policy(model, spec)
+    pools, startup = {}, {}
+    for n in sorted({0, 1, workers}):
+        t0 = time.perf_counter()
+        pools[n] = make_pool(policy, num_envs, workers=n, max_steps=max_steps)
+        startup[n] = time.perf_counter() - t0
+    seconds: dict[int, list[float]] = {n: [] for n in pools}
+    records: dict[int, list] = {}
+    try:
+        for _ in range(repeats):
+            for n, pool in pools.items():
+                t0 = time.perf_counter()
+                report = evaluate(policy, episodes=episodes, seed=0, pool=pool)
+                seconds[n].append(time.perf_counter() - t0)
+                records[n] = report["records"]
+    finally:
+        for pool in pools.values():
+            pool.close()
+    rate = {n: episodes * 60.0 / float(np.median(s)) for n, s in seconds.items()}
+    return {"task": task, "image_size": size, "episodes": episodes, "num_envs": num_envs, "max_steps": max_steps,
+            "workers": workers, "cores": available_cores(), "episodes_per_min": rate,
+            "speedup": rate[workers] / rate[1], "in_process_ratio": rate[0] / rate[1], "startup_s": startup,
+            "identical_records": all(r == records[1] for r in records.values()),
+            "renderer": os.environ.get("MUJOCO_GL", "-"),
+            "load_avg": os.getloadavg()[0]}
+
+
+def format_rollouts(result: dict) -> str:
+    w = result["workers"]
+    rates = result["episodes_per_min"]
+    return (f"{result['task']} rollouts ({result['episodes']} episodes of <= {result['max_steps']} steps, rounds of "
+            f"{result['num_envs']}, {result['image_size']} px, renderer {result['renderer']}, load {result['load_avg']:.1f} "
+            f"on {result['cores']} cores): 1 worker {rates[1]:.1f} episodes/min, {w} workers {rates[w]:.1f} "
+            f"episodes/min, speed-up {result['speedup']:.2f}x; in-process (no workers) {rates[0]:.1f} episodes/min; "
+            f"pool start-up {result['startup_s'][w]:.1f} s, once; records identical: {result['identical_records']}")

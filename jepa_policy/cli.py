@@ -100,6 +100,15 @@ def cmd_bench_latency(args) -> int:
     return 0
 
 
+def cmd_bench_rollouts(args) -> int:
+    from jepa_policy.bench import bench_rollouts, format_rollouts
+
+    result = bench_rollouts(args.task, workers=args.workers, episodes=args.episodes, num_envs=args.num_envs,
+                            max_steps=args.max_steps, repeats=args.repeats, preset=args.preset)
+    print(json.dumps(result, default=str) if args.json else format_rollouts(result))
+    return 0
+
+
 def cmd_bench_train(args) -> int:
     from jepa_policy.bench import bench_train, format_train
 
@@ -228,6 +237,17 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--device", default="auto", help="auto | cpu | cuda | cuda:N")
     p.add_argument("--json", action="store_true", help="print JSON instead of a table")
     p.set_defaults(func=cmd_bench_train)
+
+    p = bsub.add_parser("rollouts", help="episodes/min of rollouts with 1 and N pool workers, side by side")
+    p.add_argument("--task", default="PushT")
+    p.add_argument("--workers", type=int, default=None, help="the N of the comparison (default: the cores)")
+    p.add_argument("--episodes", type=int, default=8, help="episodes per timed evaluation")
+    p.add_argument("--num-envs", type=int, default=4, help="environments per round (the policy's batch)")
+    p.add_argument("--max-steps", type=int, default=60, help="episode step limit")
+    p.add_argument("--repeats", type=int, default=2, help="timed evaluations per pool, interleaved")
+    p.add_argument("--preset", default="cpu", help="model shapes of this preset")
+    p.add_argument("--json", action="store_true", help="print JSON instead of a line")
+    p.set_defaults(func=cmd_bench_rollouts)
 
     p = sub.add_parser("audit", help="the paper's audits of a checkpoint: collapse (c_t, E_rgb, z_hat), retrieval, "
                                      "gradient interaction")

@@ -13,10 +13,10 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
 
-import gymnasium as gym
 import numpy as np
 
 import jepa_envs  # noqa: F401  (registers the JEPA/* ids)
+from jepa_envs.pool import EnvPool, WorkerFailure
 
 
 def nmse(z_hat: np.ndarray, z: np.ndarray) -> np.ndarray:
@@ -90,34 +90,61 @@ def env_kwargs_for(spec, env_args: dict | None) -> dict:
     return kwargs
 
 
-def _make_env_fn(env_id: str, kwargs: dict, max_steps: int | None):
-    def make():
-        extra = {"max_episode_steps": max_steps} if max_steps else {}
-        return gym.make(env_id, **kwargs, **extra)
-    return make
+def make_pool(policy, num_envs: int, workers: int | None = 0, max_steps: int | None = None,
+              timeout_s: float = 300.0) -> EnvPool:
+    """A persistent rollout pool for ``policy``'s task (its image size, its demonstrations' env settings);
+    pass it to ``evaluate`` again and again. ``workers=None``: one worker per available core; 0: in-process."""
+    spec = policy.spec
+    return EnvPool(spec.env_id, num_envs, workers=workers,
+                   env_kwargs=env_kwargs_for(spec, getattr(policy, "env_args", None)), max_steps=max_steps,
+                   timeout_s=timeout_s)
 
 
 def evaluate(policy, episodes: int, seed: int, num_envs: int = 4, max_steps: int | None = None,
              video_dir: str | Path | None = None, on_decision: Callable[[DecisionEvent], None] | None = None,
-             keep_latents: bool = False, out: str | Path | None = None) -> dict:
-    """Run ``episodes`` rollouts with seeds seed, seed+1, ... in lockstep vector envs.
+             keep_latents: bool = False, out: str | Path | None = None, pool: EnvPool | None = None,
+             workers: int | None = 0, max_reruns: int = 2) -> dict:
+    """Run ``episodes`` rollouts with seeds seed, seed+1, ... in rounds of ``num_envs`` lockstep environments.
 
-    Only the frames the policy uses are rendered (``policy.images_needed``) unless videos are written.
-    Returns the report (success rate, mean NMSE, per-episode records); ``out`` also writes the records as JSONL.
+    The environments live in ``pool`` (a persistent ``EnvPool`` from ``make_pool``, reused across calls; its
+    size sets the round) or in a pool made for this call with ``workers`` processes (0: in this process; None:
+    one per core). The policy acts on each round's observations as one batch, so results are the same whatever
+    the number of workers. A worker that dies or hangs is restarted and its round rerun (at most ``max_reruns``
+    times); the report lists each rerun. Per-decision events (``on_decision``) are delivered once their round
+    has completed, so a rerun never delivers an event twice. Only the frames the policy uses are rendered
+    (``policy.images_needed``) unless videos are written. Returns the report (success rate, mean NMSE,
+    per-episode records); ``out`` also writes the records as JSONL.
     """
     if episodes < 1 or num_envs < 1:
         raise ValueError(f"need episodes >= 1 and num_envs >= 1, got {episodes}, {num_envs}")
     spec = policy.spec
-    num_envs = min(num_envs, episodes)
-    kwargs = env_kwargs_for(spec, getattr(policy, "env_args", None))
-    envs = gym.vector.SyncVectorEnv([_make_env_fn(spec.env_id, kwargs, max_steps)] * num_envs)
-    records = []
+    own_pool = pool is None
+    if own_pool:
+        pool = make_pool(policy, min(num_envs, episodes), workers=workers, max_steps=max_steps)
+    elif pool.env_id != spec.env_id:
+        raise ValueError(f"the pool runs {pool.env_id}, the policy acts on {spec.env_id}; make a pool for it")
+    n = pool.num_envs
+    records, reruns = [], []
     try:
-        for first in range(0, episodes, num_envs):
-            ids = list(range(first, min(first + num_envs, episodes)))
-            records += _run_round(envs, policy, ids, seed, video_dir, on_decision, keep_latents)
+        for first in range(0, episodes, n):
+            ids = list(range(first, min(first + n, episodes)))
+            for attempt in range(max_reruns + 1):
+                events: list[DecisionEvent] = []
+                try:
+                    records += _run_round(pool, policy, ids, seed, video_dir,
+                                          events.append if on_decision else None, keep_latents)
+                    break
+                except WorkerFailure as exc:
+                    if attempt == max_reruns:
+                        raise RuntimeError(f"{exc}; the round of episodes {ids[0]}-{ids[-1]} failed "
+                                           f"{max_reruns + 1} times, giving up") from exc
+                    reruns.append({"episodes": ids, "worker": exc.worker, "reason": exc.reason})
+                    pool.restart(exc.worker, exc.reason)
+            for event in events:
+                on_decision(event)
     finally:
-        envs.close()
+        if own_pool:
+            pool.close()
     valid = [d["nmse"] for r in records for d in r["decisions"] if d["nmse"] is not None]
     fit = residualise_records(records)
     report = {
@@ -132,6 +159,8 @@ def evaluate(policy, episodes: int, seed: int, num_envs: int = 4, max_steps: int
             [d["nmse_persistence"] for r in records for d in r["decisions"] if d.get("nmse_persistence") is not None]
         )) if valid else None,
         "residualised_fit": fit,
+        "workers": pool.workers,
+        "reruns": reruns,
         "records": records,
     }
     if out:
@@ -144,7 +173,7 @@ def evaluate(policy, episodes: int, seed: int, num_envs: int = 4, max_steps: int
 
 def _run_round(envs, policy, ids, seed, video_dir, on_decision, keep_latents) -> list[dict]:
     n = envs.num_envs
-    seeds = [seed + i for i in ids] + [seed + ids[-1] + 1 + j for j in range(n - len(ids))]  # spare envs run too
+    seeds = [seed + i for i in ids] + [seed + ids[-1] + 1 + j for j in range(n - len(ids))]  # spares
     live = np.array([j < len(ids) for j in range(n)])
     success, length = np.zeros(n, bool), np.zeros(n, int)
     max_reward = np.full(n, -np.inf)
@@ -154,8 +183,8 @@ def _run_round(envs, policy, ids, seed, video_dir, on_decision, keep_latents) ->
     want_video = video_dir is not None
 
     policy.reset()
-    envs.call("set_render_images", True)
-    obs, _ = envs.reset(seed=seeds)
+    envs.set_render_images(True)
+    obs, _ = envs.reset(seeds, active=list(live))   # spares keep the batch's shape and are never stepped
     while live.any():
         if want_video:
             for j in np.flatnonzero(live):
@@ -173,7 +202,7 @@ def _run_round(envs, policy, ids, seed, video_dir, on_decision, keep_latents) ->
         elif decision is not before:
             for j in np.flatnonzero(live):
                 decisions[j].append({"step": decision.step, "target_step": decision.target_step, "nmse": None})
-        envs.call("set_render_images", want_video or policy.images_needed(policy.t + 1))
+        envs.set_render_images(want_video or policy.images_needed(policy.t + 1))
         obs, reward, terminated, truncated, infos = envs.step(action)
         t_new = policy.t + 1
         length += live

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import gymnasium as gym
 
+from jepa_envs.entry import creator
 from jepa_envs.spec import ABS_ACTION_DIM_PER_ARM, TaskSpec, arm_lowdim, register_task
 
 REAL_CAMERAS = ("base", "left_wrist", "right_wrist")
@@ -48,7 +49,7 @@ def register_real_robot_envs() -> None:
         spec = register_task(real_task_spec(name, arms, budget))
         if spec.env_id not in gym.registry:
             # no TimeLimit: the bridge owns the chunk budget and ends the episode itself
-            gym.register(id=spec.env_id, entry_point=PROXY_ENTRY_POINT, kwargs={"task": name},
+            gym.register(id=spec.env_id, entry_point=creator(PROXY_ENTRY_POINT), kwargs={"task": name},
                          disable_env_checker=True)
     if "JEPA/RealRobot-v0" not in gym.registry:
-        gym.register(id="JEPA/RealRobot-v0", entry_point=PROXY_ENTRY_POINT, disable_env_checker=True)
+        gym.register(id="JEPA/RealRobot-v0", entry_point=creator(PROXY_ENTRY_POINT), disable_env_checker=True)

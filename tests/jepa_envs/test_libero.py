@@ -177,3 +177,24 @@ def test_setup_links_assets_idempotently(capsys):
     assets = libero_setup.check_assets()
     assert (assets / "scenes").is_dir()
     assert "LIBERO_CONFIG_PATH" in capsys.readouterr().out
+
+
+def test_same_initial_state_id_is_the_same_scene(moka):
+    """The stove (a fixture: a fixed body placed at reset, absent from LIBERO's stored states) stands where it
+    stood the last time this id was loaded, whatever came between; other ids may place it elsewhere."""
+    stove = moka.backend.sim.model.body_name2id(moka.libero_env.env.fixtures_dict["flat_stove_1"].root_body)
+    scenes = []
+    for init_id in (7, 3, 7, 7):
+        obs, _ = moka.reset(options={"init_state_id": init_id})
+        scenes.append((moka.backend.sim.model.body_pos[stove].copy(), moka.backend.sim.model.body_quat[stove].copy(),
+                       obs["agentview_image"].copy()))
+    for later in (scenes[2], scenes[3]):
+        np.testing.assert_array_equal(later[0], scenes[0][0])
+        np.testing.assert_array_equal(later[1], scenes[0][1])
+        np.testing.assert_array_equal(later[2], scenes[0][2])
+    # numpy's global stream is the caller's: a reset neither consumes nor reseeds it
+    np.random.seed(123)
+    expected = np.random.random(3)
+    np.random.seed(123)
+    moka.reset(options={"init_state_id": 5})
+    np.testing.assert_array_equal(np.random.random(3), expected)
