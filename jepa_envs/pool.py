@@ -29,11 +29,13 @@ import jepa_envs  # noqa: F401  (registers the JEPA/* ids)
 
 
 class WorkerFailure(RuntimeError):
-    """A pool worker died or hung; ``worker`` is its index. The pool can ``restart`` it."""
+    """Pool workers died or hung: ``failures`` maps each one's index to the reason (``worker``/``reason``: the
+    first). The pool can ``restart`` them."""
 
-    def __init__(self, worker: int, reason: str):
-        super().__init__(f"rollout worker {worker} failed: {reason}")
-        self.worker, self.reason = worker, reason
+    def __init__(self, failures: dict[int, str] | int, reason: str = ""):
+        self.failures = dict(failures) if isinstance(failures, dict) else {int(failures): reason}
+        self.worker, self.reason = next(iter(self.failures.items()))
+        super().__init__("; ".join(f"rollout worker {w} failed: {r}" for w, r in self.failures.items()))
 
 
 def available_cores() -> int:
@@ -233,28 +235,48 @@ class EnvPool:
                 raise WorkerFailure(worker.index, f"no answer within {timeout_s:.0f}s (hung)")
             return worker.conn.recv()
         except (EOFError, BrokenPipeError, ConnectionResetError, OSError) as exc:
-            code = worker.process.exitcode if worker.process is not None else None
-            raise WorkerFailure(worker.index, f"process ended (exit code {code}): {type(exc).__name__}") from None
+            raise WorkerFailure(worker.index, f"process ended (exit code {self._exit_code(worker)}): "
+                                              f"{type(exc).__name__}") from None
+
+    @staticmethod
+    def _exit_code(worker: _Worker):
+        """The exit code of a worker whose pipe closed (it may take a moment to be reaped)."""
+        if worker.process is None:
+            return None
+        worker.process.join(timeout=5)
+        return worker.process.exitcode
 
     def _broadcast(self, command: str, payloads: list) -> list:
-        """Send each worker its payload, then collect the answers in env order."""
+        """Send each worker its payload, then collect the answers in env order. Every worker that was sent a
+        command is heard from (or found dead) before anything is raised, so no stale answer is left in a pipe."""
         if self._closed:
             raise RuntimeError("this EnvPool is closed; make a new one")
         if self._host is not None:   # in this process: the same host code, one share
             method = {"reset": self._host.reset, "step": self._host.step}
             return method[command](payloads[0]) or []
+        failures: dict[int, str] = {}
+        sent = []
         for worker, payload in zip(self._workers, payloads):
             try:
                 worker.conn.send((command, payload))
+                sent.append(worker)
             except (BrokenPipeError, OSError):
-                raise WorkerFailure(worker.index, "process ended (its pipe is closed)") from None
-        results = []
-        for worker in self._workers:
-            status, payload = self._receive(worker, self.timeout_s)
+                failures[worker.index] = f"process ended (exit code {self._exit_code(worker)}): its pipe is closed"
+        answers, errors = {}, []
+        for worker in sent:
+            try:
+                status, payload = self._receive(worker, self.timeout_s)
+            except WorkerFailure as exc:
+                failures[worker.index] = exc.reason
+                continue
             if status != "ok":
-                raise RuntimeError(f"rollout worker {worker.index} failed on {command!r}:\n{payload}")
-            results += payload or []
-        return results
+                errors.append(f"rollout worker {worker.index} failed on {command!r}:\n{payload}")
+            answers[worker.index] = payload
+        if failures:
+            raise WorkerFailure(failures)
+        if errors:
+            raise RuntimeError("\n".join(errors))
+        return [row for worker in self._workers for row in (answers[worker.index] or [])]
 
     def _split(self, values: list) -> list[list]:
         if self._host is not None:
@@ -332,7 +354,7 @@ class EnvPool:
 
     def describe(self) -> dict:
         return {"env_id": self.env_id, "num_envs": self.num_envs, "workers": self.workers,
-                "restarts": [e.__dict__ for e in self.events]}
+                "pids": [w.pid for w in self._workers], "restarts": [e.__dict__ for e in self.events]}
 
 
 def _stack(observations: list[dict]) -> dict:

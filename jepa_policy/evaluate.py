@@ -9,11 +9,13 @@ Sec. 4.10; ``jepa-monitor study`` and the monitor's calibration compare the two)
 from __future__ import annotations
 
 import json
+import sys
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
 
 import numpy as np
+import torch.distributed as dist
 
 import jepa_envs  # noqa: F401  (registers the JEPA/* ids)
 from jepa_envs.pool import EnvPool, WorkerFailure
@@ -103,7 +105,7 @@ def make_pool(policy, num_envs: int, workers: int | None = 0, max_steps: int | N
 def evaluate(policy, episodes: int, seed: int, num_envs: int = 4, max_steps: int | None = None,
              video_dir: str | Path | None = None, on_decision: Callable[[DecisionEvent], None] | None = None,
              keep_latents: bool = False, out: str | Path | None = None, pool: EnvPool | None = None,
-             workers: int | None = 0, max_reruns: int = 2) -> dict:
+             workers: int | None = 0, max_reruns: int = 2, shard: tuple[int, int] | None = None) -> dict:
     """Run ``episodes`` rollouts with seeds seed, seed+1, ... in rounds of ``num_envs`` lockstep environments.
 
     The environments live in ``pool`` (a persistent ``EnvPool`` from ``make_pool``, reused across calls; its
@@ -114,6 +116,12 @@ def evaluate(policy, episodes: int, seed: int, num_envs: int = 4, max_steps: int
     has completed, so a rerun never delivers an event twice. Only the frames the policy uses are rendered
     (``policy.images_needed``) unless videos are written. Returns the report (success rate, mean NMSE,
     per-episode records); ``out`` also writes the records as JSONL.
+
+    Across machines (torchrun): ``shard=(rank, world)``, by default that of an initialised torch.distributed
+    process group, gives rank r the rounds r, r + world, ...; every rank's records are gathered, so every rank
+    returns the whole report (``out`` is written by rank 0) and it equals the one-process report. Each rank runs
+    its own pool and delivers ``on_decision`` events of its own episodes. Without a process group, an explicit
+    ``shard`` runs and reports that shard's episodes only.
     """
     if episodes < 1 or num_envs < 1:
         raise ValueError(f"need episodes >= 1 and num_envs >= 1, got {episodes}, {num_envs}")
@@ -121,12 +129,17 @@ def evaluate(policy, episodes: int, seed: int, num_envs: int = 4, max_steps: int
     own_pool = pool is None
     if own_pool:
         pool = make_pool(policy, min(num_envs, episodes), workers=workers, max_steps=max_steps)
-    elif pool.env_id != spec.env_id:
-        raise ValueError(f"the pool runs {pool.env_id}, the policy acts on {spec.env_id}; make a pool for it")
+    elif pool.env_id != spec.env_id or pool.env_kwargs != env_kwargs_for(spec, getattr(policy, "env_args", None)):
+        raise ValueError(f"the pool runs {pool.env_id} with {pool.env_kwargs}, the policy acts on {spec.env_id} with "
+                         f"{env_kwargs_for(spec, getattr(policy, 'env_args', None))}; make a pool for it "
+                         f"(jepa_policy.evaluate.make_pool)")
     n = pool.num_envs
+    rank, world = shard if shard is not None else _process_group()
+    if not 0 <= rank < world:
+        raise ValueError(f"shard must be (rank, world) with 0 <= rank < world, got {(rank, world)}")
     records, reruns = [], []
     try:
-        for first in range(0, episodes, n):
+        for first in list(range(0, episodes, n))[rank::world]:
             ids = list(range(first, min(first + n, episodes)))
             for attempt in range(max_reruns + 1):
                 events: list[DecisionEvent] = []
@@ -138,13 +151,23 @@ def evaluate(policy, episodes: int, seed: int, num_envs: int = 4, max_steps: int
                     if attempt == max_reruns:
                         raise RuntimeError(f"{exc}; the round of episodes {ids[0]}-{ids[-1]} failed "
                                            f"{max_reruns + 1} times, giving up") from exc
-                    reruns.append({"episodes": ids, "worker": exc.worker, "reason": exc.reason})
-                    pool.restart(exc.worker, exc.reason)
+                    print(f"[evaluate] {exc}; restarting it and rerunning episodes {ids[0]}-{ids[-1]}",
+                          file=sys.stderr, flush=True)
+                    for worker, reason in exc.failures.items():
+                        reruns.append({"episodes": ids, "worker": worker, "reason": reason})
+                        pool.restart(worker, reason)
             for event in events:
                 on_decision(event)
     finally:
         if own_pool:
             pool.close()
+    shares = {rank: [r["episode"] for r in records]}
+    if world > 1 and dist.is_available() and dist.is_initialized():
+        gathered = [None] * world
+        dist.all_gather_object(gathered, (rank, records, reruns))
+        records = sorted((r for _, part, _ in gathered for r in part), key=lambda r: r["episode"])
+        reruns = [x for _, _, part in gathered for x in part]
+        shares = {k: [r["episode"] for r in part] for k, part, _ in gathered}
     valid = [d["nmse"] for r in records for d in r["decisions"] if d["nmse"] is not None]
     fit = residualise_records(records)
     report = {
@@ -161,14 +184,23 @@ def evaluate(policy, episodes: int, seed: int, num_envs: int = 4, max_steps: int
         "residualised_fit": fit,
         "workers": pool.workers,
         "reruns": reruns,
+        "ranks": world,
+        "episodes_by_rank": shares,
         "records": records,
     }
-    if out:
+    if out and rank == 0:
         Path(out).parent.mkdir(parents=True, exist_ok=True)
         with open(out, "w") as f:
             for r in records:
                 f.write(json.dumps(r) + "\n")
     return report
+
+
+def _process_group() -> tuple[int, int]:
+    """(rank, world size) of an initialised torch.distributed process group, else (0, 1)."""
+    if dist.is_available() and dist.is_initialized():
+        return dist.get_rank(), dist.get_world_size()
+    return 0, 1
 
 
 def _run_round(envs, policy, ids, seed, video_dir, on_decision, keep_latents) -> list[dict]:

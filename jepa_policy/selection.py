@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 from scipy.stats import binomtest
 
-from jepa_policy.evaluate import evaluate, reporting_protocols
+from jepa_policy.evaluate import evaluate, make_pool, reporting_protocols
 from jepa_policy.policy import Policy
 
 FRESH_SEED = 1_000_000   # far from the training-time evaluation seeds (100,000 + episodes)
@@ -50,7 +50,8 @@ def eval_snapshots(run_dir: Path) -> dict[int, Path]:
 
 
 def select_checkpoint(run_dir: str | Path, fresh_seed: int = FRESH_SEED, ladder: tuple[int, ...] = LADDER,
-                      num_envs: int = 4, max_steps: int | None = None, device: str = "cpu", seed: int = 0) -> dict:
+                      num_envs: int = 4, max_steps: int | None = None, device: str = "cpu", seed: int = 0,
+                      workers: int | None = 0) -> dict:
     """Apply the rule of the module docstring to a training run folder; returns the pick and the evidence."""
     run_dir = Path(run_dir)
     curve_path = run_dir / "eval_curve.json"
@@ -68,15 +69,17 @@ def select_checkpoint(run_dir: str | Path, fresh_seed: int = FRESH_SEED, ladder:
     policies = {s: Policy.from_checkpoint(snapshots[s], device=device) for s in candidates}
     outcomes: dict[int, list[bool]] = {s: [] for s in candidates}
     decision = None
-    for total in ladder:
-        have = len(outcomes[candidates[0]])
-        for s in candidates:   # the same fresh episodes for both: a paired comparison
-            report = evaluate(policies[s], episodes=total - have, seed=fresh_seed + have, num_envs=num_envs,
-                              max_steps=max_steps)
-            outcomes[s] += [bool(r["success"]) for r in report["records"]]
-        decision = paired_bootstrap(np.array(outcomes[candidates[0]]), np.array(outcomes[candidates[1]]), seed=seed)
-        if decision["ci95"][0] > 0 or decision["ci95"][1] < 0:
-            break
+    # one persistent rollout pool for both candidates and every rung (``workers`` processes; 0: in this one)
+    with make_pool(policies[candidates[0]], min(num_envs, ladder[0]), workers=workers, max_steps=max_steps) as pool:
+        for total in ladder:
+            have = len(outcomes[candidates[0]])
+            for s in candidates:   # the same fresh episodes for both: a paired comparison
+                report = evaluate(policies[s], episodes=total - have, seed=fresh_seed + have, pool=pool)
+                outcomes[s] += [bool(r["success"]) for r in report["records"]]
+            decision = paired_bootstrap(np.array(outcomes[candidates[0]]), np.array(outcomes[candidates[1]]),
+                                        seed=seed)
+            if decision["ci95"][0] > 0 or decision["ci95"][1] < 0:
+                break
     decided = decision["ci95"][0] > 0 or decision["ci95"][1] < 0
     rates = {s: float(np.mean(outcomes[s])) for s in candidates}
     pick = max(candidates, key=lambda s: (rates[s], s))

@@ -29,13 +29,14 @@ from torch.utils.tensorboard import SummaryWriter
 from tqdm import tqdm
 
 from jepa_envs.data import load_dataset
+from jepa_envs.pool import available_cores
 from jepa_envs.spec import get_task_spec
 from jepa_policy.audit import gradient_interaction
 from jepa_policy.checkpoint import (build_model, freeze_backbone, load_checkpoint, load_encoder_weights, save_checkpoint,
                                     save_eval_snapshot, set_rng_state)
 from jepa_policy.config import ModelConfig
 from jepa_policy.dataset import ResumableBatchSampler, WindowDataset, make_loader, normalizer_stats
-from jepa_policy.evaluate import evaluate
+from jepa_policy.evaluate import evaluate, make_pool
 from jepa_policy.policy import Policy
 
 CONFIG_DIR = Path(__file__).parent / "configs"
@@ -71,6 +72,7 @@ class TrainConfig:
     eval_episodes: int = 40
     eval_seed: int = 100_000          # fixed evaluation seed (Sec. 4.1)
     eval_envs: int = 4                # parallel environments of one evaluation
+    eval_workers: int = -1            # rollout worker processes per rank (-1 = the cores available; 0 = in-process)
     eval_max_steps: int = 0           # episode step limit of the periodic evaluation; 0 = the task's
     keep_eval_checkpoints: bool = True  # EMA weights at every periodic evaluation (checkpoint selection, protocols)
     grad_every: int = 1000            # gradient interaction of the two losses logged every N steps (0 = never)
@@ -119,6 +121,7 @@ class TrainConfig:
             (self.log_every >= 1 and self.ckpt_every >= 1, "log_every and ckpt_every must be >= 1"),
             (self.eval_every >= 0 and self.eval_episodes >= 1, "eval_every >= 0 and eval_episodes >= 1"),
             (self.eval_max_steps >= 0, "eval_max_steps must be >= 0 (0 = the task's episode length)"),
+            (self.eval_workers >= -1, "eval_workers must be >= -1 (-1 = one per core, 0 = in-process)"),
             (self.grad_every >= 0, "grad_every must be >= 0 (0 = no gradient-interaction log)"),
             (self.init_candidates >= 1, "init_candidates must be >= 1 (1 = a single start, no selection)"),
             (self.init_candidates == 1 or 1 <= self.init_screen_steps < self.steps,
@@ -160,6 +163,8 @@ TRAIN_HELP = {
     "eval_episodes": "rollouts of each periodic evaluation",
     "eval_seed": "seed of the first evaluation rollout (the same every time)",
     "eval_envs": "environments stepped together in an evaluation",
+    "eval_workers": "env-only rollout processes of the evaluations, started once per run (-1 = one per available "
+                    "core; 0 = step the envs in the trainer's process, best for cheap envs such as PushT)",
     "eval_max_steps": "episode step limit of the periodic evaluation (0 = the task's)",
     "keep_eval_checkpoints": "keep the EMA weights of every periodic evaluation (for `jepa-policy protocols --select`)",
     "grad_every": "steps between rows of the action/future gradient interaction (Sec. 4.5) in log.jsonl (0 = never)",
@@ -386,12 +391,20 @@ def _train_run(cfg: TrainConfig, demos=None, selection: dict | None = None) -> d
         epoch, taken = divmod(s, sampler.batches_per_epoch())
         return {"epoch": epoch, "batches_taken": taken}
 
+    pools = []   # one persistent rollout pool per run (and rank), started at the first evaluation
+
     def periodic_eval():
+        policy = Policy(ema.module, spec, device=device)
+        policy.env_args = getattr(demos, "env_args", None)
+        if not pools:
+            workers = None if cfg.eval_workers < 0 else cfg.eval_workers
+            if workers is None and world > 1:   # the ranks of one machine share its cores
+                workers = max(1, available_cores() // int(os.environ.get("LOCAL_WORLD_SIZE", world)))
+            pools.append(make_pool(policy, min(cfg.eval_envs, cfg.eval_episodes), workers=workers,
+                                   max_steps=cfg.eval_max_steps or None))
+        # every rank runs its share of the rounds; the report (the same on every rank) gathers them all
+        report = evaluate(policy, episodes=cfg.eval_episodes, seed=cfg.eval_seed, pool=pools[0])
         if is_main:
-            policy = Policy(ema.module, spec, device=device)
-            policy.env_args = getattr(demos, "env_args", None)
-            report = evaluate(policy, episodes=cfg.eval_episodes, seed=cfg.eval_seed, num_envs=cfg.eval_envs,
-                              max_steps=cfg.eval_max_steps or None)
             curve.append({"step": step, "success_rate": report["success_rate"],
                           "mean_nmse": report["mean_nmse"]})
             (out / "eval_curve.json").write_text(json.dumps(curve, indent=2))
@@ -399,7 +412,8 @@ def _train_run(cfg: TrainConfig, demos=None, selection: dict | None = None) -> d
                 save_eval_snapshot(ckpt_path.parent / f"eval_step{step}.pt", ema=ema, step=step, cfg=cfg,
                                    model_cfg=model_cfg, spec=spec, env_args=getattr(demos, "env_args", None))
             writer.add_scalar("eval/success_rate", report["success_rate"], step)
-            log_file.write(json.dumps({"step": step, "eval_success_rate": report["success_rate"]}) + "\n")
+            log_file.write(json.dumps({"step": step, "eval_success_rate": report["success_rate"],
+                                       "eval_workers": report["workers"], "eval_reruns": report["reruns"]}) + "\n")
             log_file.flush()
         if world > 1:
             dist.barrier()
@@ -464,6 +478,8 @@ def _train_run(cfg: TrainConfig, demos=None, selection: dict | None = None) -> d
         if step % cfg.ckpt_every == 0 or step == last:
             save()
 
+    for pool in pools:
+        pool.close()
     if is_main:
         progress.close()
         writer.close()

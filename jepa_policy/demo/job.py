@@ -39,7 +39,7 @@ from jepa_policy.bench import count_passes, time_calls
 from jepa_policy.checkpoint import load_checkpoint
 from jepa_policy.demo.ceiling import evaluate_state_policy, state_ceiling, train_state_policy
 from jepa_policy.demo.report import write_report
-from jepa_policy.evaluate import env_kwargs_for, evaluate
+from jepa_policy.evaluate import env_kwargs_for, evaluate, make_pool
 from jepa_policy.policy import Policy
 from jepa_policy.selection import select_checkpoint, wilson_ci
 from jepa_policy.train import load_config, train
@@ -66,6 +66,9 @@ class DemoConfig:
     # the policies to clear the threshold instead of landing around it (docs/training.md)
     finish_threshold: float = 0.9
     num_envs: int = 4
+    # env-only rollout processes of the monitored rollouts and the selection (one persistent pool). PushT's env
+    # step is cheaper than a pipe round trip: in-process measured fastest (`jepa-policy bench rollouts`)
+    workers: int = 0
     bootstrap: int = 10_000
     permutations: int = 10_000
     ceiling_steps: int = 4000  # training steps of the true-state policy that measures the imitation ceiling
@@ -205,7 +208,7 @@ def audit_runs(cfg: DemoConfig, dataset: Path, checkpoints: dict) -> dict:
         if policy.model.cfg.has_future_token:
             row["retrieval"] = retrieval_audit(policy, demos, samples=cfg.audit_samples, pool=cfg.audit_pool)
         row["selection"] = select_checkpoint(Path(ckpt).parent.parent, ladder=cfg.selection_ladder,
-                                             num_envs=cfg.num_envs)
+                                             num_envs=cfg.num_envs, workers=cfg.workers)
         out[f"{arm} seed {seed}"] = row
         c = row["collapse"]["views"]["c_t"]
         print(f"   {arm} seed {seed}: TE32(c_t) {c['te32']:.3f}, effective rank {c['effective_rank']:.1f}; selection "
@@ -275,8 +278,9 @@ class Monitor:
 
 
 def run_rollouts(policy, cfg: DemoConfig, *, arm: str, seed: int, phase: str, first_seed: int, episodes: int,
-                 client=None, checkpoint_id: str | None = None, bar_desc: str = "") -> list[dict]:
-    """Seeded rollouts in rounds of ``num_envs``, streaming each decision to the monitor when ``client`` is set."""
+                 client=None, checkpoint_id: str | None = None, bar_desc: str = "", pool=None) -> list[dict]:
+    """Seeded rollouts in rounds of ``num_envs`` (in ``pool``, a persistent ``EnvPool`` of that many envs, when
+    given), streaming each decision to the monitor when ``client`` is set."""
     def episode_id(rollout_seed: int) -> str:
         return f"{arm}-s{seed}-{phase}-{rollout_seed}"
 
@@ -292,7 +296,7 @@ def run_rollouts(policy, cfg: DemoConfig, *, arm: str, seed: int, phase: str, fi
     with tqdm(total=episodes, desc=bar_desc or f"{arm}/{phase}", unit="ep") as bar:
         for start in range(0, episodes, cfg.num_envs):
             n = min(cfg.num_envs, episodes - start)
-            report = evaluate(policy, episodes=n, seed=first_seed + start, num_envs=n,
+            report = evaluate(policy, episodes=n, seed=first_seed + start, num_envs=n, pool=pool,
                               on_decision=on_decision if client is not None else None)
             for rec in report["records"]:
                 rec.update(arm=arm, train_seed=seed, phase=phase, episode_id=episode_id(rec["seed"]))
@@ -377,7 +381,7 @@ def run(cfg: DemoConfig, out: Path, fresh: bool = False) -> dict:
     # against it (measured here: 4x slower rollouts with 2 threads than with 1), so act single-threaded.
     torch.set_num_threads(1)
     with timer.step(f"4/{n_steps} monitor service + monitored rollouts"):
-        monitor = Monitor(out, fresh=True)
+        monitor, pool = Monitor(out, fresh=True), None
         try:
             print(f"   monitor at {monitor.url} (SQLite {out / 'monitor.db'})")
             for seed in cfg.seeds:
@@ -387,10 +391,13 @@ def run(cfg: DemoConfig, out: Path, fresh: bool = False) -> dict:
                     monitor.register_task(jepa.model.future_dim)
                 ckpt_id = f"jepa-seed{seed}-step{jepa.checkpoint_step}"
 
+                if pool is None:   # one persistent rollout pool for every arm, seed and phase
+                    pool = make_pool(jepa, cfg.num_envs, workers=cfg.workers)
+
                 def monitored(phase: str, first_seed: int, episodes: int) -> list[dict]:
                     with monitor.client() as client:
                         recs = run_rollouts(jepa, cfg, arm="jepa", seed=seed, phase=phase, first_seed=first_seed,
-                                            episodes=episodes, client=client, checkpoint_id=ckpt_id)
+                                            episodes=episodes, client=client, checkpoint_id=ckpt_id, pool=pool)
                         if not client.flush(timeout=120):
                             raise RuntimeError(f"the monitor client could not deliver the {phase} records")
                     return recs
@@ -401,10 +408,12 @@ def run(cfg: DemoConfig, out: Path, fresh: bool = False) -> dict:
                 for phase, first, n in (("calibration", CALIB_SEED, cfg.calib_episodes),
                                         ("live", LIVE_SEED, cfg.live_episodes)):
                     records += run_rollouts(policies["mip"], cfg, arm="mip", seed=seed, phase=phase,
-                                            first_seed=first, episodes=n)
+                                            first_seed=first, episodes=n, pool=pool)
             alerts, episodes, monitor_report = monitor.alerts(), monitor.episodes(), monitor.report()
         finally:
             monitor.close()
+            if pool is not None:
+                pool.close()
     with timer.step(f"5/{n_steps} decision latency (JEPA vs MIP, interleaved)"):
         policies = {arm: Policy.from_checkpoint(checkpoints[arm, cfg.seeds[0]]) for arm in ARMS}
         latency = decision_latency(policies, cfg)
@@ -436,6 +445,10 @@ def main(argv: list[str] | None = None) -> int:
     size.add_argument("--full", action="store_true", help="a real study: three seeds per arm, paired comparison")
     parser.add_argument("--out", default="demo_out", help="output folder (default: demo_out)")
     parser.add_argument("--fresh", action="store_true", help="recompute demonstrations and checkpoints")
+    parser.add_argument("--workers", type=int, default=None,
+                        help="env-only rollout processes of the rollouts (default 0: PushT's env step is cheaper than "
+                             "a process round trip; `jepa-policy bench rollouts` measures it); results are identical "
+                             "for any number")
     parser.add_argument("--steps", type=int, default=None,
                         help="training steps per arm instead of the preset's (beyond the 15-minute budget: more "
                              "steps, higher success); written to <out>/<mode>-steps<N>")
@@ -458,6 +471,10 @@ def main(argv: list[str] | None = None) -> int:
         cfg, name = demo_config(mode, args.steps)
     except ValueError as e:
         parser.error(str(e))
+    if args.workers is not None:
+        if args.workers < 0:
+            parser.error(f"--workers must be >= 0 (0: in this process), got {args.workers}")
+        cfg = replace(cfg, workers=args.workers)
     run(cfg, Path(args.out) / name, fresh=args.fresh)
     return 0
 

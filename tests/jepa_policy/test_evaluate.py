@@ -146,3 +146,74 @@ def test_arms_without_a_future_head_record_decisions_without_nmse(pusht_demo_fil
     assert [d["step"] for d in report["records"][0]["decisions"]] == [0, 8]
     assert all(d["nmse"] is None for d in report["records"][0]["decisions"])
     assert report["mean_nmse"] is None and events == []
+
+
+class _Saboteur:
+    """Acts as the policy does, and at its ``at``-th action makes one pool worker fail (once)."""
+
+    def __init__(self, policy, pool, at: int, command: str, payload):
+        self._policy, self._pool, self._at, self._fault = policy, pool, at, (command, payload)
+        self.calls = 0
+
+    def __getattr__(self, name):
+        return getattr(self._policy, name)
+
+    def act(self, obs):
+        self.calls += 1
+        if self.calls == self._at:
+            self._pool.inject(1, *self._fault)
+        return self._policy.act(obs)
+
+
+def _event_keys(events):
+    return sorted((e.kind, e.seed, e.step) for e in events)
+
+
+def test_the_pool_gives_identical_results_for_any_number_of_workers_and_reruns_a_failed_worker(checkpoint):
+    from jepa_policy.evaluate import evaluate, make_pool
+    from jepa_policy.policy import Policy
+
+    policy = Policy.from_checkpoint(checkpoint)
+    runs = {}
+    for workers in (0, 1, 2):
+        events = []
+        report = evaluate(policy, episodes=5, seed=40, num_envs=2, max_steps=30, workers=workers,
+                          keep_latents=True, on_decision=events.append)
+        assert report["workers"] == workers and report["reruns"] == []
+        runs[workers] = (report["records"], _event_keys(events))
+    # bit-identical: same seeds, same batches of the policy, same order, whatever process stepped the envs
+    assert runs[1] == runs[0] and runs[2] == runs[0]
+    clean_records, clean_events = runs[0]
+
+    # a worker that dies (as a segfault would) or stops answering is restarted, its round rerun, and said so
+    for command, payload, reason in (("crash", 9, "exit code 9"), ("hang", 60.0, "hung")):
+        pool = make_pool(policy, 2, workers=2, max_steps=30, timeout_s=3.0)
+        try:
+            first_pid = pool.describe()["pids"][1]
+            events = []
+            report = evaluate(_Saboteur(policy, pool, at=5, command=command, payload=payload), episodes=5, seed=40,
+                              pool=pool, keep_latents=True, on_decision=events.append)
+            assert pool.describe()["pids"][1] != first_pid
+        finally:
+            pool.close()
+        assert len(report["reruns"]) == 1, report["reruns"]
+        rerun = report["reruns"][0]
+        assert rerun["worker"] == 1 and reason in rerun["reason"] and rerun["episodes"] == [0, 1]
+        assert report["records"] == clean_records          # nothing lost, nothing changed
+        assert _event_keys(events) == clean_events          # and no decision delivered twice
+
+
+def test_a_worker_that_keeps_failing_ends_the_evaluation_with_the_reason(checkpoint):
+    from jepa_policy.evaluate import evaluate, make_pool
+    from jepa_policy.policy import Policy
+
+    policy = Policy.from_checkpoint(checkpoint)
+
+    class _AlwaysCrash(_Saboteur):
+        def act(self, obs):
+            self._pool.inject(1, "crash", 3)
+            return self._policy.act(obs)
+
+    with make_pool(policy, 2, workers=2, max_steps=10) as pool:
+        with pytest.raises(RuntimeError, match=r"worker 1 failed: process ended \(exit code 3\).*failed 2 times"):
+            evaluate(_AlwaysCrash(policy, pool, 0, "crash", 3), episodes=2, seed=0, pool=pool, max_reruns=1)

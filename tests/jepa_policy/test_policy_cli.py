@@ -41,14 +41,17 @@ def test_train_eval_protocols_from_the_command_line(pusht_demo_file, tmp_path, c
     out = tmp_path / "run"
     assert main(["train", "--task", "PushT", "--preset", "quick", "--dataset", str(pusht_demo_file),
                  "--steps", "4", "--warmup-steps", "1", "--eval-every", "2", "--eval-episodes", "1",
-                 "--out-dir", str(out), "--no-progress"]) == 0
+                 "--eval-workers", "1", "--out-dir", str(out), "--no-progress"]) == 0
     summary = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert summary["step"] == 4 and [p["step"] for p in summary["eval_curve"]] == [2, 4]
+    logged = [json.loads(line) for line in (out / "log.jsonl").read_text().splitlines()]
+    assert [(row["eval_workers"], row["eval_reruns"]) for row in logged if "eval_workers" in row] == [(1, [])] * 2
     ckpt = out / "checkpoints" / "latest.pt"
     assert main(["eval", "--checkpoint", str(ckpt), "--episodes", "2", "--seed", "3", "--num-envs", "2",
-                 "--max-steps", "10", "--out", str(tmp_path / "eval.jsonl")]) == 0
+                 "--max-steps", "10", "--workers", "2", "--out", str(tmp_path / "eval.jsonl")]) == 0
     report = json.loads(capsys.readouterr().out)
     assert report["episodes"] == 2 and 0.0 <= report["success_rate"] <= 1.0
+    assert report["workers"] == 2 and report["reruns"] == []
     assert len((tmp_path / "eval.jsonl").read_text().splitlines()) == 2
     assert main(["audit", "--checkpoint", str(ckpt), "--dataset", str(pusht_demo_file), "--samples", "64",
                  "--pool", "16", "--permutations", "50", "--batches", "2"]) == 0
