@@ -120,10 +120,19 @@ def _bench_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--tasks", nargs="+", default=None, help="tasks to measure (default: every buildable task)")
     p.add_argument("--steps", type=int, default=1000, help="most env steps per arm of each comparison")
     p.add_argument("--seconds", type=float, default=3.0, help="time budget of each comparison")
+    p.add_argument("--renderers", action="store_true",
+                   help="instead: ms per 84 px frame of every OpenGL backend (osmesa, EGL) and Mesa thread count, "
+                        "whether its frames are identical, and the one in use")
+    p.add_argument("--frames", type=int, default=20, help="frames per backend (--renderers)")
 
 
 @subcommand("bench", "steps/s raw backend vs our interface, and render-every-step vs render-on-demand", _bench_args)
 def bench(args: argparse.Namespace) -> int:
+    if args.renderers:
+        from jepa_envs.render import bench_renderers
+
+        bench_renderers(frames=args.frames)
+        return 0
     from jepa_envs.bench import run_bench
 
     run_bench(args.tasks, args.steps, args.seconds)
