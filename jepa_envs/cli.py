@@ -13,6 +13,7 @@ import time
 from dataclasses import asdict, dataclass
 from typing import Callable
 
+from jepa_envs import install_mimicgen
 from jepa_envs.spec import all_task_specs, backend_available, get_task_spec
 
 @dataclass(frozen=True)
@@ -137,6 +138,13 @@ def bench(args: argparse.Namespace) -> int:
 
     run_bench(args.tasks, args.steps, args.seconds)
     return 0
+
+
+@subcommand("install-mimicgen", "install MimicGen (and robosuite-task-zoo) from local clones, editable, with the "
+                                "imports its env classes need, and prove the four D1 tasks import",
+            install_mimicgen.add_arguments)
+def install_mimicgen_cmd(args: argparse.Namespace) -> int:
+    return install_mimicgen.main(args)
 
 
 def _convert_args(p: argparse.ArgumentParser) -> None:

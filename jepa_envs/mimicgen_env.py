@@ -25,12 +25,10 @@ TASK_MODULES = {
 # robosuite-task-zoo's Kitchen fails under numpy 2.4 ("setting an array element with a sequence")
 KITCHEN_MAX_NUMPY = (2, 4)
 
-INSTALL_MIMICGEN = (
-    "git clone https://github.com/NVlabs/mimicgen && pip install --no-deps -e mimicgen"
-)
-INSTALL_TASK_ZOO = (
-    "git clone https://github.com/ARISE-Initiative/robosuite-task-zoo && pip install --no-deps -e robosuite-task-zoo"
-)
+INSTALL_MIMICGEN = "git clone https://github.com/NVlabs/mimicgen && jepa-envs install-mimicgen mimicgen"
+INSTALL_WITH_TASK_ZOO = ("git clone https://github.com/NVlabs/mimicgen && git clone "
+                         "https://github.com/ARISE-Initiative/robosuite-task-zoo && jepa-envs install-mimicgen mimicgen "
+                         "--task-zoo robosuite-task-zoo")
 
 
 class MimicGenNotInstalled(ImportError):
@@ -38,10 +36,10 @@ class MimicGenNotInstalled(ImportError):
 
 
 def _message(spec: TaskSpec, what: str, reason: str) -> str:
-    steps = [INSTALL_MIMICGEN] + ([INSTALL_TASK_ZOO] if spec.source_task in NEEDS_TASK_ZOO else [])
+    steps = INSTALL_WITH_TASK_ZOO if spec.source_task in NEEDS_TASK_ZOO else INSTALL_MIMICGEN
     return (f"{spec.env_id} needs {what} ({reason}). MimicGen's task classes are not on PyPI, and the PyPI "
-            f"package named 'mimicgen' is unrelated: do not pip install mimicgen. Install from source "
-            f"(editable, so that the XML assets are found): " + " ; ".join(steps) +
+            f"package named 'mimicgen' is unrelated: do not pip install mimicgen. Install from local clones "
+            f"(editable, so that the XML assets are found; keep the clones where they are): " + steps +
             ". Details: docs/envs_simulation.md")
 
 

@@ -19,7 +19,8 @@ fi
 SUDO=""
 [ "$(id -u)" = 0 ] || SUDO="sudo"
 need_apt=""
-for pkg in libosmesa6 libgl1 chromium postgresql; do
+# libegl1 + libegl-mesa0: the EGL backend that jepa_envs.render measures beside OSMesa (jepa-envs bench --renderers)
+for pkg in libosmesa6 libegl1 libegl-mesa0 libgl1 chromium postgresql; do
   dpkg -s "$pkg" >/dev/null 2>&1 || need_apt="$need_apt $pkg"
 done
 if [ -n "$need_apt" ]; then

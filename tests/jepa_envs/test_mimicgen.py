@@ -27,7 +27,7 @@ def test_missing_mimicgen_names_what_to_install(monkeypatch):
         gym.make("JEPA/CoffeePreparation-v0")
     msg = str(err.value)
     assert "JEPA/CoffeePreparation-v0" in msg
-    assert "git clone https://github.com/NVlabs/mimicgen && pip install --no-deps -e mimicgen" in msg
+    assert "git clone https://github.com/NVlabs/mimicgen && jepa-envs install-mimicgen mimicgen." in msg
     assert "do not pip install mimicgen" in msg
     assert "robosuite-task-zoo" not in msg
 
@@ -38,7 +38,7 @@ def test_missing_task_zoo_is_named_for_kitchen(monkeypatch):
         gym.make("JEPA/Kitchen-v0")
     msg = str(err.value)
     assert "git clone https://github.com/ARISE-Initiative/robosuite-task-zoo && " \
-           "pip install --no-deps -e robosuite-task-zoo" in msg
+           "jepa-envs install-mimicgen mimicgen --task-zoo robosuite-task-zoo" in msg
     assert "NVlabs/mimicgen" in msg
 
 
