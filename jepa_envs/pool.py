@@ -15,8 +15,10 @@ and says so in its report). Nothing is dropped silently.
 """
 from __future__ import annotations
 
+import contextlib
 import multiprocessing as mp
 import os
+import sys
 import time
 import traceback
 from dataclasses import dataclass, field
@@ -145,6 +147,25 @@ def _worker_main(conn, env_id: str, count: int, env_kwargs: dict, max_steps: int
         conn.close()
 
 
+@contextlib.contextmanager
+def _main_module_hidden():
+    """Start workers without re-running the caller's script in them: a worker needs only this module, and
+    spawn would otherwise import ``__main__`` again, which fails in a script without an
+    ``if __name__ == "__main__":`` guard (and repeats whatever work its top level does)."""
+    main = sys.modules.get("__main__")
+    saved = {name: main.__dict__[name] for name in ("__file__", "__spec__") if main is not None and name in main.__dict__}
+    try:
+        if main is not None:
+            main.__dict__.pop("__file__", None)
+            main.__spec__ = None
+        yield
+    finally:
+        if main is not None:
+            main.__dict__.update(saved)
+            if "__spec__" not in saved:
+                main.__dict__.pop("__spec__", None)
+
+
 @dataclass
 class _Worker:
     index: int
@@ -201,7 +222,8 @@ class EnvPool:
             target=_worker_main, args=(child, self.env_id, len(worker.envs), self.env_kwargs, self.max_steps,
                                       max(1, available_cores() // self.workers)),
             name=f"rollout-worker-{worker.index}", daemon=True)
-        worker.process.start()
+        with _main_module_hidden():
+            worker.process.start()
         child.close()
         worker.conn = parent
 

@@ -1,0 +1,73 @@
+"""EnvPool: the same observations whatever the number of worker processes, frozen ended episodes, clear errors,
+and workers started from a plain script (no ``if __name__ == "__main__"`` guard)."""
+import subprocess
+import sys
+import textwrap
+
+import numpy as np
+import pytest
+
+from jepa_envs.pool import EnvPool, WorkerFailure
+
+KW = {"image_size": 32}
+
+
+def _trajectory(workers: int, steps: int = 12):
+    rng = np.random.default_rng(0)
+    with EnvPool("JEPA/PushT-v0", 3, workers=workers, env_kwargs=KW, max_steps=8) as pool:
+        obs, _ = pool.reset([5, 6, 7], active=[True, True, False])
+        out = [obs]
+        for t in range(steps):
+            pool.set_render_images(t % 2 == 0)
+            out.append(pool.step(rng.uniform(100, 400, size=(3, 2)).astype(np.float32)))
+        return out
+
+
+def test_same_observations_for_zero_one_and_two_workers_and_ended_envs_stay_frozen():
+    runs = {w: _trajectory(w) for w in (0, 1, 2)}
+    for w in (1, 2):
+        for a, b in zip(runs[0], runs[w]):
+            flat_a = a if isinstance(a, dict) else a[0]
+            flat_b = b if isinstance(b, dict) else b[0]
+            for key in flat_a:
+                np.testing.assert_array_equal(flat_a[key], flat_b[key])
+    steps = runs[0][1:]
+    truncated = np.array([s[3] for s in steps])
+    assert truncated[7].tolist() == [True, True, False]        # max_steps 8 ends the two live episodes
+    for s in steps[8:]:                                         # then they are frozen: no reward, no flags
+        assert s[1].tolist() == [0.0, 0.0, 0.0] and not s[2].any() and not s[3].any()
+        np.testing.assert_array_equal(s[0]["agent_pos"], steps[7][0]["agent_pos"])
+    np.testing.assert_array_equal(steps[0][0]["agent_pos"][2], runs[0][0]["agent_pos"][2])   # the spare never moved
+
+
+def test_bad_calls_and_dead_workers_are_named():
+    with pytest.raises(ValueError, match="workers must be >= 0"):
+        EnvPool("JEPA/PushT-v0", 2, workers=-1)
+    with EnvPool("JEPA/PushT-v0", 2, workers=1, env_kwargs=KW, timeout_s=5) as pool:
+        with pytest.raises(ValueError, match=r"one seed per environment \(2\)"):
+            pool.reset([1])
+        pool.reset([1, 2])
+        pool.inject(0, "crash", 7)
+        with pytest.raises(WorkerFailure, match=r"rollout worker 0 failed: process ended \(exit code 7\)"):
+            pool.step(np.zeros((2, 2), np.float32))
+        pool.restart(0, "test")
+        pool.reset([1, 2])
+        assert pool.describe()["restarts"][0]["reason"] == "test"
+    with pytest.raises(RuntimeError, match="closed"):
+        pool.reset([1, 2])
+
+
+def test_workers_start_from_a_script_without_a_main_guard(tmp_path):
+    script = tmp_path / "plain_script.py"
+    script.write_text(textwrap.dedent("""
+        import numpy as np
+        from jepa_envs.pool import EnvPool
+        print("top level ran")
+        with EnvPool("JEPA/PushT-v0", 2, workers=2, env_kwargs={"image_size": 32}) as pool:
+            obs, _ = pool.reset([0, 1])
+            pool.step(np.zeros((2, 2), np.float32))
+        print("pool ok", obs["agent_pos"].shape)
+    """))
+    out = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=300)
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert out.stdout.count("top level ran") == 1 and "pool ok (2, 2)" in out.stdout   # not re-run in the workers
