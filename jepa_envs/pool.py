@@ -99,6 +99,11 @@ class _EnvHost:
             env.close()
 
 
+def _renderer_in_use() -> str:
+    """The OpenGL backend this process's MuJoCo envs render with, or "none" (PushT rasterises without it)."""
+    return os.environ.get("MUJOCO_GL", "none") if "mujoco" in sys.modules else "none"
+
+
 def _plain_info(info: dict) -> dict:
     """The scalar entries of an env's info (what crosses the process boundary and gets batched)."""
     return {k: v for k, v in info.items() if isinstance(v, (bool, int, float, np.bool_, np.integer, np.floating))}
@@ -112,7 +117,7 @@ def _worker_main(conn, env_id: str, count: int, env_kwargs: dict, max_steps: int
     os.environ.setdefault("LP_NUM_THREADS", str(render_threads))
     try:
         host = _EnvHost(env_id, count, env_kwargs, max_steps)
-        conn.send(("ok", os.getpid()))
+        conn.send(("ok", (os.getpid(), _renderer_in_use())))
         while True:
             command, payload = conn.recv()
             if command == "close":
@@ -202,8 +207,10 @@ class EnvPool:
         self._render = [True] * self.num_envs
         self._render_changed = True   # render flags travel with the next reset or step (no extra round trip)
         self._closed = False
+        self.renderer = "none"
         if self.workers == 0:
             self._host = _EnvHost(env_id, self.num_envs, self.env_kwargs, max_steps)
+            self.renderer = _renderer_in_use()
             self._workers: list[_Worker] = []
         else:
             self._host = None
@@ -232,7 +239,7 @@ class EnvPool:
         if status != "ok":
             self._kill(worker)
             raise RuntimeError(f"rollout worker {worker.index} could not build {self.env_id}:\n{payload}")
-        worker.pid = payload
+        worker.pid, self.renderer = payload
 
     def _kill(self, worker: _Worker) -> None:
         if worker.process is not None and worker.process.is_alive():
@@ -375,7 +382,7 @@ class EnvPool:
         self.close()
 
     def describe(self) -> dict:
-        return {"env_id": self.env_id, "num_envs": self.num_envs, "workers": self.workers,
+        return {"env_id": self.env_id, "num_envs": self.num_envs, "workers": self.workers, "renderer": self.renderer,
                 "pids": [w.pid for w in self._workers], "restarts": [e.__dict__ for e in self.events]}
 
 

@@ -269,7 +269,7 @@ def bench_rollouts(task: str = "PushT", workers: int | None = None, episodes: in
             "workers": workers, "cores": available_cores(), "episodes_per_min": rate,
             "speedup": rate[workers] / rate[1], "in_process_ratio": rate[0] / rate[1], "startup_s": startup,
             "identical_records": all(r == records[1] for r in records.values()),
-            "renderer": os.environ.get("MUJOCO_GL", "-"),
+            "renderer": pools[workers].renderer,
             "load_avg": os.getloadavg()[0]}
 
 

@@ -183,6 +183,7 @@ def evaluate(policy, episodes: int, seed: int, num_envs: int = 4, max_steps: int
         )) if valid else None,
         "residualised_fit": fit,
         "workers": pool.workers,
+        "renderer": pool.renderer,
         "reruns": reruns,
         "ranks": world,
         "episodes_by_rank": shares,

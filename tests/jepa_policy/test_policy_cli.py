@@ -52,6 +52,7 @@ def test_train_eval_protocols_from_the_command_line(pusht_demo_file, tmp_path, c
     report = json.loads(capsys.readouterr().out)
     assert report["episodes"] == 2 and 0.0 <= report["success_rate"] <= 1.0
     assert report["workers"] == 2 and report["reruns"] == []
+    assert report["renderer"] == "none"   # PushT rasterises without OpenGL; MuJoCo tasks name their backend
     assert len((tmp_path / "eval.jsonl").read_text().splitlines()) == 2
     assert main(["audit", "--checkpoint", str(ckpt), "--dataset", str(pusht_demo_file), "--samples", "64",
                  "--pool", "16", "--permutations", "50", "--batches", "2"]) == 0
