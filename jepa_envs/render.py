@@ -117,7 +117,9 @@ def choose_renderer(verbose: bool = True) -> str:
     result = measure()
     try:
         CACHE.parent.mkdir(parents=True, exist_ok=True)
-        CACHE.write_text(json.dumps({"key": key, **result}, indent=2))
+        tmp = CACHE.with_suffix(f".{os.getpid()}.tmp")   # atomic: pool workers may measure at the same time
+        tmp.write_text(json.dumps({"key": key, **result}, indent=2))
+        os.replace(tmp, CACHE)
     except OSError:
         pass
     if verbose:
