@@ -10,29 +10,14 @@ settle. Default image size 84 (the paper's); pass ``image_size=128`` for LIBERO-
 from __future__ import annotations
 
 import os
-from contextlib import contextmanager
-
-import numpy as np
 
 from jepa_envs.libero_setup import check_assets, ensure_libero_config
-from jepa_envs.robosuite_common import RobosuiteTaskEnv, check_action_mode, set_control_delta
+from jepa_envs.robosuite_common import RobosuiteTaskEnv, check_action_mode, global_numpy_seed, set_control_delta
 from jepa_envs.spec import get_task_spec
 
 BENCHMARK = "libero_10"
 SETTLE_STEPS = 5  # still steps after loading an initial state, as in LIBERO's evaluation (lifelong/metric.py)
 FIXTURE_SEED = 20_240_000  # + init_state_id: where the fixtures stand in that initial state
-
-
-@contextmanager
-def _global_numpy_seed(seed: int):
-    """Seed numpy's global generator (robosuite's and LIBERO's placement samplers draw from it) for a block, then
-    put its state back, so the caller's random stream is untouched."""
-    state = np.random.get_state()
-    np.random.seed(seed)
-    try:
-        yield
-    finally:
-        np.random.set_state(state)
 
 
 class LiberoEnv(RobosuiteTaskEnv):
@@ -85,7 +70,7 @@ class LiberoEnv(RobosuiteTaskEnv):
         # LIBERO's stored initial states hold the movable objects (qpos), not the fixtures (the stove is a fixed
         # body placed by the reset's sampler into model.body_pos): seed that placement by the initial state's id,
         # so the same id is the same scene every time.
-        with _global_numpy_seed(FIXTURE_SEED + self.init_state_id):
+        with global_numpy_seed(FIXTURE_SEED + self.init_state_id):
             self.libero_env.reset()
         raw = self.libero_env.set_init_state(self.init_states[self.init_state_id])
         if SETTLE_STEPS:

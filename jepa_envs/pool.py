@@ -66,9 +66,10 @@ class _EnvHost:
         out = []
         for i, (env, seed) in enumerate(zip(self.envs, seeds)):
             obs, info = env.reset(seed=seed)
+            info = _plain_info(info)
             self.done[i] = not active[i]   # a spare keeps the batch's shape; it is never stepped
-            self.last[i] = (obs, 0.0, False, False, _plain_info(info))
-            out.append((obs, _plain_info(info)))
+            self.last[i] = (obs, 0.0, False, False, info)
+            out.append((obs, info))
         return out
 
     def step(self, payload: tuple[list[np.ndarray], list[bool] | None]) -> list[tuple]:

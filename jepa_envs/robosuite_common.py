@@ -80,7 +80,8 @@ def set_control_delta(backend: Any, control_delta: bool) -> None:
 
 @contextmanager
 def global_numpy_seed(seed: int):
-    """robosuite's placement samplers draw from numpy's global RNG: seed it for one call, then restore it."""
+    """robosuite's and LIBERO's placement samplers draw from numpy's global RNG: seed it for one block, then
+    restore it, so the caller's random stream is untouched."""
     state = np.random.get_state()
     np.random.seed(seed)
     try:

@@ -209,10 +209,6 @@ class ARX5Backend(RobotBackend):
     def action_high(self) -> np.ndarray:
         return self._high
 
-    @property
-    def rotation6d_starts(self) -> list[int]:
-        return [10 * i + 3 for i in range(len(self._arm_names))]
-
     def _images(self) -> dict[str, np.ndarray]:
         size = self.task_spec.image_size
         if not self._render:

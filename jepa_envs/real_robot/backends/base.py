@@ -10,7 +10,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from jepa_envs.spec import TaskSpec
+from jepa_envs.spec import ABS_ACTION_DIM_PER_ARM, TaskSpec
 
 
 class BackendUnavailable(ImportError):
@@ -47,8 +47,10 @@ class RobotBackend(ABC):
 
     @property
     def rotation6d_starts(self) -> list[int]:
-        """Indices where 6-D rotation blocks start in the action (checked for degeneracy)."""
-        return []
+        """Indices where 6-D rotation blocks start in the action (checked for degeneracy): absolute robot
+        actions are [position 3, 6-D rotation 6, gripper 1] per arm (Sec. 4.1); a task without arms (PushT)
+        has none."""
+        return [ABS_ACTION_DIM_PER_ARM * arm + 3 for arm in range(self.task_spec.num_arms)]
 
     @abstractmethod
     def reset(self, seed: int | None = None) -> tuple[dict[str, np.ndarray], dict]:

@@ -62,10 +62,6 @@ class ReplayBackend(RobotBackend):
         return self._high
 
     @property
-    def rotation6d_starts(self) -> list[int]:
-        return [10 * arm + 3 for arm in range(self.task_spec.num_arms)]
-
-    @property
     def joint_count(self) -> int | None:
         return self._joint_count
 

@@ -63,13 +63,6 @@ class SimBackend(RobotBackend):
     def action_high(self) -> np.ndarray:
         return self._high
 
-    @property
-    def rotation6d_starts(self) -> list[int]:
-        # absolute robot actions are [pos 3, rot6d 6, gripper 1] per arm (Sec. 4.1); PushT has no rotation
-        if self.task_spec.num_arms == 0:
-            return []
-        return [10 * arm + 3 for arm in range(self.task_spec.num_arms)]
-
     def _with_replicas(self, obs: dict) -> dict:
         for key, source in self._replica_of.items():
             obs[key] = obs[source].copy()
