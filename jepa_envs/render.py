@@ -10,6 +10,7 @@ printed once. ``jepa-envs bench --renderers`` prints the measurement.
 """
 from __future__ import annotations
 
+import glob
 import hashlib
 import json
 import os
@@ -17,6 +18,7 @@ import platform
 import subprocess
 import sys
 import time
+from importlib.metadata import version
 from pathlib import Path
 
 CANDIDATES = ("egl", "osmesa")
@@ -74,10 +76,14 @@ def probe(renderer: str, frames: int = 20, size: int = 84, extra_env: dict | Non
     return {"renderer": renderer, **json.loads(lines[-1])}
 
 
-def _machine_key() -> str:
-    from importlib.metadata import version   # not ``import mujoco``: it would fix the backend before the choice
+# where EGL vendor libraries (libEGL_mesa, libEGL_nvidia) are installed; one directory level, not a walk of
+# /usr/lib, which took 1.4 s here at every start of a process that renders
+EGL_LIBRARY_GLOBS = ("/usr/lib/libEGL_*.so*", "/usr/lib/*/libEGL_*.so*", "/usr/lib64/libEGL_*.so*")
 
-    libs = sorted(str(p) for p in Path("/usr/lib").rglob("libEGL_*.so*")) if sys.platform.startswith("linux") else []
+
+def _machine_key() -> str:
+    libs = sorted(p for pattern in EGL_LIBRARY_GLOBS for p in glob.glob(pattern))
+    # the mujoco version from its metadata: ``import mujoco`` would fix the backend before the choice
     raw = json.dumps([platform.node(), platform.machine(), version("mujoco"), os.cpu_count(), libs])
     return hashlib.sha256(raw.encode()).hexdigest()[:16]
 

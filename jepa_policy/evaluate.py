@@ -129,10 +129,11 @@ def evaluate(policy, episodes: int, seed: int, num_envs: int = 4, max_steps: int
     own_pool = pool is None
     if own_pool:
         pool = make_pool(policy, min(num_envs, episodes), workers=workers, max_steps=max_steps)
-    elif pool.env_id != spec.env_id or pool.env_kwargs != env_kwargs_for(spec, getattr(policy, "env_args", None)):
-        raise ValueError(f"the pool runs {pool.env_id} with {pool.env_kwargs}, the policy acts on {spec.env_id} with "
-                         f"{env_kwargs_for(spec, getattr(policy, 'env_args', None))}; make a pool for it "
-                         f"(jepa_policy.evaluate.make_pool)")
+    else:
+        wanted = env_kwargs_for(spec, getattr(policy, "env_args", None))
+        if pool.env_id != spec.env_id or pool.env_kwargs != wanted:
+            raise ValueError(f"the pool runs {pool.env_id} with {pool.env_kwargs}, the policy acts on {spec.env_id} "
+                             f"with {wanted}; make a pool for it (jepa_policy.evaluate.make_pool)")
     n = pool.num_envs
     rank, world = shard if shard is not None else _process_group()
     if not 0 <= rank < world:
