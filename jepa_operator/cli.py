@@ -18,6 +18,9 @@ import sys
 
 from jepa_operator import DEFAULT_OPERATOR, OperatorClient, OperatorError
 
+# the operator socket the commands talk to: --operator, else JEPA_ROBOT_OPERATOR, else the loopback default
+OPERATOR_ENV = "JEPA_ROBOT_OPERATOR"
+
 OPERATOR_COMMANDS = ("estop", "clear-estop", "confirm", "home", "status", "shutdown")
 
 
@@ -25,15 +28,17 @@ def _parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="jepa-robot-bridge", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = parser.add_subparsers(dest="command", required=True)
+    default = os.environ.get(OPERATOR_ENV) or DEFAULT_OPERATOR
+    where = f"operator socket (default {default}: ${OPERATOR_ENV}, else {DEFAULT_OPERATOR})"
     for name, text in (("estop", "latch the emergency stop (takes effect mid-chunk)"),
                        ("clear-estop", "release the emergency stop"), ("home", "drive the robot home"),
                        ("status", "print the bridge status"), ("shutdown", "stop the bridge")):
         cmd = sub.add_parser(name, help=text)
-        cmd.add_argument("--operator", default=DEFAULT_OPERATOR, help=f"operator socket (default {DEFAULT_OPERATOR})")
+        cmd.add_argument("--operator", default=default, help=where)
         cmd.add_argument("--timeout", type=float, default=5.0, help="seconds to wait for the bridge")
     confirm = sub.add_parser("confirm", help="confirm the episode outcome")
     confirm.add_argument("outcome", choices=("success", "failure"))
-    confirm.add_argument("--operator", default=DEFAULT_OPERATOR)
+    confirm.add_argument("--operator", default=default, help=where)
     confirm.add_argument("--timeout", type=float, default=5.0)
     return parser
 

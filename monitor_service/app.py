@@ -142,6 +142,7 @@ def create_app(settings: MonitorSettings | None = None) -> FastAPI:
             raise SystemExit(f"the supervising process {supervisor} ended while this worker started; not serving")
         exit_with_parent(int(supervisor))
     engine = db.make_engine(settings.database_url)
+    in_use = db.mark_sqlite_in_use(settings.database_url)   # `db restore` refuses while a server holds this
     if settings.run_migrations:
         db.upgrade(engine)
     make_session = db.make_sessionmaker(engine)
@@ -161,6 +162,8 @@ def create_app(settings: MonitorSettings | None = None) -> FastAPI:
             if task is not None:
                 await task
             engine.dispose()
+            if in_use is not None:
+                in_use.close()
 
     app = FastAPI(
         title="JEPA Policy monitor",

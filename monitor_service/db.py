@@ -251,6 +251,22 @@ def _sqlite_path(url: str, action: str) -> str:
     return url[len("sqlite:///"):]
 
 
+def _in_use_marker(path: str) -> Path:
+    return Path(f"{path}.in-use")
+
+
+def mark_sqlite_in_use(url: str):
+    """Hold a shared advisory lock on ``<database>.in-use`` for as long as the returned file stays open (the life
+    of a server process); ``restore_sqlite`` refuses while any process holds it. None for other databases."""
+    import fcntl
+
+    if not url.startswith("sqlite:///") or url.endswith(":memory:"):
+        return None
+    marker = open(_in_use_marker(url[len("sqlite:///"):]), "a")   # noqa: SIM115 - kept open on purpose
+    fcntl.flock(marker, fcntl.LOCK_SH)
+    return marker
+
+
 def backup_sqlite(url: str, target: str) -> None:
     """A consistent copy of a live SQLite database (SQLite's online backup; safe while the service writes)."""
     import sqlite3
@@ -276,5 +292,13 @@ def restore_sqlite(url: str, backup: str) -> None:
         raise SystemExit(f"{backup} is not an SQLite database ({exc})") from None
     if not {"alembic_version", "episodes", "api_keys"} <= tables:
         raise SystemExit(f"{backup} is not a monitor database (no alembic_version / episodes / api_keys tables)")
-    with sqlite3.connect(backup) as src, sqlite3.connect(target) as dst:
-        src.backup(dst)
+    import fcntl
+
+    with open(_in_use_marker(target), "a") as marker:
+        try:
+            fcntl.flock(marker, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            raise SystemExit(f"a monitor server is serving {target}: stop it first (deploy/RUNBOOK.md, 'Backup and "
+                             "restore'); a restore under a live server would lose what it writes") from None
+        with sqlite3.connect(backup) as src, sqlite3.connect(target) as dst:
+            src.backup(dst)

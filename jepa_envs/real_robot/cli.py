@@ -41,7 +41,8 @@ def _parser() -> argparse.ArgumentParser:
                                         "TOML with a [safety] table; replay: the set-up whose limits apply")
     serve.add_argument("--episode", help="replay: the episode manifest (.json) a bridge recorded")
     serve.add_argument("--bind", help="control socket (default tcp://127.0.0.1:5555, arx5: from config)")
-    serve.add_argument("--operator-bind", help=f"operator socket (default {DEFAULT_OPERATOR})")
+    serve.add_argument("--operator-bind", help=f"operator socket (default $JEPA_ROBOT_OPERATOR, else "
+                                               f"{DEFAULT_OPERATOR}; arx5: from config)")
     serve.add_argument("--image-size", type=int)
     serve.add_argument("--record-dir", help="write per-episode HDF5 + JSON manifests here")
     serve.add_argument("--chunk-budget", type=int, help="override the task's action-chunk budget")
@@ -54,21 +55,35 @@ def _parser() -> argparse.ArgumentParser:
     serve.add_argument("--observe-only", action="store_true",
                        help="serve cameras and proprioception; refuse every action, reset and homing")
     serve.add_argument("--curve-keys", help="CurveZMQ on the control socket: the folder `keys` wrote")
+    serve.add_argument("--insecure-network", action="store_true",
+                       help="allow a control socket reachable from the network without CurveZMQ (only on a "
+                            "dedicated, isolated robot-policy link)")
     serve.add_argument("--no-prompt", action="store_true", help="never prompt on stdin for confirmation")
     serve.add_argument("-v", "--verbose", action="store_true")
 
     check = sub.add_parser("check", help="validate a set-up file without touching any hardware")
     check.add_argument("config", help="ARX-5 set-up TOML, or a TOML with a [safety] table for --task")
     check.add_argument("--task", help="a simulation task to check a [safety] table against (builds the sim)")
+    check.add_argument("--insecure-network", action="store_true",
+                       help="accept a network-reachable control socket without CurveZMQ (as serve would)")
 
     observe = sub.add_parser("observe", help="watch the observations a bridge serves (observe-only or not)")
     observe.add_argument("--address", default="tcp://127.0.0.1:5555")
     observe.add_argument("--seconds", type=float, default=5.0)
     observe.add_argument("--save", help="write the newest frame of every camera here as PNG")
 
-    keys = sub.add_parser("keys", help="make CurveZMQ keys: the bridge's pair and one pair per client")
-    keys.add_argument("folder")
-    keys.add_argument("--client", action="append", default=[], help="client name (repeat); default policy")
+    keys = sub.add_parser("keys", help="CurveZMQ keys: the bridge's pair (robot computer), a client's pair "
+                                       "(policy computer), or authorise a client's public key")
+    keys.add_argument("folder", help="the bridge's key folder (robot computer), or with --client-only the "
+                                     "folder for the client's pair (policy computer)")
+    keys.add_argument("--client", action="append", default=[],
+                      help="client name (repeat): its pair is written to --client-dir, its public key authorised")
+    keys.add_argument("--client-dir", help="where the clients' pairs go (a folder you move to the policy computer; "
+                                           "it must not be inside the bridge's folder)")
+    keys.add_argument("--client-only", action="store_true",
+                      help="policy computer: write only a client pair (named by --client) into FOLDER")
+    keys.add_argument("--authorize", metavar="PUBLIC_KEY", action="append", default=[],
+                      help="robot computer: add a client's public key file (<name>.key) to FOLDER/authorized_clients")
 
     bench = sub.add_parser("bench", help="round-trip latency over loopback vs the sim env in-process")
     bench.add_argument("--task", default="PushT")
@@ -130,9 +145,22 @@ def _curve(folder: str | None) -> dict:
 
 
 def serve(args) -> int:
-    from jepa_envs.real_robot.bridge import BridgeConfig, RobotBridge
+    import zmq
+
+    from jepa_envs.real_robot.bridge import BridgeConfig, RobotBridge, network_bind_problem
 
     curve = _curve(args.curve_keys)
+
+    def config_for(control: str, operator: str, record_dir: str | None, curve: dict) -> BridgeConfig:
+        config = BridgeConfig(control, operator, record_dir, args.chunk_budget, args.observe_only,
+                              insecure_network=args.insecure_network, **curve)
+        # refused before any hardware is opened (the bridge checks again before it binds)
+        problem = network_bind_problem(config.control_address, config.curve_secret_key is not None,
+                                       config.insecure_network)
+        if problem:
+            raise SystemExit(f"error: {problem}")
+        return config
+
     if args.backend == "arx5":
         if not args.config:
             raise SystemExit("--backend arx5 needs --config FILE (see deploy/robot/arx5_cabinet.toml)")
@@ -141,13 +169,15 @@ def serve(args) -> int:
         safety = setup.safety
         curve = curve or ({"curve_secret_key": setup.curve_secret_key,
                            "curve_authorized_dir": setup.curve_authorized_dir} if setup.curve_secret_key else {})
+        config = config_for(args.bind or setup.control_address, args.operator_bind or setup.operator_address,
+                            args.record_dir or setup.record_dir, curve)
         backend = ARX5Backend(setup, image_size=args.image_size)
-        config = BridgeConfig(args.bind or setup.control_address, args.operator_bind or setup.operator_address,
-                              args.record_dir or setup.record_dir, args.chunk_budget, args.observe_only, **curve)
     elif args.backend == "replay":
         if not args.episode:
             raise SystemExit("--backend replay needs --episode MANIFEST.json (an episode a bridge recorded)")
         from jepa_envs.real_robot.backends.replay import ReplayBackend
+        config = config_for(args.bind or "tcp://127.0.0.1:5555", args.operator_bind or _operator_default(),
+                            args.record_dir, curve)
         bounds, joints, safety = None, None, _safety_from_toml(None)
         raw = _read_toml(args.config)
         if "arms" in raw:   # the real set-up: its workspace, joint count and safety rules apply to the dry run
@@ -157,28 +187,26 @@ def serve(args) -> int:
         elif raw:
             safety = _safety_from_toml(args.config)
         backend = ReplayBackend(args.episode, bounds=bounds, joint_count=joints, realtime=args.realtime)
-        config = BridgeConfig(args.bind or "tcp://127.0.0.1:5555", args.operator_bind or DEFAULT_OPERATOR,
-                              args.record_dir, args.chunk_budget, args.observe_only, **curve)
     else:
         if not args.task:
             raise SystemExit("--backend sim needs --task NAME (e.g. PushT)")
         import jepa_envs  # noqa: F401  (registers the tasks)
         from jepa_envs.real_robot.backends.sim import SimBackend
+        config = config_for(args.bind or "tcp://127.0.0.1:5555", args.operator_bind or _operator_default(),
+                            args.record_dir, curve)
         safety = _safety_from_toml(args.config)
-        backend = SimBackend(args.task, image_size=args.image_size, success_source=args.success_source,
+        backend = SimBackend(_known_task(args.task), image_size=args.image_size, success_source=args.success_source,
                              realtime=args.realtime, camera_replicas=args.camera_replicas)
-        config = BridgeConfig(args.bind or "tcp://127.0.0.1:5555", args.operator_bind or DEFAULT_OPERATOR,
-                              args.record_dir, args.chunk_budget, args.observe_only, **curve)
     if args.on_violation:
         safety = safety.model_copy(update={"on_violation": args.on_violation})
     try:
         bridge = RobotBridge(backend, safety, config)
-    except ValueError as exc:
+        bridge.bind()
+    except (ValueError, zmq.ZMQError) as exc:
         backend.close()
         raise SystemExit(f"error: {exc}") from None
     if not args.no_prompt and backend.success_source == "operator" and sys.stdin.isatty():
         bridge.on_confirmation_needed = _prompt_operator(bridge)
-    bridge.bind()
     mode = " (observe-only: no motion)" if config.observe_only else ""
     print(f"robot bridge v{_version()} serving {backend.task_spec.name} ({type(backend).__name__}) on "
           f"{bridge.control_endpoint}, operator socket {bridge.operator_endpoint}{mode}", flush=True)
@@ -191,13 +219,32 @@ def serve(args) -> int:
     return 0
 
 
+def _known_task(name: str) -> str:
+    """The task's name, or exit with the list of known tasks (no traceback)."""
+    import jepa_envs  # noqa: F401  (registers the tasks)
+    from jepa_envs.spec import get_task_spec
+    try:
+        return get_task_spec(name).name
+    except KeyError as exc:
+        raise SystemExit(f"error: {exc.args[0]}") from None
+
+
+def _operator_default() -> str:
+    """The operator socket a sim or replay bridge binds: the address the operator commands use by default."""
+    import os
+
+    from jepa_operator.cli import OPERATOR_ENV
+    return os.environ.get(OPERATOR_ENV) or DEFAULT_OPERATOR
+
+
 def _version() -> int:
     from jepa_envs.real_robot.protocol import PROTOCOL_VERSION
     return PROTOCOL_VERSION
 
 
 def check(args) -> int:
-    """Validate a set-up file: every list length and bound, addresses, keys, record folder; no hardware."""
+    """Validate a set-up file: every list length and bound, timing rules, addresses, keys, record folder; no
+    hardware."""
     from pydantic import ValidationError
 
     from jepa_envs.real_robot.safety import SafetyConfig
@@ -220,7 +267,7 @@ def check(args) -> int:
             if len(set(serials)) != len(serials):
                 errors.append(f"cameras: the same serial is listed twice ({serials})")
             errors += _address_problems(setup.control_address, setup.operator_address, setup.curve_secret_key,
-                                        notes)
+                                        args.insecure_network, notes)
             errors += _record_dir_problems(setup.record_dir)
             for key in (setup.curve_secret_key, setup.curve_authorized_dir):
                 if key is not None and not Path(key).exists():
@@ -228,18 +275,18 @@ def check(args) -> int:
     else:
         if not args.task:
             raise SystemExit("a file without [[arms]] is a [safety] table for a simulation task: add --task NAME")
+        task = _known_task(args.task)
         try:
             safety = SafetyConfig.model_validate(raw.get("safety", {}))
         except ValidationError as exc:
             errors += [f"safety.{'.'.join(map(str, e['loc']))}: {e['msg']}" for e in exc.errors()]
         else:
-            import jepa_envs  # noqa: F401  (registers the tasks)
             from jepa_envs.real_robot.backends.sim import SimBackend
-            backend = SimBackend(args.task)
+            backend = SimBackend(task)
+            spec = backend.task_spec
             try:
-                errors += safety.problems(backend.task_spec.action_dim, backend.joint_count)
-                notes.append(f"task {backend.task_spec.name}: {backend.task_spec.action_dim}-D actions, "
-                             f"{backend.joint_count or 'no'} joints")
+                errors += safety.problems(spec.action_dim, backend.joint_count, spec.control_hz)
+                notes.append(f"task {spec.name}: {spec.action_dim}-D actions, {backend.joint_count or 'no'} joints")
             finally:
                 backend.close()
     for note in notes:
@@ -251,21 +298,24 @@ def check(args) -> int:
     return 0 if not errors else 1
 
 
-def _address_problems(control: str, operator: str, curve: str | None, notes: list[str]) -> list[str]:
-    from jepa_envs.real_robot.bridge import _is_loopback
+def _address_problems(control: str, operator: str, curve: str | None, insecure_network: bool,
+                      notes: list[str]) -> list[str]:
+    from jepa_envs.real_robot.bridge import is_loopback, network_bind_problem
 
     problems = []
     for name, address in (("control_address", control), ("operator_address", operator)):
         if not address.startswith(("tcp://", "ipc://", "inproc://")) or (
                 address.startswith("tcp://") and not address.rsplit(":", 1)[-1].replace("*", "1").isdigit()):
             problems.append(f"{name} {address!r} is not a ZeroMQ endpoint like tcp://127.0.0.1:5555")
-    if not _is_loopback(operator):
+    if not is_loopback(operator):
         problems.append(f"operator_address {operator!r} is reachable from the network; operator commands "
                         "(e-stop, home, confirm) must come from the robot computer: use tcp://127.0.0.1:PORT")
-    if not _is_loopback(control) and curve is None:
-        notes.append(f"WARNING control_address {control} is reachable from the network without encryption; the "
-                     "session token travels in clear: set curve_secret_key/curve_authorized_dir or use an SSH "
-                     "tunnel (docs/real_robot.md, 'Network security')")
+    bind_problem = network_bind_problem(control, curve is not None, insecure_network)
+    if bind_problem:
+        problems.append(f"control_address: {bind_problem}")
+    elif not is_loopback(control) and curve is None:
+        notes.append(f"WARNING control_address {control} is reachable from the network without encryption "
+                     "(--insecure-network): the session token travels in clear")
     return problems
 
 
@@ -311,24 +361,62 @@ def observe(args) -> int:
 
 
 def keys(args) -> int:
-    """CurveZMQ certificates: bridge.key(_secret), <client>.key(_secret), authorized_clients/<client>.key."""
+    """CurveZMQ certificates. Robot computer: FOLDER/bridge.key(_secret) and FOLDER/authorized_clients/; each
+    client's pair is written to --client-dir (to be moved to its policy computer), never into FOLDER, and only
+    its public key is authorised. Policy computer: --client-only writes one client pair. --authorize adds a
+    public key a policy computer made."""
     import shutil
 
     import zmq.auth
 
     root = Path(args.folder)
+    if args.client_only:
+        names = args.client or ["policy"]
+        root.mkdir(parents=True, exist_ok=True)
+        for name in names:
+            _, secret = zmq.auth.create_certificates(root, name)
+            Path(secret).chmod(0o600)
+        print(f"client keys in {root}: keep {', '.join(n + '.key_secret' for n in names)} here; copy "
+              f"{', '.join(n + '.key' for n in names)} to the robot computer and authorise it there "
+              "(jepa-robot-bridge keys BRIDGE_FOLDER --authorize NAME.key)")
+        return 0
     authorized = root / "authorized_clients"
     authorized.mkdir(parents=True, exist_ok=True)
-    zmq.auth.create_certificates(root, "bridge")
-    for name in args.client or ["policy"]:
-        public, _ = zmq.auth.create_certificates(root, name)
-        shutil.copy(public, authorized / Path(public).name)
-    for secret in root.glob("*.key_secret"):
-        secret.chmod(0o600)
-    print(f"keys in {root}: the robot computer keeps bridge.key_secret and authorized_clients/; each policy "
-          f"computer gets bridge.key and its own <name>.key_secret "
-          f"(serve --curve-keys {root}; jepa-policy robot --curve-server-key {root / 'bridge.key'} "
-          f"--curve-client-key {root / ((args.client or ['policy'])[0] + '.key_secret')})")
+    if not (root / "bridge.key_secret").exists():
+        _, secret = zmq.auth.create_certificates(root, "bridge")
+        Path(secret).chmod(0o600)
+    for public in args.authorize:
+        public = Path(public)
+        try:
+            key, secret = zmq.auth.load_certificate(public)
+        except (OSError, ValueError) as exc:
+            raise SystemExit(f"error: {public} is not a CurveZMQ public key file ({exc})") from None
+        if secret is not None:
+            raise SystemExit(f"error: {public} holds a secret key; authorise the client's public '.key' file")
+        shutil.copy(public, authorized / public.name)
+        print(f"authorised {public.name}; restart the bridge to let it in (the bridge reads the folder at start)")
+    if args.client:
+        if not args.client_dir:
+            raise SystemExit("error: --client needs --client-dir OUT: the clients' secret keys go there, to be "
+                             "moved to the policy computer, never into the bridge's folder")
+        out = Path(args.client_dir)
+        if out.resolve() == root.resolve() or root.resolve() in out.resolve().parents:
+            raise SystemExit(f"error: --client-dir {out} is inside the bridge's folder {root}; pick a folder "
+                             "outside it (the clients' secret keys must not stay on the robot computer)")
+        out.mkdir(parents=True, exist_ok=True)
+        for name in args.client:
+            public, secret = zmq.auth.create_certificates(out, name)
+            Path(secret).chmod(0o600)
+            shutil.copy(public, authorized / Path(public).name)
+    leftover = sorted(p.name for p in root.glob("*.key_secret") if p.name != "bridge.key_secret")
+    print(f"bridge keys in {root}: the robot computer keeps bridge.key_secret and authorized_clients/ "
+          f"({len(list(authorized.glob('*.key')))} client(s)); give each policy computer bridge.key"
+          + (f"; move {args.client_dir} to the policy computer and delete it here "
+             f"(jepa-policy robot --curve-server-key bridge.key --curve-client-key NAME.key_secret)"
+             if args.client else ""))
+    if leftover:
+        print(f"WARNING {root} holds client secret keys {leftover}: move them to their policy computers and delete "
+              "them here")
     return 0
 
 
@@ -348,7 +436,7 @@ def main(argv: list[str] | None = None) -> int:
         from jepa_envs.real_robot.backends.base import BackendUnavailable
         try:
             return serve(args)
-        except (BackendUnavailable, FileNotFoundError, ValidationError) as exc:
+        except (BackendUnavailable, FileNotFoundError, ValidationError, ValueError) as exc:
             print(f"error: {exc}", file=sys.stderr)
             return 2
     if args.command == "check":

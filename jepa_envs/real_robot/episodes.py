@@ -18,6 +18,22 @@ import numpy as np
 OUTCOMES = ("success", "failure", "interrupted")
 
 
+def check_manifest(manifest) -> dict:
+    """The client's episode manifest as the record will store it, or ValueError naming what JSON cannot hold.
+
+    Checked when the episode starts (``reset``), so a bad value is refused before anything moves instead of
+    losing the episode's record at its end.
+    """
+    if not isinstance(manifest, dict):
+        raise ValueError(f"manifest must be a map, got {type(manifest).__name__}")
+    try:
+        json.dumps(manifest, allow_nan=False)
+    except (TypeError, ValueError, OverflowError, RecursionError) as exc:
+        raise ValueError(f"the manifest cannot be stored in the episode's JSON record ({str(exc)[:120]}); send "
+                         "strings, finite numbers, booleans, null, lists and maps with string keys") from None
+    return manifest
+
+
 def latency_stats(latencies_s, skip_first: bool = True) -> dict:
     """Median and p95 frame-to-chunk latency in ms; the paper drops each episode's first chunk (Sec. 4.8)."""
     values = np.asarray(latencies_s, dtype=np.float64)
@@ -100,11 +116,31 @@ class EpisodeRecord:
         }
 
     def save(self, root: str | Path) -> Path:
-        """Write the HDF5 arrays and the JSON manifest; returns the manifest path."""
+        """Write the HDF5 arrays and the JSON manifest; returns the manifest path.
+
+        Both files appear complete or not at all: each is written under a temporary name and renamed, the JSON
+        text is made before either is written, and a failure removes what was written.
+        """
         folder = Path(root) / self.task
         folder.mkdir(parents=True, exist_ok=True)
         h5_path = folder / f"{self.episode_id}.h5"
-        with h5py.File(h5_path, "w") as f:
+        manifest_path = folder / f"{self.episode_id}.json"
+        manifest_text = json.dumps({**self.summary(), "arrays": h5_path.name}, indent=2)
+        summary_text = json.dumps(self.summary())
+        tmp_h5, tmp_json = h5_path.with_suffix(".h5.tmp"), manifest_path.with_suffix(".json.tmp")
+        try:
+            self._write_arrays(tmp_h5, summary_text)
+            tmp_json.write_text(manifest_text)
+            tmp_h5.replace(h5_path)
+            tmp_json.replace(manifest_path)
+        except BaseException:
+            for path in (tmp_h5, tmp_json):
+                path.unlink(missing_ok=True)
+            raise
+        return manifest_path
+
+    def _write_arrays(self, path: Path, summary_text: str) -> None:
+        with h5py.File(path, "w") as f:
             f.create_dataset("decision_steps", data=np.asarray(self.decision_steps, np.int64))
             obs_group = f.create_group("obs")
             for key in (self.decision_obs[0] if self.decision_obs else {}):
@@ -115,10 +151,7 @@ class EpisodeRecord:
             f.create_dataset("actions_executed", data=np.asarray(self.executed, np.float64).reshape(-1, width))
             f.create_dataset("action_times", data=np.asarray(self.action_times, np.float64))
             f.create_dataset("chunk_latency_s", data=np.asarray(self.chunk_latency_s, np.float64))
-            f.attrs["summary"] = json.dumps(self.summary())
-        manifest_path = folder / f"{self.episode_id}.json"
-        manifest_path.write_text(json.dumps({**self.summary(), "arrays": h5_path.name}, indent=2))
-        return manifest_path
+            f.attrs["summary"] = summary_text
 
 
 def load_episode(manifest_path: str | Path) -> tuple[dict, dict[str, np.ndarray]]:

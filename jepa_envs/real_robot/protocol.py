@@ -103,21 +103,51 @@ def decode(payload: bytes) -> dict:
         raise ProtocolError(f"undecodable message ({type(exc).__name__}: {exc})") from exc
     if not isinstance(message, dict) or "type" not in message or "v" not in message:
         raise ProtocolError("a message must be a map with 'v' and 'type'")
-    if not isinstance(message["type"], str):
+    if type(message["type"]) is not str:
         raise ProtocolError(f"'type' must be a string, got {type(message['type']).__name__}")
     seq = message.get("seq")
     if seq is not None and (type(seq) is not int or not 0 <= seq <= MAX_SEQ):
-        raise ProtocolError(f"'seq' must be an integer in [0, 2**63), got {seq!r:.40}")
+        raise ProtocolError(f"'seq' must be an integer in [0, 2**63), got {_short(seq)}")
     return message
 
 
 def check_version(message: dict) -> None:
-    """Raise ProtocolError naming both versions when a peer speaks another protocol version."""
-    if message.get("v") != PROTOCOL_VERSION:
+    """Raise ProtocolError naming both versions when a peer speaks another protocol version.
+
+    Type-safe: ``v`` may be anything a peer sent (an array, a map, a huge integer); only an ``int`` equal to
+    this side's version passes, and nothing else is ever compared or truth-tested.
+    """
+    version = message.get("v")
+    if type(version) is not int or version != PROTOCOL_VERSION:
         raise ProtocolError(
-            f"protocol version mismatch: peer speaks v{message.get('v')}, this side speaks v{PROTOCOL_VERSION}; "
+            f"protocol version mismatch: peer speaks v{version if type(version) is int else _short(version)}, "
+            f"this side speaks v{PROTOCOL_VERSION}; "
             "install the same jepa-policy-toolkit version on the robot computer and the policy computer"
         )
+
+
+def _short(value: Any) -> str:
+    """A peer's value for an error message: its type, and a bounded repr."""
+    try:
+        text = repr(value)
+    except Exception:   # a repr of hostile input must not be what fails
+        text = "?"
+    return f"{type(value).__name__} {text[:40]}"
+
+
+def field(message: dict, key: str, kind: type | tuple[type, ...], default: Any = None) -> Any:
+    """``message[key]`` when it is exactly of ``kind`` (bool is not an int here), ``default`` when absent.
+
+    Raises ProtocolError naming the field, the type it needs and what came instead, whatever the peer sent.
+    """
+    if key not in message or message[key] is None:
+        return default
+    value = message[key]
+    kinds = kind if isinstance(kind, tuple) else (kind,)
+    if type(value) not in kinds:
+        names = " or ".join(k.__name__ for k in kinds)
+        raise ProtocolError(f"'{key}' must be {names}, got {_short(value)}")
+    return value
 
 
 def error(code: str, text: str, **extra: Any) -> dict:

@@ -53,6 +53,32 @@ class RequestLost(BridgeError):
     """The connection dropped before the request reached the bridge: nothing of it ran; send it again."""
 
 
+class HandshakeFailed(BridgeError, ConnectionRefusedError):
+    """A bridge listens at the address but refused this connection's security handshake (CurveZMQ keys)."""
+
+
+_HANDSHAKE_FAILURES = (zmq.EVENT_HANDSHAKE_FAILED_AUTH, zmq.EVENT_HANDSHAKE_FAILED_NO_DETAIL,
+                       zmq.EVENT_HANDSHAKE_FAILED_PROTOCOL)
+
+
+def handshake_failure(event: int, address: str, with_keys: bool) -> HandshakeFailed:
+    """Name why a security handshake failed, from libzmq's event and whether this client has CurveZMQ keys."""
+    if event == zmq.EVENT_HANDSHAKE_FAILED_AUTH:
+        return HandshakeFailed("curve_key_refused", (
+            f"the robot bridge at {address} refused this client's CurveZMQ key: its public key is not among the "
+            "bridge's authorized_clients; on the robot computer run `jepa-robot-bridge keys BRIDGE_FOLDER "
+            "--authorize NAME.key` with this client's public key"))
+    if not with_keys:
+        return HandshakeFailed("curve_required", (
+            f"the robot bridge at {address} refused this connection's handshake: it requires CurveZMQ and this "
+            "client has no keys; pass curve_server_key (the bridge's bridge.key) and curve_client_key (this "
+            "client's .key_secret), or --curve-server-key/--curve-client-key to jepa-policy robot"))
+    return HandshakeFailed("curve_handshake_failed", (
+        f"the CurveZMQ handshake with the robot bridge at {address} failed: the bridge public key given "
+        "(curve_server_key) is not the key of the bridge listening there (copy bridge.key from the robot "
+        "computer's key folder), or that bridge does not use CurveZMQ"))
+
+
 def spec_from_welcome(welcome: dict) -> TaskSpec:
     """Rebuild the bridge's TaskSpec from its welcome message."""
     raw = dict(welcome["spec"])
@@ -85,8 +111,11 @@ class RealRobotEnv(JEPAEnv):
         self._sock.setsockopt(zmq.RECONNECT_IVL, 20)
         self._sock.setsockopt(zmq.RECONNECT_IVL_MAX, 500)
         _setup_curve_client(self._sock, curve_server_key, curve_client_key)
+        self._curve = curve_server_key is not None
         # the connection's own events: a second handshake means it dropped and came back (``_request`` resumes)
-        self._monitor = self._sock.get_monitor_socket(zmq.EVENT_HANDSHAKE_SUCCEEDED)
+        self._monitor = self._sock.get_monitor_socket(
+            zmq.EVENT_HANDSHAKE_SUCCEEDED | zmq.EVENT_HANDSHAKE_FAILED_AUTH | zmq.EVENT_HANDSHAKE_FAILED_NO_DETAIL
+            | zmq.EVENT_HANDSHAKE_FAILED_PROTOCOL)   # a refused handshake is named, not a silent timeout
         self._handshakes = 0
         self._poller = zmq.Poller()
         self._poller.register(self._sock, zmq.POLLIN)
@@ -178,8 +207,13 @@ class RealRobotEnv(JEPAEnv):
             return reply
 
     def _reconnected(self) -> bool:
-        """Read one connection event; True when it is a handshake after the first (a reconnection)."""
+        """Read one connection event; True when it is a handshake after the first (a reconnection).
+
+        A refused security handshake raises HandshakeFailed at once: libzmq would retry it forever with the same
+        keys, and the caller would otherwise only see a timeout that looks like no bridge at all."""
         event = parse_monitor_message(self._monitor.recv_multipart())
+        if event["event"] in _HANDSHAKE_FAILURES:
+            raise handshake_failure(event["event"], self.address, self._curve)
         if event["event"] != zmq.EVENT_HANDSHAKE_SUCCEEDED:
             return False
         self._handshakes += 1

@@ -50,8 +50,9 @@ class SafetyConfig(BaseModel):
             raise ValueError(f"{info.field_name} must be > 0 seconds (or left out for the default)")
         return v
 
-    def problems(self, action_dim: int, n_joints: int | None) -> list[str]:
-        """Every length or bound that does not fit a robot with ``action_dim`` actions and ``n_joints`` joints.
+    def problems(self, action_dim: int, n_joints: int | None, control_hz: float | None = None) -> list[str]:
+        """Every length or bound that does not fit a robot with ``action_dim`` actions and ``n_joints`` joints,
+        and every timing rule that contradicts another at ``control_hz`` (when given).
 
         ``n_joints`` None: the backend measures no joints (PushT), so joint limits must be absent. Checked by
         the bridge before it opens any socket and by ``jepa-robot-bridge check`` before any hardware is touched.
@@ -92,6 +93,15 @@ class SafetyConfig(BaseModel):
                            f"in a {action_dim}-D action")
         if self.heartbeat_interval_s and self.link_timeout_s and self.heartbeat_interval_s >= self.link_timeout_s:
             out.append("safety.heartbeat_interval_s must be below link_timeout_s (several heartbeats per timeout)")
+        if control_hz is not None:
+            # one rule (docs/real_robot.md, "Lost link and the command watchdog"): a link that goes silent is
+            # held for link_grace_s; the watchdog only judges a live link, so it must not fire before a silent
+            # link is even detected
+            link_timeout = self.resolved_link_timeout(control_hz)
+            if link_timeout >= self.command_deadline_s:
+                out.append(f"safety.link_timeout_s ({link_timeout:g}s) must be below command_deadline_s "
+                           f"({self.command_deadline_s:g}s): a silent link would trip the command watchdog before "
+                           "it is detected as lost, and link_grace_s could never apply")
         return out
 
     def resolved_link_timeout(self, control_hz: float) -> float:
@@ -119,9 +129,16 @@ class Verdict:
         return {"refused": self.refused, "clipped": self.clipped, "violations": list(self.violations)}
 
 
+def _as_array(value, what: str) -> np.ndarray:
+    try:
+        return np.asarray(value)
+    except (ValueError, TypeError, OverflowError, RecursionError) as exc:   # ragged or mixed nested lists
+        raise InvalidAction(f"{what} is not a numeric array ({type(exc).__name__})") from None
+
+
 def validate_action(action, dim: int, rotation6d_starts: list[int] = ()) -> np.ndarray:
     """Return ``action`` as float64 (dim,) or raise InvalidAction naming what is wrong with it."""
-    arr = np.asarray(action)
+    arr = _as_array(action, "action")
     if arr.dtype.kind not in "fiu":
         raise InvalidAction(f"action must be numeric, got dtype {arr.dtype}")
     arr = arr.astype(np.float64)
@@ -137,12 +154,33 @@ def validate_action(action, dim: int, rotation6d_starts: list[int] = ()) -> np.n
     return arr
 
 
-def validate_chunk(actions, dim: int, rotation6d_starts: list[int] = ()) -> np.ndarray:
-    """Validate a whole (N, dim) chunk before any of it moves the robot."""
-    arr = np.asarray(actions)
+def validate_chunk(actions, dim: int, rotation6d_starts: list[int] = (), max_actions: int | None = None) -> np.ndarray:
+    """Validate a whole (N, dim) chunk, 1 <= N <= ``max_actions``, before any of it moves the robot.
+
+    A bad entry is named by its row (the action's place in the chunk) and its column (the action dimension).
+    """
+    arr = _as_array(actions, "action chunk")
     if arr.ndim != 2 or arr.shape[1] != dim or arr.shape[0] < 1:
         raise InvalidAction(f"action chunk has shape {arr.shape}, this task needs (N, {dim}) with N >= 1")
-    return np.stack([validate_action(a, dim, rotation6d_starts) for a in arr])
+    if max_actions is not None and arr.shape[0] > max_actions:
+        raise InvalidAction(f"action chunk has {arr.shape[0]} actions; this task executes at most {max_actions} per "
+                            f"chunk, which is what its budget counts: send the first {max_actions} of the "
+                            "predicted chunk")
+    if arr.dtype.kind not in "fiu":
+        raise InvalidAction(f"action chunk must be numeric, got dtype {arr.dtype}")
+    finite = np.isfinite(arr.astype(np.float64))
+    if not finite.all():
+        rows, cols = np.nonzero(~finite)
+        where = ", ".join(f"row {r} column {c}" for r, c in zip(rows[:8].tolist(), cols[:8].tolist()))
+        raise InvalidAction(f"action chunk has NaN or infinite entries at {where}"
+                            f"{' ...' if rows.size > 8 else ''}; the policy output is broken")
+    out = []
+    for row, action in enumerate(arr):
+        try:
+            out.append(validate_action(action, dim, rotation6d_starts))
+        except InvalidAction as exc:
+            raise InvalidAction(f"row {row} of the chunk: {exc}") from None
+    return np.stack(out)
 
 
 class ActionGuard:

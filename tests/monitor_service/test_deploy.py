@@ -53,8 +53,12 @@ def test_compose_prometheus_and_service_agree():
     job = next(j for j in prom["scrape_configs"] if j["job_name"] == "jepa-monitor")
     assert job["metrics_path"] == "/metrics"
     assert job["static_configs"][0]["targets"] == [f"monitor:{args.port}"]
-    assert job["authorization"]["credentials_file"] in " ".join(compose["services"]["prometheus"]["volumes"])
-    rules_mount = compose["services"]["prometheus"]["volumes"]
+    rules_mount = [v if isinstance(v, str) else f"{v['source']}:{v['target']}"
+                   for v in compose["services"]["prometheus"]["volumes"]]
+    assert job["authorization"]["credentials_file"] in " ".join(rules_mount)
+    token = next(v for v in compose["services"]["prometheus"]["volumes"] if not isinstance(v, str))
+    # a missing token file must stop `up`, not become a directory Docker creates in its place
+    assert token["source"] == "./secrets/prometheus_token" and token["bind"]["create_host_path"] is False
     assert any(v.startswith("./alert_rules.yml:") and v.split(":")[1] in prom["rule_files"] for v in rules_mount)
     for volume in rules_mount + compose["services"]["grafana"]["volumes"]:
         source = volume.split(":")[0]

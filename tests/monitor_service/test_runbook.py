@@ -10,58 +10,21 @@ import os
 import re
 import shutil
 import signal
-import socket
 import sqlite3
 import subprocess
+import time
 from pathlib import Path
 
 import numpy as np
 import pytest
 import yaml
+from runbook_walker import Shell, free_port, runbook_blocks
 
 from monitor_service.client import MonitorClient
 
 ROOT = Path(__file__).resolve().parents[2]
 RUNBOOK = ROOT / "deploy" / "RUNBOOK.md"
 DEPLOY = ROOT / "deploy" / "monitor"
-
-
-def runbook_blocks(text: str) -> list[tuple[str, str]]:
-    """(info string, body) of every fenced block, in order; indented blocks (inside list items) included."""
-    blocks = []
-    for match in re.finditer(r"^( *)```(\w*)\n(.*?)^\1```", text, re.M | re.S):
-        indent = len(match.group(1))
-        body = "\n".join(line[indent:] for line in match.group(3).splitlines())
-        blocks.append((match.group(2), body))
-    return blocks
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
-class Shell:
-    """Runs blocks one after the other; exported variables and the working folder carry over."""
-
-    def __init__(self, folder: Path, port: int):
-        self.folder, self.port = folder, port
-        self.state = folder / ".runbook-env"
-        self.state.write_text("")
-
-    def run(self, body: str, timeout: float = 180) -> str:
-        body = body.replace("8765", str(self.port))
-        script = f"set -euo pipefail\nsource {self.state}\n{body}\nexport -p > {self.state}\n"
-        out = subprocess.run(["bash", "-c", script], cwd=self.folder, capture_output=True, text=True,
-                             timeout=timeout, start_new_session=True)
-        assert out.returncode == 0, f"runbook block failed:\n{body}\n--- stdout\n{out.stdout}\n--- stderr\n{out.stderr}"
-        return out.stdout
-
-    def env(self, name: str) -> str:
-        out = subprocess.run(["bash", "-c", f"source {self.state}; printf %s \"${name}\""], capture_output=True,
-                             text=True, check=True)
-        return out.stdout
 
 
 def _send_held_out_rollouts(url: str, key: str, task: str, successes: int, failures: int) -> None:
@@ -86,8 +49,8 @@ def test_runbook_walks_on_one_host(tmp_path):
     blocks = [body for info, body in runbook_blocks(RUNBOOK.read_text()) if info == "sh"]
     assert len(blocks) == 6, "the walk below follows the RUNBOOK's sh blocks one by one"
     start, keys, add_task, calibrate, backup, restore = blocks
-    port = _free_port()
-    shell = Shell(tmp_path, port)
+    port = free_port()
+    shell = Shell(tmp_path, {"8765": str(port)})
     try:
         shell.run(start)
         assert shell.env("JEPA_MONITOR_DATABASE_URL") == f"sqlite:///{tmp_path}/monitor.db"
@@ -103,10 +66,19 @@ def test_runbook_walks_on_one_host(tmp_path):
         assert (tmp_path / "monitor-backup.db").is_file()
         # after the backup: a key that the restore must take away again
         shell.run("jepa-monitor keys create --name late --role operator > late.key.json")
+        # a restore under the live server is refused, and the database is left as it was
+        with pytest.raises(AssertionError, match="a monitor server is serving"):
+            shell.run(restore)
+        names = {r[0] for r in sqlite3.connect(tmp_path / "monitor.db").execute("SELECT name FROM api_keys")}
+        assert "late" in names
     finally:
         pid = subprocess.run(["pgrep", "-f", f"jepa-monitor serve --port {port}"], capture_output=True, text=True)
         for p in pid.stdout.split():   # the operator stops the service before a restore
             os.kill(int(p), signal.SIGTERM)
+        deadline = time.monotonic() + 30
+        while subprocess.run(["pgrep", "-f", f"jepa-monitor serve --port {port}"]).returncode == 0:
+            assert time.monotonic() < deadline, "the monitor did not stop within 30 s of SIGTERM"
+            time.sleep(0.1)
     shell.run(restore)
     names = {r[0] for r in sqlite3.connect(tmp_path / "monitor.db").execute("SELECT name FROM api_keys")}
     assert {"arm1", "alice"} <= names and "late" not in names, "the restore brings back the backup's state"

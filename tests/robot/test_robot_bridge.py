@@ -132,7 +132,7 @@ def test_nan_and_wrong_shape_refused(robot):
 
 
 def test_watchdog_holds_and_interrupts(robot):
-    bridge = robot.bridge(command_deadline_s=0.3)
+    bridge = robot.bridge(command_deadline_s=0.3, link_timeout_s=0.25)
     env = robot.client(bridge)
     env.reset(seed=0)
     env.step(np.array([200.0, 200.0]))

@@ -83,7 +83,7 @@ class SlowFirstCall(ReplayPolicy):
 def test_warm_up_keeps_the_first_call_out_of_the_episode(robot):
     """The first policy call (kernels, caches) takes longer than the watchdog: warmed up before the episode
     it costs nothing there; without the warm-up the watchdog ends the episode on its first decision."""
-    bridge = robot.bridge(chunk_budget=1, command_deadline_s=0.5)
+    bridge = robot.bridge(chunk_budget=1, command_deadline_s=0.5, link_timeout_s=0.4)
     env = robot.client(bridge)
     cold = run_episodes(env, SlowFirstCall(0.9), episodes=1, warmup=False)
     assert cold["episodes"][0]["interrupted"] == "watchdog"

@@ -16,6 +16,7 @@ import time
 
 import numpy as np
 import pytest
+from robot_testkit import wait_for
 
 pytestmark = pytest.mark.skipif(sys.platform == "win32", reason="POSIX signals")
 
@@ -93,16 +94,6 @@ def child_of(robot):
         child.close()
 
 
-def _wait_for(predicate, timeout_s: float = 5.0, every_s: float = 0.01):
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        value = predicate()
-        if value:
-            return value
-        time.sleep(every_s)
-    raise AssertionError("condition not reached in time")
-
-
 def _events(status: dict, kind: str) -> list[dict]:
     return [e for e in status["events"] if e["kind"] == kind]
 
@@ -133,7 +124,7 @@ def test_frozen_client_holds_the_robot_then_resumes(robot, child_of):
     assert child.read() == {"sending": True}
     time.sleep(0.25)   # the 0.8 s chunk is executing
     stopped = child.signal(signal.SIGSTOP)
-    status = _wait_for(lambda: (s := op.status())["link"] == "held" and s)
+    status = wait_for(lambda: (s := op.status())["link"] == "held" and s)
     hold = _events(status, "link_hold")[0]
     delay = hold["time"] - stopped
     # heartbeat timeout (one period, 0.1 s) + one heartbeat interval (25 ms) + scheduling slack
@@ -160,7 +151,7 @@ def test_client_gone_past_the_grace_loses_control_and_is_told(robot, child_of):
     assert child.read() == {"sending": True}
     time.sleep(0.2)
     child.signal(signal.SIGSTOP)
-    status = _wait_for(lambda: (s := op.status())["client"] is None and s)
+    status = wait_for(lambda: (s := op.status())["client"] is None and s)
     assert status["episode"]["outcome"] == "interrupted" and status["episode"]["reason"] == "link_lost"
     child.signal(signal.SIGCONT)
     lost = child.read()["lost"]
@@ -180,9 +171,28 @@ def test_killed_policy_process_holds_at_once_and_is_dropped_after_the_grace(robo
     assert op.status()["link"] == "up"
     killed = child.signal(signal.SIGKILL)
     child.proc.wait(timeout=10)
-    status = _wait_for(lambda: (s := op.status())["client"] is None and s)
+    status = wait_for(lambda: (s := op.status())["client"] is None and s)
     assert _events(status, "link_hold")[0]["time"] - killed < 0.1
     assert status["episode"]["outcome"] == "interrupted" and status["episode"]["reason"] == "link_lost"
     env = robot.client(bridge)
     assert env.reset(seed=0)[0]["top_image"].shape == (84, 84, 3)
     assert env.step(np.array([200.0, 200.0]))[4]["executed"] == 1
+
+
+def test_a_held_link_keeps_its_episode_for_the_grace_not_the_watchdog(robot, child_of):
+    """One rule: once the link is lost the session keeps its episode for link_grace_s, even past the command
+    watchdog's deadline (which only judges a live link); after the grace the episode ends as link_lost."""
+    bridge = robot.bridge(link_timeout_s=None, command_deadline_s=0.5, link_grace_s=1.5)
+    child = child_of(bridge)
+    op = robot.operator(bridge)
+    killed = child.signal(signal.SIGKILL)
+    child.proc.wait(timeout=10)
+    wait_for(lambda: op.status()["link"] == "held")
+    time.sleep(max(0.0, killed + 1.0 - time.time()))   # twice the watchdog's deadline, inside the grace
+    status = op.status()
+    assert status["link"] == "held" and status["episode"]["outcome"] is None, "kept through the deadline"
+    status = wait_for(lambda: (s := op.status())["client"] is None and s, timeout_s=5.0)
+    assert status["episode"]["outcome"] == "interrupted" and status["episode"]["reason"] == "link_lost"
+    assert not _events(status, "watchdog")
+    lost = _events(status, "link_lost")[0]
+    assert lost["detected"] - lost["held_since"] == pytest.approx(1.5, abs=0.2)

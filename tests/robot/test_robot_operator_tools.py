@@ -25,7 +25,12 @@ SETUP = ROOT / "deploy" / "robot" / "arx5_cabinet.toml"
 
 
 def _setup_file(tmp_path: Path, replace: dict[str, str] | None = None) -> Path:
+    """The shipped set-up with its record folder and CurveZMQ keys made under ``tmp_path``."""
+    keys = tmp_path / "keys"
+    if not (keys / "bridge.key_secret").exists():
+        assert bridge_main(["keys", str(keys)]) == 0
     text = SETUP.read_text().replace("/var/lib/jepa-robot/episodes", str(tmp_path / "episodes"))
+    text = text.replace("/etc/jepa-robot/keys", str(keys))
     for old, new in (replace or {}).items():
         assert old in text, old
         text = text.replace(old, new)

@@ -14,8 +14,11 @@ import numpy as np
 import pytest
 import zmq
 
+from robot_testkit import raw_socket as _socket
+from robot_testkit import recv_reply as _recv
+
 from jepa_envs.real_robot import protocol as P
-from jepa_envs.real_robot.proxy import LostControl, RealRobotEnv
+from jepa_envs.real_robot.proxy import HandshakeFailed, LostControl, RealRobotEnv
 
 pytestmark = pytest.mark.timeout(180)
 
@@ -29,22 +32,6 @@ def ctx():
     context = zmq.Context()
     yield context
     context.destroy(linger=0)
-
-
-def _socket(ctx, kind, address, timeout_ms=5000):
-    sock = ctx.socket(kind)
-    sock.setsockopt(zmq.LINGER, 0)
-    sock.setsockopt(zmq.RCVTIMEO, timeout_ms)
-    sock.connect(address)
-    return sock
-
-
-def _recv(sock) -> dict:
-    """The next reply on a raw socket, skipping the bridge's link notices (clients ignore them)."""
-    while True:
-        message = P.decode(sock.recv())
-        if message["type"] != P.LINK:
-            return message
 
 
 def _release(robot, bridge, *sockets) -> None:
@@ -92,7 +79,7 @@ def test_the_five_reported_crashes_get_answers(robot, ctx):
         assert "'type' must be a string" in _recv(dealer)["message"]
     dealer.send(P.encode({"type": P.BYE, "session": token, "seq": 3}))
     assert _recv(dealer)["ok"] is True
-    assert bridge.counters["malformed"] >= 4
+    assert robot.operator(bridge).status()["counters"]["malformed"] >= 4
     _serving(robot, bridge)
 
 
@@ -224,18 +211,49 @@ def test_curve_encrypted_link(robot, tmp_path):
     """CurveZMQ: a client with an authorised key runs an episode; one without keys never gets an answer."""
     from jepa_envs.real_robot.cli import main
 
-    keys = tmp_path / "keys"
-    assert main(["keys", str(keys), "--client", "policy-pc"]) == 0
+    keys, client = tmp_path / "keys", tmp_path / "policy-pc"
+    assert main(["keys", str(keys), "--client", "policy-pc", "--client-dir", str(client)]) == 0
     bridge = robot.bridge(curve={"curve_secret_key": str(keys / "bridge.key_secret"),
                                  "curve_authorized_dir": str(keys / "authorized_clients")})
     env = robot.client(bridge, curve_server_key=str(keys / "bridge.key"),
-                       curve_client_key=str(keys / "policy-pc.key_secret"))
+                       curve_client_key=str(client / "policy-pc.key_secret"))
     obs, _ = env.reset(seed=0)
     assert env.step(obs["agent_pos"])[4]["executed"] == 1
     env.close()
-    with pytest.raises(TimeoutError):
-        RealRobotEnv(address=bridge.control_endpoint, timeout_s=1.0)
-    assert main(["keys", str(tmp_path / "other"), "--client", "stranger"]) == 0
-    with pytest.raises(TimeoutError):   # a key the bridge does not know is refused in the handshake
-        RealRobotEnv(address=bridge.control_endpoint, timeout_s=1.0, curve_server_key=str(keys / "bridge.key"),
+    # each mismatch is named at once, not mistaken for a bridge that is not running
+    with pytest.raises(HandshakeFailed, match="it requires CurveZMQ and this client has no keys"):
+        RealRobotEnv(address=bridge.control_endpoint, timeout_s=5.0)
+    assert main(["keys", str(tmp_path / "other"), "--client-only", "--client", "stranger"]) == 0
+    with pytest.raises(HandshakeFailed, match="refused this client's CurveZMQ key"):
+        RealRobotEnv(address=bridge.control_endpoint, timeout_s=5.0, curve_server_key=str(keys / "bridge.key"),
                      curve_client_key=str(tmp_path / "other" / "stranger.key_secret"))
+    assert main(["keys", str(tmp_path / "other-bridge")]) == 0
+    with pytest.raises(HandshakeFailed, match="is not the key of the bridge listening there"):
+        RealRobotEnv(address=bridge.control_endpoint, timeout_s=5.0,
+                     curve_server_key=str(tmp_path / "other-bridge" / "bridge.key"),
+                     curve_client_key=str(client / "policy-pc.key_secret"))
+    # authorising the stranger's public key on the robot computer lets it in (the bridge reads the folder when
+    # it starts); its secret never went there
+    assert main(["keys", str(keys), "--authorize", str(tmp_path / "other" / "stranger.key")]) == 0
+    assert not (keys / "stranger.key_secret").exists()
+    bridge = robot.bridge(curve={"curve_secret_key": str(keys / "bridge.key_secret"),
+                                 "curve_authorized_dir": str(keys / "authorized_clients")})
+    env = robot.client(bridge, curve_server_key=str(keys / "bridge.key"),
+                       curve_client_key=str(tmp_path / "other" / "stranger.key_secret"))
+    env.close()
+
+
+def test_keys_never_leave_a_client_secret_in_the_bridge_folder(tmp_path, capsys):
+    from jepa_envs.real_robot.cli import main
+
+    keys = tmp_path / "keys"
+    with pytest.raises(SystemExit, match="needs --client-dir"):
+        main(["keys", str(keys), "--client", "policy-pc"])
+    with pytest.raises(SystemExit, match="inside the bridge's folder"):
+        main(["keys", str(keys), "--client", "policy-pc", "--client-dir", str(keys / "clients")])
+    assert main(["keys", str(keys), "--client", "policy-pc", "--client-dir", str(tmp_path / "out")]) == 0
+    assert sorted(p.name for p in keys.rglob("*_secret")) == ["bridge.key_secret"]
+    assert (keys / "authorized_clients" / "policy-pc.key").is_file()
+    assert (tmp_path / "out" / "policy-pc.key_secret").stat().st_mode & 0o077 == 0
+    with pytest.raises(SystemExit, match="holds a secret key"):
+        main(["keys", str(keys), "--authorize", str(tmp_path / "out" / "policy-pc.key_secret")])

@@ -91,7 +91,10 @@ class ARX5Config(BaseModel):
 
     @model_validator(mode="after")
     def _matches_task(self) -> "ARX5Config":
-        spec = get_task_spec(self.task)
+        try:
+            spec = get_task_spec(self.task)
+        except KeyError as exc:   # pydantic reports ValueErrors as the field's problem, not KeyErrors
+            raise ValueError(exc.args[0]) from None
         if spec.suite != "real":
             raise ValueError(f"task {self.task!r} is not a real-robot task; use one of Cabinet, CupStack, "
                              "CupUpright, PlateGrape, PenInsert")
@@ -104,7 +107,7 @@ class ARX5Config(BaseModel):
             raise ValueError(f"task {spec.name} needs cameras {list(spec.cameras)}; add {sorted(missing)}")
         if any(lo >= hi for lo, hi in zip(self.workspace_low, self.workspace_high)):
             raise ValueError("workspace_low must be below workspace_high on x, y and z")
-        problems = self.safety.problems(spec.action_dim, JOINTS_PER_ARM * len(self.arms))
+        problems = self.safety.problems(spec.action_dim, JOINTS_PER_ARM * len(self.arms), spec.control_hz)
         if problems:
             raise ValueError("; ".join(problems))
         if (self.curve_secret_key is None) != (self.curve_authorized_dir is None):

@@ -19,6 +19,22 @@ from jepa_envs.real_robot.episodes import load_episode
 from jepa_envs.spec import get_task_spec
 
 
+def recorded_bounds(manifest: dict, path: Path) -> tuple[np.ndarray, np.ndarray]:
+    """The action bounds the recorded episode ran under (the bridge stores them with every episode).
+
+    A recording without them (made before they were stored) gets no default: a dry run must never run
+    without limits, so it then needs the set-up file (``--config``) whose workspace applies.
+    """
+    client = manifest.get("manifest", {})
+    safety = client.get("safety", {})
+    for low, high in ((client.get("action_low"), client.get("action_high")),
+                      (safety.get("action_low"), safety.get("action_high"))):
+        if low is not None and high is not None:
+            return np.asarray(low, np.float64), np.asarray(high, np.float64)
+    raise ValueError(f"{path} does not say which action bounds its episode ran under (it was recorded before "
+                     "bridges stored them); pass --config SETUP.toml with the robot's limits for this dry run")
+
+
 class ReplayBackend(RobotBackend):
     """Serves a recorded episode; ``bounds`` and ``joint_count`` come from the real set-up when known."""
 
@@ -44,11 +60,12 @@ class ReplayBackend(RobotBackend):
         self._success = bool(self.manifest.get("is_success", False))
         dim = self.task_spec.action_dim
         if bounds is None:
-            safety = self.manifest.get("manifest", {}).get("safety", {})
-            low, high = safety.get("action_low"), safety.get("action_high")
-            bounds = (np.full(dim, -np.inf) if low is None else np.asarray(low, np.float64),
-                      np.full(dim, np.inf) if high is None else np.asarray(high, np.float64))
+            bounds = recorded_bounds(self.manifest, manifest_path)
         self._low, self._high = (np.asarray(b, np.float64) for b in bounds)
+        if self._low.shape != (dim,) or self._high.shape != (dim,) or not (
+                np.all(np.isfinite(self._low)) and np.all(np.isfinite(self._high))):
+            raise ValueError(f"the dry run's action bounds must be {dim} finite numbers each; got {self._low} and "
+                             f"{self._high}; pass --config SETUP.toml with the robot's limits")
         self._joint_count = joint_count
         self.realtime = bool(realtime)
         self._step = 0
