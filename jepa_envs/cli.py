@@ -171,9 +171,18 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+# What a user gets wrong (a path, a task, a file of another kind): one line naming it, exit code 2.
+USER_ERRORS = (FileNotFoundError, ValueError, KeyError)
+
+
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    return SUBCOMMANDS[args.command].run(args)
+    try:
+        return SUBCOMMANDS[args.command].run(args)
+    except USER_ERRORS as exc:
+        message = exc.args[0] if isinstance(exc, KeyError) and exc.args else exc
+        print(f"jepa-envs {args.command}: error: {message}", file=sys.stderr)
+        return 2
 
 
 if __name__ == "__main__":

@@ -190,13 +190,20 @@ def load_dataset(path, task: str | None = None, image_size: int | None = None, c
     cache = _cache_path(path, task, image_size, cache_dir)
     if cache is not None and (cache / "meta.json").is_file():
         return _load_cache(cache, path)
-    try:
-        f = h5py.File(path, "r")
-    except OSError as exc:
-        raise DatasetError(f"{path} is not a readable HDF5 file ({exc}); re-download or re-create it") from exc
-    with f:
+    with open_hdf5(path) as f:
         reader = _Reader(path, f, task, image_size)
         return reader.read(cache)
+
+
+def open_hdf5(path: str | Path) -> h5py.File:
+    """Open an HDF5 file for reading, or raise DatasetError naming a file that is missing or not HDF5."""
+    path = Path(path)
+    if not path.is_file():
+        raise DatasetError(f"{path} does not exist; pass the path of an HDF5 dataset")
+    try:
+        return h5py.File(path, "r")
+    except OSError as exc:
+        raise DatasetError(f"{path} is not a readable HDF5 file ({exc}); re-download or re-create it") from exc
 
 
 class _Reader:

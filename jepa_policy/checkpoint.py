@@ -9,7 +9,9 @@ from __future__ import annotations
 
 import hashlib
 import os
+import pickle
 import random
+import re
 from pathlib import Path
 
 import numpy as np
@@ -22,6 +24,51 @@ from jepa_policy.model import PolicyModel
 
 FORMAT = "jepa-policy-checkpoint/1"
 EMA_PREFIX = "module."   # torch's AveragedModel keeps the averaged network under .module
+
+
+class UnsafeCheckpoint(ValueError):
+    """A file that is not plain data: loading it could run code, so it is refused unread."""
+
+
+# What a checkpoint may hold besides tensors, numbers, strings and containers: numeric numpy arrays (normaliser
+# statistics, NumPy's generator state). The restricted unpickler builds nothing else, so a file whose pickle
+# calls a function (os.system ...) or builds any other object (an object array included) is refused.
+_NUMERIC_DTYPES = ("Bool", "Int8", "Int16", "Int32", "Int64", "UInt8", "UInt16", "UInt32", "UInt64", "Float16",
+                   "Float32", "Float64")
+SAFE_GLOBALS = [np.ndarray, np.dtype, (np._core.multiarray._reconstruct, "numpy._core.multiarray._reconstruct"),
+                (np._core.multiarray._reconstruct, "numpy.core.multiarray._reconstruct"),   # numpy 1.x pickles
+                *(getattr(np.dtypes, f"{name}DType") for name in _NUMERIC_DTYPES)]
+
+
+def safe_load(path: Path, map_location="cpu", what: str = "checkpoint"):
+    """``torch.load`` that reads data only (``weights_only`` with the numeric-array allowlist above).
+
+    A file that needs anything else raises UnsafeCheckpoint; a truncated or foreign file ValueError; both name
+    the file and what to do.
+    """
+    try:
+        with torch.serialization.safe_globals(SAFE_GLOBALS):
+            return torch.load(path, map_location=map_location, weights_only=True)
+    except pickle.UnpicklingError as exc:
+        detail = str(exc)
+        found = re.search(r"(unsupported (?:global: )?GLOBAL [\w.]+|got <class '[\w.]+'>|unsupported operand \d+)",
+                          detail, re.IGNORECASE)
+        if "weights_only" not in detail and "WeightsUnpickler" not in detail and found is None:
+            raise ValueError(f"{path} is not a readable {what} ({_first_line(detail)}); pass a .pt file written by "
+                             "`jepa-policy train` (or a torch state_dict for encoder weights)") from None
+        raise UnsafeCheckpoint(
+            f"refused {path}: it holds more than tensors and numeric arrays ({found.group(0) if found else 'code'}), "
+            f"so loading it could run code; it was not loaded. Use a {what} written by `jepa-policy train`, or a "
+            "plain state_dict of tensors") from None
+    except Exception as exc:   # torch raises RuntimeError, KeyError, EOFError ... for bytes that are not a .pt
+        raise ValueError(f"{path} is not a readable {what} (truncated, or not a torch file: "
+                         f"{_first_line(str(exc))}); pass a .pt file written by `jepa-policy train`") from None
+
+
+def _first_line(text: str) -> str:
+    """The first sentence of an error text, bounded (torch's messages run on for paragraphs)."""
+    first = (text.strip().splitlines() or ["?"])[0]
+    return first.split(". ")[0][:160]
 
 
 def build_model(cfg: ModelConfig) -> BasePolicyModel:
@@ -92,7 +139,7 @@ def load_checkpoint(path: str | Path, map_location="cpu") -> dict:
     path = Path(path)
     if not path.exists():
         raise FileNotFoundError(f"checkpoint {path} does not exist; pass the .pt file written by `jepa-policy train`")
-    payload = torch.load(path, map_location=map_location, weights_only=False)
+    payload = safe_load(path, map_location)
     if not isinstance(payload, dict) or payload.get("format") != FORMAT:
         raise ValueError(f"{path} is not a jepa-policy checkpoint (missing format tag)")
     return payload
@@ -126,7 +173,7 @@ def load_encoder_weights(model: BasePolicyModel, path: str | Path,
     if not path.is_file():
         raise FileNotFoundError(f"encoder weights {path} do not exist; pass a local file (no download is made)")
     raw = path.read_bytes()
-    state = torch.load(path, map_location="cpu", weights_only=False)
+    state = safe_load(path, "cpu", what="encoder weights file")
     if isinstance(state, dict) and state.get("format") == FORMAT:
         state = {k[len(EMA_PREFIX):]: v for k, v in state["ema"].items() if k.startswith(EMA_PREFIX)}
     elif isinstance(state, dict) and isinstance(state.get("state_dict"), dict):

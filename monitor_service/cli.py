@@ -308,8 +308,17 @@ def main(argv: list[str] | None = None) -> int:
     try:
         return args.func(args)
     except (ValueError, LookupError, FileNotFoundError) as exc:
-        print(f"jepa-monitor: error: {exc}", file=sys.stderr)
+        print(f"jepa-monitor: error: {_one_line(exc)}", file=sys.stderr)
         return 2
+
+
+def _one_line(exc: Exception) -> str:
+    """A user error on one line; a settings validation error as 'field: problem' pairs."""
+    from pydantic import ValidationError
+
+    if isinstance(exc, ValidationError):
+        return "; ".join(f"{'.'.join(map(str, e['loc'])) or 'settings'}: {e['msg']}" for e in exc.errors())
+    return " ".join(str(exc).split())
 
 
 if __name__ == "__main__":

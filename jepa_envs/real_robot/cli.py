@@ -71,6 +71,7 @@ def _parser() -> argparse.ArgumentParser:
     observe.add_argument("--address", default="tcp://127.0.0.1:5555")
     observe.add_argument("--seconds", type=float, default=5.0)
     observe.add_argument("--save", help="write the newest frame of every camera here as PNG")
+    observe.add_argument("--timeout", type=float, default=10.0, help="seconds to wait for the bridge")
 
     keys = sub.add_parser("keys", help="CurveZMQ keys: the bridge's pair (robot computer), a client's pair "
                                        "(policy computer), or authorise a client's public key")
@@ -332,9 +333,13 @@ def observe(args) -> int:
     """Print what a bridge serves (rates, shapes, proprioception) for a while; save the newest frames."""
     import numpy as np
 
-    from jepa_envs.real_robot.proxy import RealRobotEnv
+    from jepa_envs.real_robot.proxy import BridgeError, RealRobotEnv
 
-    env = RealRobotEnv(address=args.address, client_name="observer")
+    try:
+        env = RealRobotEnv(address=args.address, client_name="observer", timeout_s=args.timeout)
+    except (TimeoutError, BridgeError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 1
     try:
         count, start = 0, time.monotonic()
         frames: list[dict] = []

@@ -14,13 +14,12 @@ import math
 from pathlib import Path
 
 import gymnasium as gym
-import h5py
 import numpy as np
 import torch
 from torch import nn
 
 import jepa_envs  # noqa: F401  (registers the environments)
-from jepa_envs.data import demo_names
+from jepa_envs.data import demo_names, open_hdf5
 from jepa_envs.spec import get_task_spec
 from jepa_policy.dataset import window_indices
 
@@ -44,7 +43,9 @@ def read_state_demos(path: str | Path) -> tuple[np.ndarray, np.ndarray, np.ndarr
     if not path.exists():
         raise FileNotFoundError(f"demonstration file {path} does not exist; write one with "
                                 "`jepa-envs make-demos PushT --out FILE`")
-    with h5py.File(path, "r") as f:
+    with open_hdf5(path) as f:
+        if "data" not in f or "env_args" not in f["data"].attrs:
+            raise ValueError(f"{path} is not a demonstration file (no data group with env_args; robomimic layout)")
         env_args = json.loads(f["data"].attrs["env_args"])
         if env_args.get("env_name") != TASK:
             raise ValueError(f"the state ceiling is defined for the embedded PushT task (its states are the agent "

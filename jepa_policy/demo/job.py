@@ -463,8 +463,12 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--steps", type=int, default=4000, help="training steps of the state policy")
     args = parser.parse_args(argv)
     if args.command == "ceiling":
-        print(json.dumps(state_ceiling(args.dataset, seed=args.seed, episodes=args.episodes, eval_seed=args.eval_seed,
-                                       steps=args.steps)))
+        try:
+            result = state_ceiling(args.dataset, seed=args.seed, episodes=args.episodes, eval_seed=args.eval_seed,
+                                   steps=args.steps)
+        except USER_ERRORS as exc:
+            return _user_error("jepa-demo ceiling", exc)
+        print(json.dumps(result))
         return 0
     mode = "quick" if args.quick else "full" if args.full else "default"
     try:
@@ -475,8 +479,21 @@ def main(argv: list[str] | None = None) -> int:
         if args.workers < 0:
             parser.error(f"--workers must be >= 0 (0: in this process), got {args.workers}")
         cfg = replace(cfg, workers=args.workers)
-    run(cfg, Path(args.out) / name, fresh=args.fresh)
+    try:
+        run(cfg, Path(args.out) / name, fresh=args.fresh)
+    except USER_ERRORS as exc:   # e.g. a checkpoint in the output folder that is refused unread
+        return _user_error("jepa-demo", exc)
     return 0
+
+
+# What a user gets wrong (a path, a file of another kind): one line naming it, exit code 2.
+USER_ERRORS = (FileNotFoundError, ValueError, KeyError)
+
+
+def _user_error(prog: str, exc: Exception) -> int:
+    message = exc.args[0] if isinstance(exc, KeyError) and exc.args else exc
+    print(f"{prog}: error: {message}", file=sys.stderr)
+    return 2
 
 
 def demo_config(mode: str, steps: int | None = None) -> tuple[DemoConfig, str]:
