@@ -1,6 +1,8 @@
 """The deployment files (docker cannot run here): they parse, and they point at what the service really serves."""
 import json
 import re
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -80,3 +82,51 @@ def test_grafana_and_alert_rules_use_only_served_metrics(tmp_path):
     ds = _load("grafana/provisioning/datasources/prometheus.yml")["datasources"][0]
     assert all(p["datasource"]["uid"] == ds["uid"] for p in dash["panels"])
     assert _load("grafana/provisioning/dashboards/dashboards.yml")["providers"][0]["options"]["path"] == "/var/lib/grafana/dashboards"
+
+
+def _image_requirements() -> list[str]:
+    """The requirement lines the image installs: its RUN line's own command, run here."""
+    dockerfile = (DEPLOY / "Dockerfile").read_text()
+    command = re.search(r'RUN (python -c "(?:[^"\\]|\\.)*") > /tmp/monitor-requirements.txt', dockerfile)
+    assert command, "the Dockerfile reads its requirements from pyproject's monitor extra"
+    assert "pip install --no-deps ." in dockerfile and "pip install -r /tmp/monitor-requirements.txt" in dockerfile
+    out = subprocess.run(["sh", "-c", command.group(1)], cwd=DEPLOY.parents[1], capture_output=True, text=True,
+                         check=True)
+    return [line for line in out.stdout.splitlines() if line.strip()]
+
+
+def test_the_image_installs_every_module_the_monitor_imports_and_no_torch():
+    """The image installs the package without its base dependencies and then pyproject's monitor extra: every
+    third-party module monitor_service imports (anywhere, lazily too) must come from a distribution on that
+    list, and nothing on it may pull torch or a simulator."""
+    import ast
+    from importlib.metadata import packages_distributions, requires
+
+    from packaging.requirements import Requirement
+
+    wanted = {Requirement(line).name.lower().replace("_", "-") for line in _image_requirements()}
+    modules = set()
+    for path in (DEPLOY.parents[1] / "monitor_service").rglob("*.py"):
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.Import):
+                modules |= {a.name.split(".")[0] for a in node.names}
+            elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
+                modules.add(node.module.split(".")[0])
+    third_party = sorted(m for m in modules - set(sys.stdlib_module_names) if m != "monitor_service")
+    assert "orjson" in third_party and "fastapi" in third_party
+    dists = packages_distributions()
+    closure: set[str] = set()
+    todo = list(wanted)
+    while todo:   # everything the list pulls in, from the installed metadata
+        name = todo.pop()
+        if name in closure:
+            continue
+        closure.add(name)
+        for line in requires(name) or []:
+            req = Requirement(line)
+            if req.marker is None or req.marker.evaluate({"extra": ""}):
+                todo.append(req.name.lower().replace("_", "-"))
+    for module in third_party:
+        providers = {d.lower().replace("_", "-") for d in dists.get(module, [])}
+        assert providers & closure, f"monitor_service imports {module!r}, which the image does not install"
+    assert not {"torch", "robosuite", "mujoco", "gymnasium", "pymunk"} & closure
