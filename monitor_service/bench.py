@@ -244,8 +244,10 @@ def _line(mode: str, ours: dict, floor: dict | None) -> str:
     text = (f"{mode:<34}{ours['requests_per_s']:>8.0f} req/s {ours['decisions_per_s']:>8.0f} dec/s "
             f"p50 {ours['p50_ms']:6.2f} p99 {ours['p99_ms']:6.2f} ms" + (f"  CPU {cpu:.2f} ms/req" if cpu else ""))
     if floor is not None:
+        floor_cpu = floor.get("server_cpu_ms_per_request")
         text += (f" | floor {floor['requests_per_s']:>7.0f} req/s p99 {floor['p99_ms']:6.2f} ms"
-                 f" | ratio {ours['requests_per_s'] / floor['requests_per_s']:.2f}")
+                 + (f" CPU {floor_cpu:.2f} ms/req" if floor_cpu else "")
+                 + f" | ratio {ours['requests_per_s'] / floor['requests_per_s']:.2f}")
     return text
 
 

@@ -10,7 +10,6 @@ from sqlalchemy import (
     DateTime,
     Float,
     ForeignKey,
-    Index,
     Integer,
     LargeBinary,
     String,
@@ -82,13 +81,10 @@ class Episode(Base):
 
 class Decision(Base):
     __tablename__ = "decisions"
-    __table_args__ = (
-        UniqueConstraint("episode_id", "step", name="uq_decision_episode_step"),
-        # a realized latent looks up the decisions aimed at its step
-        Index("ix_decisions_episode_target", "episode_id", "target_step"),
-    )
+    # the unique (episode_id, step) index serves every lookup by episode; no other index (migration 0003)
+    __table_args__ = (UniqueConstraint("episode_id", "step", name="uq_decision_episode_step"),)
     id: Mapped[int] = mapped_column(Integer, primary_key=True)
-    episode_id: Mapped[str] = mapped_column(ForeignKey("episodes.id"), index=True)
+    episode_id: Mapped[str] = mapped_column(ForeignKey("episodes.id"))
     step: Mapped[int] = mapped_column(Integer)
     horizon: Mapped[int] = mapped_column(Integer)
     target_step: Mapped[int] = mapped_column(Integer)
@@ -104,7 +100,7 @@ class Target(Base):
     __tablename__ = "targets"
     __table_args__ = (UniqueConstraint("episode_id", "step", name="uq_target_episode_step"),)
     id: Mapped[int] = mapped_column(Integer, primary_key=True)
-    episode_id: Mapped[str] = mapped_column(ForeignKey("episodes.id"), index=True)
+    episode_id: Mapped[str] = mapped_column(ForeignKey("episodes.id"))
     step: Mapped[int] = mapped_column(Integer)
     z: Mapped[bytes] = mapped_column(LargeBinary)
     created_at: Mapped[dt.datetime] = mapped_column(DateTime, default=utcnow)

@@ -6,6 +6,7 @@ msgpack. JSON bodies carry arrays as lists of numbers and are decoded to the sam
 from __future__ import annotations
 
 import json
+import math
 from typing import Any
 
 import msgpack
@@ -32,14 +33,15 @@ def decode_array(obj: Any) -> np.ndarray:
         raise BodyError(f"array dtype {obj.get('dtype')!r} is not supported; send little-endian float32 '<f4'")
     shape = obj.get("shape")
     data = obj.get("data")
-    if not isinstance(shape, list) or not all(isinstance(d, int) and d >= 0 for d in shape):
+    if type(shape) is not list or not all(type(d) is int and d >= 0 for d in shape):
         raise BodyError(f"array shape {shape!r} must be a list of non-negative integers")
     if not isinstance(data, (bytes, bytearray)):
         raise BodyError("array 'data' must be raw bytes (msgpack bin)")
-    expected = 4 * int(np.prod(shape, dtype=np.int64))
+    expected = 4 * math.prod(shape)   # a Python product: ~20x quicker than numpy's on a 1-element list
     if len(data) != expected:
         raise BodyError(f"array data has {len(data)} bytes but shape {shape} of float32 needs {expected}")
-    return np.frombuffer(data, dtype="<f4").reshape(shape)
+    array = np.frombuffer(data, dtype="<f4")
+    return array if len(shape) == 1 else array.reshape(shape)
 
 
 def _hook(obj: dict) -> Any:

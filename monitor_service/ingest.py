@@ -50,15 +50,21 @@ class StaleState(Exception):
     """Another process changed an episode this request read; retry on fresh state."""
 
 
-def _digest(*parts: bytes | int | None) -> bytes:
-    h = hashlib.blake2b(digest_size=16)
-    for p in parts:
-        h.update(b"\x00" if p is None else (p if isinstance(p, bytes) else str(p).encode()))
-        h.update(b"|")
+# What recognises an identical resend: SHA-256 (the CPU's SHA instructions make it about twice as quick as
+# BLAKE2b on a 4 KB latent here). Latents of one task have one fixed size, so the parts cannot shift.
+def decision_digest(horizon: int, z_hat: bytes, z_now: bytes | None) -> bytes:
+    h = hashlib.sha256(z_hat)
+    h.update(b"|%d|" % horizon)
+    if z_now is not None:
+        h.update(z_now)
     return h.digest()
 
 
-@dataclass
+def target_digest(z: bytes) -> bytes:
+    return hashlib.sha256(z).digest()
+
+
+@dataclass(slots=True)
 class Dec:
     """A decision of an episode: what is needed to score it, recognise a resend, and step the alert rule."""
 
@@ -70,11 +76,17 @@ class Dec:
     z_now: bytes | None = None
     stored: bool = True               # False: inserted by the current request
 
+    def copy(self) -> "Dec":   # ~4x quicker than copy.copy on the ingest path
+        return Dec(self.horizon, self.digest, self.nmse, self.nmse_persistence, self.z_hat, self.z_now, self.stored)
 
-@dataclass
+
+@dataclass(slots=True)
 class Tgt:
     digest: bytes
     z: bytes | None = None            # kept only while no decision has used it
+
+    def copy(self) -> "Tgt":
+        return Tgt(self.digest, self.z)
 
 
 @dataclass
@@ -118,11 +130,11 @@ class EpisodeState:
         return d
 
     def changed_decision(self, step: int) -> Dec:
-        dec = self.decisions[step] = copy.copy(self.decisions[step])
+        dec = self.decisions[step] = self.decisions[step].copy()
         return dec
 
     def changed_target(self, step: int) -> Tgt:
-        tgt = self.targets[step] = copy.copy(self.targets[step])
+        tgt = self.targets[step] = self.targets[step].copy()
         return tgt
 
 
@@ -177,6 +189,7 @@ class Request:
     alerts_raised: list[int] = field(default_factory=list)
     scored: int = 0
     task_dims: dict[str, int] = field(default_factory=dict)           # latent_dim fixed by this request
+    to_score: list[tuple[EpisodeState, int, Dec, bytes]] = field(default_factory=list)   # (ep, step, dec, z)
 
 
 class IngestStore:
@@ -290,7 +303,7 @@ class IngestStore:
                       "WHERE episode_id = ? ORDER BY step"), (episode_id,))
         for step, horizon, nmse, pers, z_hat, z_now in cur.fetchall():
             z_hat, z_now = bytes(z_hat), None if z_now is None else bytes(z_now)
-            d = Dec(horizon, _digest(horizon, z_hat, z_now), nmse, pers)
+            d = Dec(horizon, decision_digest(horizon, z_hat, z_now), nmse, pers)
             if nmse is None:
                 d.z_hat, d.z_now = z_hat, z_now
                 ep.unscored.add(step)
@@ -301,7 +314,7 @@ class IngestStore:
         cur.execute(q("SELECT step, z FROM targets WHERE episode_id = ?"), (episode_id,))
         for step, z in cur.fetchall():
             z = bytes(z)
-            ep.targets[step] = Tgt(_digest(z), None if step in aimed else z)
+            ep.targets[step] = Tgt(target_digest(z), None if step in aimed else z)
         return ep
 
     def _target_z(self, cur, ep: EpisodeState, step: int) -> bytes | None:
@@ -352,19 +365,37 @@ class IngestStore:
                                    f"{req.principal.robot!r}")
 
     def _score(self, req: Request, ep: EpisodeState, step: int, d: Dec, z: bytes) -> None:
-        target = np.frombuffer(z, dtype="<f4")
-        d.nmse = scoring.nmse(np.frombuffer(d.z_hat, dtype="<f4"), target)
-        if d.z_now is not None:   # the persistence baseline z_hat = z_t against the same target (Sec. 4.10)
-            d.nmse_persistence = scoring.nmse(np.frombuffer(d.z_now, dtype="<f4"), target)
-        if d.stored:   # a new decision keeps its latents until they are written
-            d.z_hat = d.z_now = None
-        insort(ep.scored, (step, d.nmse))
+        """Pair a decision with its realized latent; the NMSE of all of a request's pairs is computed together
+        (``_compute_scores``) before anything reads it."""
         ep.unscored.discard(step)
+        req.to_score.append((ep, step, d, z))
         if d.stored:
             req.scored_stored.append((ep.id, step))
         req.scored += 1
         req.newly_scored[ep.id] = req.newly_scored.get(ep.id, 0) + 1
-        req.observations.append(("nmse", ep.task, ep.robot, d.nmse))
+
+    def _compute_scores(self, req: Request) -> None:
+        """NMSE (and the persistence baseline's, Sec. 4.10) of the request's new pairs, one array operation per
+        latent size instead of one call per decision."""
+        by_dim: dict[int, list] = {}
+        for item in req.to_score:
+            by_dim.setdefault(len(item[3]) // 4, []).append(item)
+        for dim, items in by_dim.items():
+            def rows(latents):
+                return np.frombuffer(b"".join(latents), dtype="<f4").reshape(len(latents), dim)
+            targets = rows([z for _, _, _, z in items])
+            values = scoring.nmse_rows(rows([d.z_hat for _, _, d, _ in items]), targets).tolist()
+            with_now = [i for i, (_, _, d, _) in enumerate(items) if d.z_now is not None]
+            persistence = scoring.nmse_rows(rows([items[i][2].z_now for i in with_now]), targets[with_now]).tolist() \
+                if with_now else []
+            for i, value in zip(with_now, persistence):
+                items[i][2].nmse_persistence = value
+            for (ep, step, d, _), value in zip(items, values):
+                d.nmse = value
+                if d.stored:   # a new decision keeps its latents until they are written
+                    d.z_hat = d.z_now = None
+                insort(ep.scored, (step, value))
+                req.observations.append(("nmse", ep.task, ep.robot, value))
 
     def _decision(self, cur, req: Request, rec: DecisionIn) -> None:
         self._check_dim(cur, req, rec.task, rec.z_hat.shape[0], "z_hat")
@@ -384,9 +415,9 @@ class IngestStore:
                                        "must be unique")
             if ep.success is not None:
                 raise IngestError(409, f"episode {ep.id!r} has ended (outcome recorded); start a new episode id")
-        z_hat = rec.z_hat.astype("<f4").tobytes()
-        z_now = None if rec.z_now is None else rec.z_now.astype("<f4").tobytes()
-        digest = _digest(rec.horizon, z_hat, z_now)
+        z_hat = rec.z_hat.tobytes()   # validated as little-endian float32 (schemas.Latent)
+        z_now = None if rec.z_now is None else rec.z_now.tobytes()
+        digest = decision_digest(rec.horizon, z_hat, z_now)
         existing = ep.decisions.get(rec.step)
         if existing is not None:
             if existing.digest == digest:
@@ -414,8 +445,8 @@ class IngestStore:
     def _target(self, cur, req: Request, rec: TargetIn) -> None:
         ep = self._known(cur, req, rec.episode, "targets")
         self._check_dim(cur, req, ep.task, rec.z.shape[0], "z")
-        z = rec.z.astype("<f4").tobytes()
-        digest = _digest(z)
+        z = rec.z.tobytes()
+        digest = target_digest(z)
         existing = ep.targets.get(rec.step)
         if existing is not None:
             if existing.digest == digest:
@@ -551,6 +582,7 @@ class IngestStore:
 
     # ------------------------------------------------------------------ writing
     def _write(self, cur, req: Request) -> None:
+        self._compute_scores(req)
         q, now = self.sql.q, self.sql.time(utcnow())
         for ep in req.drafts.values():
             if ep.new:

@@ -31,11 +31,18 @@ WEBHOOK_FAILURES = Counter("jepa_monitor_webhook_failures", "Failed webhook deli
 def publish(observations: list[tuple[str, str, str, float]]) -> None:
     """Turn a committed request's (kind, task, robot, value) observations into Prometheus samples."""
     counters = {"decision": DECISIONS, "target": TARGETS, "outcome": OUTCOMES, "alert": ALERTS}
+    counts: dict[tuple[str, str, str], float] = {}
+    histograms: dict[tuple[str, str], object] = {}
     for kind, task, robot, value in observations:
-        if kind == "nmse":
-            NMSE.labels(task, robot).observe(value)
+        if kind == "nmse":   # one labelled child per (task, robot) of the request, not one lookup per value
+            child = histograms.get((task, robot))
+            if child is None:
+                child = histograms[task, robot] = NMSE.labels(task, robot)
+            child.observe(value)
         else:
-            counters[kind].labels(task, robot).inc(value)
+            counts[kind, task, robot] = counts.get((kind, task, robot), 0.0) + value
+    for (kind, task, robot), total in counts.items():   # a batch's records: one increment per counter
+        counters[kind].labels(task, robot).inc(total)
 
 
 class DatabaseGauges:

@@ -29,7 +29,7 @@ def _alerts_total(metrics: str) -> float:
 def test_health_and_readiness(client):
     assert client.get("/healthz").json()["status"] == "ok"
     r = client.get("/readyz")
-    assert r.status_code == 200 and r.json()["detail"] == "schema 0002"
+    assert r.status_code == 200 and r.json()["detail"] == "schema 0003"
     paths = client.get("/openapi.json").json()["paths"]
     assert "application/x-msgpack" in paths["/v1/batch"]["post"]["requestBody"]["content"]
 
