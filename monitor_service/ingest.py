@@ -169,6 +169,28 @@ class Sql:
         elif conn.in_transaction:
             cur.execute("ROLLBACK")
 
+    def insert_many(self, cur, table: str, columns: str, rows: list[tuple]) -> None:
+        """One statement for all rows: sqlite3's executemany runs it in C; psycopg2's executemany would send one
+        statement per row, so PostgreSQL gets a single multi-row INSERT (execute_values)."""
+        if self.dialect == "sqlite":
+            marks = ", ".join("?" * (columns.count(",") + 1))
+            cur.executemany(f"INSERT INTO {table} ({columns}) VALUES ({marks})", rows)
+        else:
+            from psycopg2.extras import execute_values
+            execute_values(cur, f"INSERT INTO {table} ({columns}) VALUES %s", rows, page_size=len(rows))
+
+    def set_scores(self, cur, rows: list[tuple]) -> None:
+        """``UPDATE decisions SET nmse, nmse_persistence`` for (nmse, persistence, episode_id, step) rows."""
+        if self.dialect == "sqlite":
+            cur.executemany("UPDATE decisions SET nmse = ?, nmse_persistence = ? WHERE episode_id = ? AND step = ?",
+                            rows)
+        else:
+            from psycopg2.extras import execute_values
+            execute_values(cur, "UPDATE decisions AS d SET nmse = v.nmse, nmse_persistence = v.pers FROM (VALUES %s) "
+                                "AS v (nmse, pers, episode_id, step) WHERE d.episode_id = v.episode_id AND "
+                                "d.step = v.step", rows, template="(%s::float8, %s::float8, %s, %s)",
+                           page_size=len(rows))
+
     def time(self, value):
         """A naive-UTC datetime as this database stores it (SQLite: SQLAlchemy's text format)."""
         return value.strftime("%Y-%m-%d %H:%M:%S.%f") if self.dialect == "sqlite" else value
@@ -594,15 +616,14 @@ class IngestStore:
         rows = [(eid, step, d.horizon, step + d.horizon, d.z_hat, d.nmse, d.z_now, d.nmse_persistence, now)
                 for eid, step in req.new_decisions for d in [req.drafts[eid].decisions[step]]]
         if rows:
-            cur.executemany(q("INSERT INTO decisions (episode_id, step, horizon, target_step, z_hat, nmse, z_now, "
-                              "nmse_persistence, created_at) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?)"), rows)
+            self.sql.insert_many(cur, "decisions", "episode_id, step, horizon, target_step, z_hat, nmse, z_now, "
+                                                   "nmse_persistence, created_at", rows)
         if req.new_targets:
-            cur.executemany(q("INSERT INTO targets (episode_id, step, z, created_at) VALUES (?, ?, ?, ?)"),
-                            [(eid, step, z, now) for eid, step, z in req.new_targets])
+            self.sql.insert_many(cur, "targets", "episode_id, step, z, created_at",
+                                 [(eid, step, z, now) for eid, step, z in req.new_targets])
         if req.scored_stored:
-            cur.executemany(q("UPDATE decisions SET nmse = ?, nmse_persistence = ? WHERE episode_id = ? AND step = ?"),
-                            [(req.drafts[eid].decisions[s].nmse, req.drafts[eid].decisions[s].nmse_persistence, eid, s)
-                             for eid, s in req.scored_stored])
+            self.sql.set_scores(cur, [(req.drafts[eid].decisions[s].nmse, req.drafts[eid].decisions[s].nmse_persistence,
+                                       eid, s) for eid, s in req.scored_stored])
         for ep in req.drafts.values():
             self._refresh(cur, req, ep)
             cur.execute(q(
