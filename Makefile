@@ -6,7 +6,7 @@ test: export MUJOCO_GL ?= osmesa
 test: export PYOPENGL_PLATFORM ?= osmesa
 PYTHON ?= python3
 
-.PHONY: setup demo test bench
+.PHONY: setup demo test bench interop
 setup:
 	bash scripts/setup.sh
 
@@ -20,3 +20,7 @@ bench: setup
 	jepa-envs bench
 	jepa-policy bench latency --task ToolHang --arms mip,jepa,diffusion
 	jepa-monitor bench
+
+# our LeRobot and openpi integrations against the real libraries, each in a venv of its own (large, once)
+interop: setup
+	bash scripts/interop.sh

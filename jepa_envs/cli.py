@@ -162,6 +162,45 @@ def convert_abs_actions(args: argparse.Namespace) -> int:
     return cli_run(args)
 
 
+# -- LeRobotDataset v3.0 -------------------------------------------------------------------------------------
+
+def _lerobot_args(p: argparse.ArgumentParser) -> None:
+    sub = p.add_subparsers(dest="action", required=True)
+    e = sub.add_parser("export", help="a demos (or rollouts) HDF5 file -> a LeRobotDataset v3.0 folder")
+    e.add_argument("src", help="robomimic-layout HDF5 (jepa-envs make-demos, jepa-envs lerobot import ...)")
+    e.add_argument("out", help="new folder for the dataset (must not exist or be empty)")
+    e.add_argument("--task", help="task name (default: the file's env_name)")
+    e.add_argument("--fps", type=int, help="frame rate (default: the task's control rate)")
+    e.add_argument("--codec", default="lossless", choices=("lossless", "av1", "h264"),
+                   help="video codec: lossless H.264 RGB (default; bit-identical frames), av1 (LeRobot's "
+                        "default, lossy), h264 (yuv420p, lossy)")
+    e.add_argument("--instruction", help="task string of every episode without its own (default: from the task)")
+    i = sub.add_parser("import", help="a LeRobotDataset v3.0 folder -> an HDF5 file the loader and trainer read")
+    i.add_argument("src", help="the dataset's root folder (the one holding meta/info.json)")
+    i.add_argument("out", help="HDF5 file to write")
+    i.add_argument("--task", required=True, help="our task the data is for (its spec names the keys)")
+    i.add_argument("--map", action="append", default=[], metavar="LEROBOT_KEY=SPEC_KEY",
+                   help="feature -> spec key, e.g. observation.images.front=agentview_image, "
+                        "observation.state=robot0_eef_pos,robot0_eef_quat,robot0_gripper_qpos (repeat)")
+    i.add_argument("--fps", type=int, help="accept a dataset recorded at this rate when it differs from the task's")
+
+
+@subcommand("lerobot", "LeRobotDataset v3.0: export our demos, import a LeRobot dataset", _lerobot_args)
+def lerobot(args: argparse.Namespace) -> int:
+    from jepa_envs import lerobot_format as lr
+
+    t0 = time.perf_counter()
+    if args.action == "export":
+        summary = lr.export_lerobot(args.src, args.out, task=args.task, fps=args.fps, codec=args.codec,
+                                    instruction=args.instruction)
+    else:
+        summary = lr.import_lerobot(args.src, args.out, args.task, args.map, fps=args.fps)
+    seconds = time.perf_counter() - t0
+    print(json.dumps({**summary, "seconds": round(seconds, 2),
+                      "frames_per_s": round(summary["frames"] / max(seconds, 1e-9), 1)}))
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="jepa-envs", description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="command", required=True)

@@ -112,50 +112,81 @@ def write_dataset(path, episodes: list[dict], env_args: dict) -> None:
     """Write episodes as a robomimic-layout HDF5 file (atomically: a temp file renamed into place).
 
     Each episode dict has ``obs`` (dict of arrays with T rows), ``actions`` (T, A) and optionally ``states``,
-    ``rewards`` and ``dones`` (T rows each). ``env_args`` must contain ``env_name``.
+    ``rewards`` and ``dones`` (T rows each), and ``attrs`` (JSON-able values stored on its demo group).
+    ``env_args`` must contain ``env_name``.
     """
-    path = Path(path)
     if not episodes:
         raise ValueError("write_dataset needs at least one episode")
-    if "env_name" not in env_args:
-        raise ValueError("env_args must contain 'env_name' (e.g. 'PushT') so readers can find the task")
-    try:
-        env_args_json = json.dumps(env_args)
-    except TypeError as exc:
-        raise ValueError(f"env_args must be JSON-serialisable: {exc}") from exc
     for i, ep in enumerate(episodes):
         _check_episode(i, ep)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=path.name + ".", suffix=".tmp", dir=path.parent)
-    os.close(fd)
-    try:
-        with h5py.File(tmp, "w") as f:
-            data = f.create_group("data")
-            total = 0
-            for i, ep in enumerate(episodes):
-                g = data.create_group(f"demo_{i}")
-                n = len(ep["actions"])
-                g.attrs["num_samples"] = n
-                total += n
-                obs = g.create_group("obs")
-                for key, value in ep["obs"].items():
-                    value = np.asarray(value)
-                    image = value.dtype == np.uint8 and value.ndim == 4
-                    obs.create_dataset(key, data=value, compression="lzf" if image else None,
-                                       chunks=(1, *value.shape[1:]) if image else None)
-                g.create_dataset("actions", data=np.asarray(ep["actions"]))
-                for key in ("states", "rewards", "dones"):
-                    if ep.get(key) is not None:
-                        g.create_dataset(key, data=np.asarray(ep[key]))
-            data.attrs["total"] = total
-            data.attrs["env_args"] = env_args_json
-        umask = os.umask(0)
-        os.umask(umask)
-        os.chmod(tmp, 0o666 & ~umask)  # mkstemp creates 0600; give the file the usual permissions
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.remove(tmp)
+    with DemoWriter(path, env_args) as writer:
+        for ep in episodes:
+            writer.add(ep)
+
+
+class DemoWriter:
+    """Writes a robomimic-layout HDF5 file one episode at a time (memory bounded by one episode).
+
+    The file appears at ``path`` only when the ``with`` block ends without an error; until then it is a
+    temporary file beside it, removed on any error, so a failed write leaves nothing half-written.
+    """
+
+    def __init__(self, path, env_args: dict):
+        self.path = Path(path)
+        if "env_name" not in env_args:
+            raise ValueError("env_args must contain 'env_name' (e.g. 'PushT') so readers can find the task")
+        try:
+            self.env_args_json = json.dumps(env_args)
+        except TypeError as exc:
+            raise ValueError(f"env_args must be JSON-serialisable: {exc}") from exc
+        self.episodes = 0
+        self.total = 0
+
+    def __enter__(self) -> "DemoWriter":
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        fd, self.tmp = tempfile.mkstemp(prefix=self.path.name + ".", suffix=".tmp", dir=self.path.parent)
+        os.close(fd)
+        self.file = h5py.File(self.tmp, "w")
+        self.data = self.file.create_group("data")
+        return self
+
+    def add(self, ep: dict) -> None:
+        """Append one episode (the dict ``write_dataset`` takes)."""
+        _check_episode(self.episodes, ep)
+        g = self.data.create_group(f"demo_{self.episodes}")
+        n = len(ep["actions"])
+        g.attrs["num_samples"] = n
+        for key, value in (ep.get("attrs") or {}).items():
+            g.attrs[key] = value
+        obs = g.create_group("obs")
+        for key, value in ep["obs"].items():
+            value = np.asarray(value)
+            image = value.dtype == np.uint8 and value.ndim == 4
+            obs.create_dataset(key, data=value, compression="lzf" if image else None,
+                               chunks=(1, *value.shape[1:]) if image else None)
+        g.create_dataset("actions", data=np.asarray(ep["actions"]))
+        for key in ("states", "rewards", "dones"):
+            if ep.get(key) is not None:
+                g.create_dataset(key, data=np.asarray(ep[key]))
+        self.episodes += 1
+        self.total += n
+
+    def __exit__(self, exc_type, exc, tb) -> None:
+        try:
+            if exc_type is None:
+                if self.episodes == 0:
+                    raise ValueError(f"no episode was written to {self.path}; a dataset needs at least one")
+                self.data.attrs["total"] = self.total
+                self.data.attrs["env_args"] = self.env_args_json
+            self.file.close()
+            if exc_type is None:
+                umask = os.umask(0)
+                os.umask(umask)
+                os.chmod(self.tmp, 0o666 & ~umask)  # mkstemp creates 0600; give the file the usual permissions
+                os.replace(self.tmp, self.path)
+        finally:
+            if os.path.exists(self.tmp):
+                os.remove(self.tmp)
 
 
 def _check_episode(i: int, ep: dict) -> None:

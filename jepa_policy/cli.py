@@ -158,12 +158,14 @@ def cmd_protocols(args) -> int:
 
 def cmd_audit(args) -> int:
     from jepa_envs.data import load_dataset
+    from jepa_envs.lerobot_format import resolve_dataset
     from jepa_policy.audit import audit_checkpoint, gradient_audit, retrieval_audit
     from jepa_policy.policy import Policy
     from jepa_policy.train import resolve_device
 
     policy = Policy.from_checkpoint(args.checkpoint, device=resolve_device(args.device))
-    demos = load_dataset(args.dataset, task=policy.spec.name, image_size=policy.spec.image_size)
+    demos = load_dataset(resolve_dataset(args.dataset, policy.spec.name), task=policy.spec.name,
+                         image_size=policy.spec.image_size)
     kinds = args.kind.split(",")
     unknown = sorted(set(kinds) - {"collapse", "retrieval", "gradients"})
     if unknown:

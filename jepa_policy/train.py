@@ -29,6 +29,7 @@ from torch.utils.tensorboard import SummaryWriter
 from tqdm import tqdm
 
 from jepa_envs.data import load_dataset
+from jepa_envs.lerobot_format import resolve_dataset
 from jepa_envs.pool import available_cores
 from jepa_envs.spec import get_task_spec
 from jepa_policy.audit import gradient_interaction
@@ -48,7 +49,8 @@ class TrainConfig:
 
     task: str = "PushT"
     arm: str = "jepa"                 # jepa | mip | dual_independent | dual_cross | backcut | fwdcut | sigreg | lambda_a0 | diffusion
-    dataset: str = ""                 # demonstration file (jepa_envs.data.load_dataset)
+    dataset: str = ""                 # demonstration file (jepa_envs.data.load_dataset) or LeRobot v3.0 root
+    dataset_map: dict = field(default_factory=dict)   # LeRobot feature -> our key (jepa_envs.lerobot_format)
     out_dir: str = "runs/jepa"
     resume: str = ""                  # checkpoint to continue from ("" = fresh run)
     steps: int = 300_000
@@ -139,7 +141,10 @@ class TrainConfig:
 TRAIN_HELP = {
     "task": "task name (PushT, ToolHang, Square, ...; `jepa-envs list`)",
     "arm": "jepa | mip | dual_independent | dual_cross | backcut | fwdcut | sigreg | lambda_a0 | diffusion",
-    "dataset": "demonstration file (robomimic/MimicGen/LIBERO HDF5 or `jepa-envs make-demos`)",
+    "dataset": "demonstration file (robomimic/MimicGen/LIBERO HDF5 or `jepa-envs make-demos`), or the root of a "
+               "LeRobotDataset v3.0 (the folder holding meta/info.json)",
+    "dataset_map": "LeRobot dataset only: JSON object of feature -> our key, e.g. "
+                   "'{\"observation.images.front\": \"agentview_image\"}' (jepa-envs lerobot import --map)",
     "out_dir": "run folder: checkpoints, log.jsonl, TensorBoard, train_config.json",
     "resume": "checkpoint to continue from (runs to the schedule's end unless --stop-at is given)",
     "steps": "length of the schedule (cosine decay ends here)",
@@ -260,7 +265,8 @@ def _load_demos(cfg: TrainConfig):
     if not cfg.dataset:
         raise ValueError("no dataset given; record one with `jepa-envs make-demos PushT --episodes 50 "
                          "--out demos.hdf5` and pass --dataset demos.hdf5")
-    return load_dataset(cfg.dataset, task=cfg.task, image_size=cfg.image_size or None)
+    path = resolve_dataset(cfg.dataset, cfg.task, [f"{k}={v}" for k, v in cfg.dataset_map.items()])
+    return load_dataset(path, task=cfg.task, image_size=cfg.image_size or None)
 
 
 def train(cfg: TrainConfig, demos=None) -> dict:

@@ -1,0 +1,43 @@
+#!/usr/bin/env bash
+# `make interop`: check our LeRobot and openpi integrations against the real libraries users run, each in a venv
+# of its own (their pins clash with ours), then run scripts/interop.py. Idempotent: a second run only checks.
+#
+#   LeRobot 0.4.4 (the newest release for Python 3.11, LeRobotDataset v3.0) pins torch < 2.11; it is installed
+#   with --no-deps beside torch 2.13.0 and torchvision 0.28.0 from PyPI (its dataset code imports torchvision,
+#   whose PyPI wheel needs PyPI's CUDA build of torch: about 4 GB, downloaded once into .cache/interop), the
+#   torchcodec that decodes its videos (it loads Debian's FFmpeg libraries) and the modules its dataset code
+#   imports. openpi-client needs numpy < 2: its own small venv.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+ROOT=.cache/interop
+mkdir -p "$ROOT"
+SUDO=""
+[ "$(id -u)" = 0 ] || SUDO="sudo"
+# pip's machine-wide configuration points at a CPU-only torch file and caps versions; these venvs use PyPI's
+PIPX=(env PIP_FIND_LINKS= PIP_CONFIG_FILE=/dev/null)
+
+if ! dpkg -s ffmpeg >/dev/null 2>&1; then
+  echo "[interop] Debian's ffmpeg (torchcodec loads its libraries)"
+  $SUDO apt-get update -qq && DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq ffmpeg >/dev/null
+fi
+
+LEROBOT=$ROOT/lerobot
+if ! "$LEROBOT/bin/python" -c "import lerobot.datasets.lerobot_dataset, torchcodec" 2>/dev/null; then
+  echo "[interop] LeRobot venv ($LEROBOT; the CUDA torch download is large)"
+  python3.11 -m venv "$LEROBOT"
+  "${PIPX[@]}" "$LEROBOT/bin/pip" install -q --disable-pip-version-check \
+    "torch==2.13.0" "torchvision==0.28.0" "torchcodec==0.13.0"
+  "${PIPX[@]}" "$LEROBOT/bin/pip" install -q --disable-pip-version-check --no-deps "lerobot==0.4.4"
+  "${PIPX[@]}" "$LEROBOT/bin/pip" install -q --disable-pip-version-check "datasets>=4.0,<5" \
+    "huggingface-hub>=0.34.2,<0.36" pandas pyarrow "av>=15,<16" jsonlines "packaging>=24.2,<26" "draccus==0.10.0" \
+    "deepdiff>=7.0.1,<9" "termcolor>=2.4" accelerate einops
+fi
+
+OPENPI=$ROOT/openpi
+if ! "$OPENPI/bin/python" -c "import openpi_client.websocket_client_policy" 2>/dev/null; then
+  echo "[interop] openpi-client venv ($OPENPI)"
+  python3.11 -m venv "$OPENPI"
+  "${PIPX[@]}" "$OPENPI/bin/pip" install -q --disable-pip-version-check "openpi-client==0.1.2"
+fi
+
+python3 scripts/interop.py --lerobot-python "$LEROBOT/bin/python" --openpi-python "$OPENPI/bin/python" "$@"
