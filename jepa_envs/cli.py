@@ -201,6 +201,34 @@ def lerobot(args: argparse.Namespace) -> int:
     return 0
 
 
+# -- raw states -> images ----------------------------------------------------------------------------------------
+
+def _render_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("src", help="raw HDF5: states and actions only (robomimic/MimicGen env_args or robosuite's "
+                               "own demonstration format)")
+    p.add_argument("out", help="HDF5 file with image observations the loader reads")
+    p.add_argument("--task", help="our task (default: from the file's env name)")
+    p.add_argument("--cameras", nargs="+", default=(), help="cameras to render (default: the task's)")
+    p.add_argument("--size", type=int, help="image size (default: the task's, 84)")
+    p.add_argument("--replay", action="store_true",
+                   help="then replay the written actions open-loop in the task's gym env from each recorded start")
+
+
+@subcommand("render-dataset", "render a raw dataset's recorded states into image observations (robomimic's "
+                              "dataset_states_to_obs), with each episode's replay drift", _render_args)
+def render_dataset_cmd(args: argparse.Namespace) -> int:
+    from jepa_envs.render_dataset import render_dataset, replay_in_env
+
+    t0 = time.perf_counter()
+    report = render_dataset(args.src, args.out, task=args.task, cameras=tuple(args.cameras), size=args.size,
+                            progress=True)
+    report["seconds"] = round(time.perf_counter() - t0, 1)
+    if args.replay:
+        report["replay_in_env"] = replay_in_env(args.out, report["task"])
+    print(json.dumps(report))
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="jepa-envs", description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="command", required=True)

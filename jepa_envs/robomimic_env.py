@@ -1,4 +1,4 @@
-"""robomimic PH tasks (Square, ToolHang, Transport) on robosuite 1.4.1, behind our Gymnasium interface.
+"""robomimic PH tasks (Lift, Can, Square, ToolHang, Transport) on robosuite 1.4.1, behind our Gymnasium interface.
 
 The env is built with the settings stored in the ``env_args`` of the public robomimic v1.5 image datasets:
 OSC_POSE (robosuite defaults), control_freq 20, reward_shaping False, ignore_done True, the datasets' cameras
@@ -19,6 +19,8 @@ ROBOSUITE_ENV_TYPE = 1  # robomimic's EnvType.ROBOSUITE_TYPE, stored as env_args
 
 # Per-task entries of the robomimic v1.5 image datasets' env_kwargs (the rest is shared, below).
 _TASK_KWARGS: dict[str, dict[str, Any]] = {
+    "Lift": {"robots": ["Panda"]},
+    "PickPlaceCan": {"robots": ["Panda"]},
     "NutAssemblySquare": {"robots": ["Panda"]},
     "ToolHang": {"robots": ["Panda"]},
     "TwoArmTransport": {"robots": ["Panda", "Panda"], "env_configuration": "single-arm-opposed"},

@@ -90,6 +90,26 @@ def global_numpy_seed(seed: int):
         np.random.set_state(state)
 
 
+def localize_model_xml(xml: str) -> str:
+    """A recorded MJCF model with its asset paths pointed at this machine's robosuite (datasets store the
+    absolute paths of the machine that recorded them, e.g. /home/me/robosuite/robosuite/models/assets/...)."""
+    import os
+    import re
+
+    import robosuite
+
+    local = os.path.dirname(robosuite.__file__)
+
+    def repoint(match: re.Match) -> str:
+        path = match.group(2)
+        marker = "/robosuite/models/assets/"
+        if marker in path and not os.path.exists(path):
+            path = os.path.join(local, "models", "assets", path.split(marker, 1)[1])
+        return f'{match.group(1)}"{path}"'
+
+    return re.sub(r'(\bfile=)"([^"]*)"', repoint, xml)
+
+
 def upright(image: np.ndarray) -> np.ndarray:
     """The right-way-up view of a frame robosuite 1.4 rendered OpenGL-style (bottom row first).
 
@@ -127,6 +147,12 @@ class RobosuiteTaskEnv(JEPAEnv):
         self._success_fn = success_fn or backend._check_success
         self.action_space = self._make_action_space()
         self._resumed_cameras: set[str] = set()
+        # Observations are read at the END of each control step (``step``: a forced update), as robomimic's env
+        # wrapper does and as its datasets are rendered from recorded states, so a recorded state re-renders to
+        # the frame seen live (render-dataset). robosuite's own clock samples observables early in a step; the
+        # cameras are made to never sample on it, so each is still rendered once per step.
+        for key in self._camera_keys.values():
+            backend.modify_observable(observable_name=key, attribute="sampling_rate", modifier=1e-9)
 
     # ---- spaces and actions -------------------------------------------------------------------------
     def _make_action_space(self) -> spaces.Box:
@@ -231,7 +257,35 @@ class RobosuiteTaskEnv(JEPAEnv):
 
     # ---- gymnasium API ------------------------------------------------------------------------------
     def _backend_reset(self, options: dict | None) -> dict[str, np.ndarray]:
-        return self.backend.reset()
+        """robosuite's reset; ``options`` may restore a recorded episode's start as robomimic's ``reset_to``
+        does: ``model`` (the MJCF XML a dataset stored, ``demo.attrs["model_file"]``) and ``state`` (MuJoCo's
+        flattened state, ``states[0]``)."""
+        raw = self.backend.reset()
+        options = options or {}
+        if "model" in options:
+            self.backend.reset_from_xml_string(localize_model_xml(options["model"]))
+            self.backend.sim.reset()
+            self._make_gl_current()
+        if "state" in options:
+            self.set_sim_state(options["state"])
+        if "model" in options or "state" in options:
+            raw = self.backend._get_observations(force_update=True)
+        return raw
+
+    def set_sim_state(self, state) -> None:
+        """Put the simulator in a recorded flattened MuJoCo state (no step is taken)."""
+        state = np.asarray(state, dtype=np.float64)
+        expected = self.backend.sim.get_state().flatten().shape
+        if state.shape != expected:
+            raise ValueError(f"a {self.task_spec.name} state has {expected[0]} values, got {state.shape}; the "
+                             "recording comes from another env (check its env_args / model)")
+        self.backend.sim.set_state_from_flattened(state)
+        self.backend.sim.forward()
+
+    def observe_now(self) -> dict[str, np.ndarray]:
+        """The observation of the simulator's current state, cameras rendered now (robomimic's get_observation)."""
+        self._make_gl_current()
+        return self._observation(self.backend._get_observations(force_update=True))
 
     def _clear_gripper_commands(self) -> None:
         # A soft reset (hard_reset=False) keeps the gripper models, whose incremental command would otherwise
@@ -261,7 +315,11 @@ class RobosuiteTaskEnv(JEPAEnv):
     def step(self, action):
         if self.render_images:
             self._make_gl_current()
-        raw, reward, _done, _info = self.backend.step(self.to_native(action))
+        _, reward, _done, _info = self.backend.step(self.to_native(action))
+        # MuJoCo's step leaves positions (xpos, sites) computed for the state before its integration: forward to
+        # the final state, then read every observation from it (see __init__)
+        self.backend.sim.forward()
+        raw = self.backend._get_observations(force_update=True)
         success = bool(self._success_fn())
         # robosuite runs with ignore_done; the episode ends on success, the time limit is the TimeLimit wrapper's.
         return self._observation(raw), float(reward), success, False, {"is_success": success}

@@ -136,6 +136,8 @@ PUSHT = register_task(TaskSpec(
     control_hz=10.0, horizon=16, future_k=4, max_episode_steps=300, image_size=84, num_demos=0,
     notes="2-D pushing on pymunk; action = absolute target position of the round agent",
 ))
+register_task(_robomimic("Lift", "Lift", ("agentview", "robot0_eye_in_hand"), 1, 400))
+register_task(_robomimic("Can", "PickPlaceCan", ("agentview", "robot0_eye_in_hand"), 1, 400))
 register_task(_robomimic("Square", "NutAssemblySquare", ("agentview", "robot0_eye_in_hand"), 1, 400))
 register_task(_robomimic("ToolHang", "ToolHang", ("sideview", "robot0_eye_in_hand"), 1, 700))
 register_task(_robomimic(

@@ -144,7 +144,8 @@ def test_env_names_map_to_tasks():
     assert task_for_env_name("Coffee_Preparation_D1").name == "CoffeePreparation"
     assert task_for_env_name("CoffeePreparation_D1").name == "CoffeePreparation"
     assert task_for_env_name("JEPA/PushT-v0").name == "PushT"
-    assert task_for_env_name("Lift") is None
+    assert task_for_env_name("Lift").name == "Lift" and task_for_env_name("PickPlaceCan").name == "Can"
+    assert task_for_env_name("Stack") is None
 
 
 def _good_file(path):
@@ -162,8 +163,8 @@ BAD_FILES = {
     "no demos": (lambda f: [f["data"].__delitem__(k) for k in list(f["data"])], "no demo_N groups"),
     "no env_args": (lambda f: f["data"].attrs.__delitem__("env_args"), "env_args'\\] is missing"),
     "bad json": (lambda f: f["data"].attrs.__setitem__("env_args", "{not json"), "not valid JSON"),
-    "unknown env": (lambda f: f["data"].attrs.__setitem__("env_args", json.dumps({"env_name": "Lift"})),
-                    "unknown env 'Lift'.*task="),
+    "unknown env": (lambda f: f["data"].attrs.__setitem__("env_args", json.dumps({"env_name": "Stack"})),
+                    "unknown env 'Stack'.*task="),
     "missing obs key": (lambda f: f["data/demo_1/obs"].__delitem__("agent_pos"),
                         "data/demo_1/obs has no 'agent_pos'"),
     "missing actions": (lambda f: f["data/demo_0"].__delitem__("actions"), "data/demo_0 has no 'actions'"),

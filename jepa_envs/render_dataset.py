@@ -1,0 +1,254 @@
+"""``jepa-envs render-dataset``: raw demonstrations (simulator states and actions only) rendered into the image
+observations the loader reads, as robomimic's ``dataset_states_to_obs`` does.
+
+Per episode: reset to the recorded model XML (``demo.attrs["model_file"]``) and initial state, then put the
+simulator in every recorded state and render the task's cameras (or ``--cameras``) at ``--size``; the low-dim
+observations come from the same states. Raw robomimic / MimicGen files (``data.attrs["env_args"]``) and
+robosuite's own demonstration files (``data.attrs["env_info"]``, e.g. the Lift demos robosuite ships) are read;
+PushT files (states are poses) too. Delta OSC_POSE actions are converted to the paper's absolute convention by
+the same state replay as ``convert-abs-actions``, so the output trains as it is.
+
+Reported per episode: ``state_error`` (largest difference between a recorded state and the state the simulator
+holds after being put in it: 0 when the recording fits this simulator), ``replay_drift`` (largest difference
+between the recorded states and those reached by replaying the recorded actions open-loop from the first one)
+and ``replay_success``. A recorded model this robosuite cannot load (other robot geometry, e.g. a file from
+another robosuite release) is reported and the task's own model is used with the recorded states.
+"""
+from __future__ import annotations
+
+import copy
+import json
+from pathlib import Path
+
+import numpy as np
+
+from jepa_envs.data import DatasetError, DemoWriter, demo_names, open_hdf5, task_for_env_name
+from jepa_envs.spec import TaskSpec, get_task_spec
+
+NATIVE_DIM_PER_ARM = 7
+
+
+def source_env_args(data, path) -> dict:
+    """robomimic's env_args of a raw file; robosuite's own ``env_info`` (its demonstration format) becomes
+    env_args with robomimic's rendering settings."""
+    from jepa_envs.robomimic_env import ROBOSUITE_ENV_TYPE, robomimic_env_args
+
+    if "env_args" in data.attrs:
+        try:
+            return json.loads(data.attrs["env_args"])
+        except ValueError as exc:
+            raise DatasetError(f"{path}: data.attrs['env_args'] is not valid JSON ({exc})") from None
+    if "env_info" in data.attrs:
+        info = json.loads(data.attrs["env_info"])
+        name = info.pop("env_name", None) or data.attrs.get("env")
+        robots = info.pop("robots", "Panda")
+        kwargs = {"robots": [robots] if isinstance(robots, str) else list(robots), **info}
+        args = robomimic_env_args(name, ("agentview",), 84, control_delta=True, task_kwargs=kwargs)
+        args["type"] = ROBOSUITE_ENV_TYPE
+        return args
+    raise DatasetError(f"{path}: data has neither env_args (robomimic) nor env_info (robosuite); the file does "
+                       "not say which environment recorded it")
+
+
+def render_dataset(src: str | Path, out: str | Path, task: str | None = None, cameras: tuple[str, ...] = (),
+                   size: int | None = None, progress: bool = False) -> dict:
+    """Render ``src``'s recorded states into ``out`` (robomimic layout with images); returns the report."""
+    with open_hdf5(src) as f:
+        if "data" not in f or not demo_names(f["data"]):
+            raise DatasetError(f"{src} holds no data/demo_N episodes")
+        data = f["data"]
+        names = demo_names(data)
+        for name in names:
+            for key in ("states", "actions"):
+                if key not in data[name]:
+                    raise DatasetError(f"{src}: data/{name} has no {key!r}; render-dataset replays recorded simulator "
+                                       "states and actions (robomimic's dataset_states_to_obs), so a file without "
+                                       "them cannot be rendered: record the states with the demonstrations")
+        env_args = source_env_args(data, src)
+        spec = _task(task, env_args, src)
+        spec = spec.with_image_size(int(size or spec.image_size))
+        if cameras:
+            from dataclasses import replace
+            spec = replace(spec, cameras=tuple(cameras))
+        if spec.suite == "embedded":
+            renderer = PushTRenderer(spec)
+        else:   # the recorded actions say the convention (the env_args of some files say delta regardless)
+            width = data[names[0]]["actions"].shape[1]
+            renderer = RobosuiteRenderer(spec, env_args, delta=width == NATIVE_DIM_PER_ARM * spec.num_arms)
+        episodes = []
+        try:
+            with DemoWriter(out, renderer.output_env_args()) as writer:
+                for i, name in enumerate(names):
+                    demo = data[name]
+                    states, actions = demo["states"][()], demo["actions"][()]
+                    model = demo.attrs.get("model_file")
+                    episode, report = renderer.episode(states, actions, model)
+                    for key in ("rewards", "dones"):
+                        if key in demo:
+                            episode[key] = demo[key][()]
+                    writer.add(episode)
+                    episodes.append({"demo": name, "steps": len(actions), **report})
+                    if progress:
+                        print(f"  {name}: {len(actions)} steps, " + ", ".join(
+                            f"{k} {v:.4g}" if isinstance(v, float) else f"{k} {v}" for k, v in report.items()),
+                            flush=True)
+        finally:
+            renderer.close()
+    return {"task": spec.name, "episodes": episodes, "out": str(out), "cameras": list(spec.cameras),
+            "size": spec.image_size, "replay_successes": sum(bool(e["replay_success"]) for e in episodes)}
+
+
+def _task(task: str | None, env_args: dict, src) -> TaskSpec:
+    if task is not None:
+        try:
+            return get_task_spec(task)
+        except KeyError as exc:
+            raise DatasetError(exc.args[0]) from None
+    found = task_for_env_name(str(env_args.get("env_name", "")))
+    if found is None:
+        raise DatasetError(f"{src}: env {env_args.get('env_name')!r} is not one of our tasks; pass --task NAME")
+    return found
+
+
+class PushTRenderer:
+    """PushT states are poses (agent xy, block xy, angle): each is set and rendered."""
+
+    def __init__(self, spec: TaskSpec):
+        from jepa_envs.pusht import PushTEnv
+
+        self.spec = spec
+        self.env = PushTEnv(image_size=spec.image_size)
+
+    def output_env_args(self) -> dict:
+        return {"env_name": "PushT", "type": "jepa_envs", "env_kwargs": {"image_size": self.spec.image_size}}
+
+    def episode(self, states, actions, model) -> tuple[dict, dict]:
+        obs = []
+        error = 0.0
+        for state in states:
+            o, _ = self.env.reset(options={"state": state})
+            obs.append(o)
+            error = max(error, float(np.abs(self.env.get_state() - state).max()))
+        self.env.reset(options={"state": states[0]})
+        drift, success = 0.0, False
+        for t, action in enumerate(actions):
+            _, _, done, _, info = self.env.step(action)
+            success = success or bool(info["is_success"])
+            if t + 1 < len(states):
+                drift = max(drift, float(np.abs(self.env.get_state() - states[t + 1]).max()))
+        episode = {"obs": {k: np.stack([o[k] for o in obs]) for k in obs[0]}, "actions": np.asarray(actions),
+                   "states": np.asarray(states)}
+        return episode, {"state_error": error, "replay_drift": drift, "replay_success": success}
+
+    def close(self) -> None:
+        self.env.close()
+
+
+class RobosuiteRenderer:
+    """robosuite tasks: the recorded model and states, our cameras and low-dim keys, absolute actions."""
+
+    def __init__(self, spec: TaskSpec, env_args: dict, delta: bool):
+        self.spec = spec
+        self.env_args = copy.deepcopy(env_args)
+        self.env_args.setdefault("env_kwargs", {})
+        self.delta = delta
+        self.env = self._make()
+
+    def _make(self):
+        from jepa_envs.robomimic_env import make_backend_from_env_args
+        from jepa_envs.robosuite_common import RobosuiteTaskEnv
+
+        backend = make_backend_from_env_args(self.env_args, control_delta=self.delta, cameras=self.spec.cameras,
+                                             image_size=self.spec.image_size)
+        return RobosuiteTaskEnv(self.spec, backend, action_mode="delta" if self.delta else "abs")
+
+    def output_env_args(self) -> dict:
+        from jepa_envs.robomimic_env import robomimic_env_args
+
+        task_kwargs = {k: v for k, v in self.env_args["env_kwargs"].items()
+                       if k not in ("camera_names", "camera_heights", "camera_widths", "controller_configs")}
+        out = robomimic_env_args(self.env_args["env_name"], self.spec.cameras, self.spec.image_size,
+                                 control_delta=False, task_kwargs=task_kwargs)
+        ctrl = self.env_args["env_kwargs"].get("controller_configs")
+        if isinstance(ctrl, dict):
+            out["env_kwargs"]["controller_configs"] = {**ctrl, "control_delta": False}
+        return out
+
+    def _reset_to(self, states, model) -> str:
+        """Reset to the recorded model and first state; returns which model is used."""
+        if model is not None:
+            try:
+                self.env.reset(seed=0, options={"model": model, "state": states[0]})
+                return "recorded"
+            except Exception as exc:   # another robosuite's geometry: rebuild ours, keep the states
+                why = str(exc).splitlines()[0][:120]
+                self.env.close()
+                self.env = self._make()
+                self.env.reset(seed=0, options={"state": states[0]})
+                return f"own (recorded XML unusable here: {why})"
+        self.env.reset(seed=0, options={"state": states[0]})
+        return "own"
+
+    def episode(self, states, actions, model) -> tuple[dict, dict]:
+        from jepa_envs.convert_abs_actions import delta_to_abs_by_replay
+
+        states = np.asarray(states, np.float64)
+        actions = np.asarray(actions, np.float64)
+        which = self._reset_to(states, model)
+        sim = self.env.backend.sim
+        obs, error = [], 0.0
+        for state in states:
+            self.env.set_sim_state(state)
+            error = max(error, float(np.abs(sim.get_state().flatten() - state).max()))
+            obs.append(self.env.observe_now())
+        # open-loop replay of the recorded actions from the first state
+        self.env.set_sim_state(states[0])
+        drift, success = 0.0, False
+        for t, action in enumerate(actions):
+            _, _, done, _, info = self.env.step(action)
+            success = success or bool(info["is_success"])
+            if t + 1 < len(states):   # the first entry is MuJoCo's clock, which a replay restarts
+                drift = max(drift, float(np.abs(sim.get_state().flatten()[1:] - states[t + 1][1:]).max()))
+        if self.delta and actions.shape[1] == NATIVE_DIM_PER_ARM * self.spec.num_arms:
+            actions = delta_to_abs_by_replay(self.env.backend, states, actions)
+        episode = {"obs": {k: np.stack([o[k] for o in obs]) for k in obs[0]},
+                   "actions": actions.astype(np.float32), "states": states}
+        return episode, {"model": which, "state_error": error, "replay_drift": drift, "replay_success": success}
+
+    def close(self) -> None:
+        self.env.close()
+
+
+def replay_in_env(path: str | Path, task: str, episodes: int | None = None) -> dict:
+    """Replay a rendered file's actions open-loop in ``gym.make(<task's id>)`` from each episode's recorded first
+    state, the actions read through the training loader (``load_dataset``); counts the episodes that succeed."""
+    import gymnasium as gym
+
+    from jepa_envs.data import load_dataset
+
+    demos = load_dataset(path, task=task, cache_dir=False)
+    spec = demos.spec
+    with open_hdf5(path) as f:
+        first_states = [f["data"][n]["states"][0] for n in demos.demo_names]
+    longest = int(np.diff(demos.episode_ends, prepend=0).max())
+    # a replay runs the recording's own length (human demonstrations may outlast the evaluation time limit), and
+    # renders nothing: success is read from the simulator
+    env = gym.make(spec.env_id, image_size=spec.image_size, max_episode_steps=max(longest, spec.max_episode_steps))
+    env.unwrapped.set_render_images(False)
+    results = []
+    try:
+        for i in range(min(demos.num_episodes(), episodes or demos.num_episodes())):
+            env.reset(seed=i, options={"state": first_states[i]})
+            steps = demos.actions[demos.episode_slice(i)]
+            success_step = None
+            for t, action in enumerate(steps):
+                *_, terminated, truncated, info = env.step(action)
+                if info["is_success"]:
+                    success_step = t + 1
+                    break
+            results.append({"demo": demos.demo_names[i], "steps": len(steps), "success": success_step is not None,
+                            "success_step": success_step,
+                            "within_time_limit": success_step is not None and success_step <= spec.max_episode_steps})
+    finally:
+        env.close()
+    return {"task": spec.name, "episodes": results, "successes": sum(r["success"] for r in results)}
