@@ -1,4 +1,4 @@
-"""``jepa-policy``: train, eval, describe, bench latency, bench train, audit, protocols, robot."""
+"""``jepa-policy``: train, eval, describe, bench latency, bench train, audit, protocols, robot, serve."""
 from __future__ import annotations
 
 import argparse
@@ -201,6 +201,19 @@ def cmd_robot(args) -> int:
     return 0
 
 
+def cmd_serve(args) -> int:
+    from jepa_policy.serve import ServeConfig, serve_checkpoint
+
+    if not Path(args.checkpoint).is_file():
+        raise FileNotFoundError(f"checkpoint {args.checkpoint} does not exist; train one with `jepa-policy train`")
+    config = ServeConfig(host=args.host, port=args.port, api_key=args.api_key, tls_cert=args.tls_cert,
+                         tls_key=args.tls_key, max_batch=args.max_batch, max_queue=args.max_queue,
+                         monitor_url=args.monitor_url, monitor_key=args.monitor_key, task_id=args.task_id,
+                         robot=args.robot)
+    serve_checkpoint(args.checkpoint, config, device=args.device, threads=args.threads)
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="jepa-policy", description=__doc__)
     sub = parser.add_subparsers(dest="command", required=True)
@@ -308,6 +321,24 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--curve-client-key", help="CurveZMQ: this computer's secret key file")
     p.add_argument("--json", help="also write the summary to this file")
     p.set_defaults(func=cmd_robot)
+
+    p = sub.add_parser("serve", help="serve a checkpoint over openpi's websocket protocol (openpi-client), with the "
+                                     "monitor inside")
+    p.add_argument("--checkpoint", required=True, help="a `jepa-policy train` checkpoint")
+    p.add_argument("--host", default="127.0.0.1", help="bind address (another than loopback needs --api-key or TLS)")
+    p.add_argument("--port", type=int, default=8000)
+    p.add_argument("--api-key", help="clients must send 'Authorization: Api-Key KEY' (openpi-client's api_key)")
+    p.add_argument("--tls-cert", help="serve wss:// with this certificate (PEM)")
+    p.add_argument("--tls-key", help="the certificate's private key (PEM)")
+    p.add_argument("--device", default="cpu", help="torch device of the policy")
+    p.add_argument("--threads", type=int, help="torch intra-op threads")
+    p.add_argument("--max-batch", type=int, default=16, help="requests of several robots batched into one pass")
+    p.add_argument("--max-queue", type=int, default=64, help="waiting requests beyond which one is refused")
+    p.add_argument("--monitor-url", help="the monitor service (jepa-monitor serve), e.g. http://127.0.0.1:8765")
+    p.add_argument("--monitor-key", help="a robot key of the monitor service")
+    p.add_argument("--task-id", help="the monitor's task name (default: the checkpoint's task)")
+    p.add_argument("--robot", help="the monitor key's robot name")
+    p.set_defaults(func=cmd_serve)
     return parser
 
 

@@ -151,17 +151,25 @@ class Policy:
 
     @torch.inference_mode()
     def _decide(self, want_future: bool) -> Decision:
-        obs = {}
-        for key in self.spec.image_keys:
-            stacked = np.stack([f[key] for f in self._history], axis=1)
-            obs[key] = torch.from_numpy(np.ascontiguousarray(stacked, dtype=np.uint8)).to(self.device)
-        for key in self.spec.lowdim_keys:
-            stacked = np.stack([f[key] for f in self._history], axis=1).astype(np.float32)
-            obs[key] = torch.from_numpy(stacked).to(self.device)
-        actions, z_hat = self.model.predict(obs, want_future=want_future)
-        actions = actions.float().cpu().numpy()
-        z = None if z_hat is None else z_hat.float().cpu().numpy()
+        actions, z = predict_frames(self.model, self.spec, list(self._history), self.device, want_future)
         if not self._batched:
             actions, z = actions[0], (None if z is None else z[0])
         self.last_decision = Decision(step=self.t, k=self.k, actions=actions, z_hat=z)
         return self.last_decision
+
+
+@torch.inference_mode()
+def predict_frames(model: torch.nn.Module, spec: TaskSpec, frames: list[dict], device: torch.device,
+                   want_future: bool = True) -> tuple[np.ndarray, np.ndarray | None]:
+    """One forward pass over a history: ``frames`` oldest first, each key batched (B, ...); returns the
+    unnormalised action chunks (B, H, A) and z_hat (B, D) (None for arms without a future head). Shared by the
+    acting runtime and the policy server, which stacks several clients' histories into one batch."""
+    obs = {}
+    for key in spec.image_keys:
+        stacked = np.stack([f[key] for f in frames], axis=1)
+        obs[key] = torch.from_numpy(np.ascontiguousarray(stacked, dtype=np.uint8)).to(device)
+    for key in spec.lowdim_keys:
+        stacked = np.stack([f[key] for f in frames], axis=1).astype(np.float32)
+        obs[key] = torch.from_numpy(stacked).to(device)
+    actions, z_hat = model.predict(obs, want_future=want_future)
+    return actions.float().cpu().numpy(), None if z_hat is None else z_hat.float().cpu().numpy()

@@ -120,8 +120,12 @@ class MonitorClient(_Records):
     def __init__(
         self, base_url: str, api_key: str, *, robot: str | None = None, max_buffer: int = 100_000,
         batch_size: int = 256, timeout: float = 5.0, max_backoff: float = 1.0,
+        on_result: Any = None,
     ):
+        """``on_result(records, result)``: called from the sender thread with each accepted batch and the
+        service's answer (``alert_state``: each touched episode's open alert), e.g. to act on alerts."""
         super().__init__(robot, max_buffer, batch_size, api_key, max_backoff)
+        self.on_result = on_result
         self._http = httpx.Client(base_url=base_url, timeout=timeout)
         self._cond = threading.Condition()
         self._closing = False
@@ -167,6 +171,11 @@ class MonitorClient(_Records):
             response = self._send_until_done(batch, uuid.uuid4().hex)
             if response is None:
                 return
+            if response.status_code < 300 and self.on_result is not None:
+                try:
+                    self.on_result(batch, response.json())
+                except Exception:   # a callback's bug must not stop delivery
+                    log.exception("monitor client on_result callback failed")
             if response.status_code >= 300 and len(batch) == 1:
                 self.stats.rejected.append((batch[0], response.status_code, _detail(response)))
                 log.warning("monitor refused a %s record: %s", batch[0]["kind"], response.text)

@@ -259,7 +259,8 @@ class IngestStore:
                 self._write(cur, req)
                 result = {"accepted": len(records), "decisions": req.counts["decision"],
                           "targets": req.counts["target"], "outcomes": req.counts["outcome"],
-                          "scored": req.scored, "alerts_raised": req.alerts_raised}
+                          "scored": req.scored, "alerts_raised": req.alerts_raised,
+                          "alert_state": {ep.id: ep.open_alert_id for ep in req.drafts.values()}}
                 if idem is not None:
                     self._store_idempotency(cur, idem, result)
                 self.sql.commit(conn, cur)

@@ -168,6 +168,9 @@ class IngestResult(BaseModel):
     outcomes: int = 0
     scored: int = Field(0, description="decisions that received their NMSE in this request")
     alerts_raised: list[int] = Field(default_factory=list)
+    alert_state: dict[str, int | None] = Field(
+        default_factory=dict, description="every episode this request touched -> the id of its open alert after "
+                                          "the request, or null when none is open (a robot loop's alert state)")
 
 
 class TaskIn(_Strict):

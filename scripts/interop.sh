@@ -37,7 +37,8 @@ OPENPI=$ROOT/openpi
 if ! "$OPENPI/bin/python" -c "import openpi_client.websocket_client_policy" 2>/dev/null; then
   echo "[interop] openpi-client venv ($OPENPI)"
   python3.11 -m venv "$OPENPI"
-  "${PIPX[@]}" "$OPENPI/bin/pip" install -q --disable-pip-version-check "openpi-client==0.1.2"
+  # its PyPI release imports typing_extensions without declaring it
+  "${PIPX[@]}" "$OPENPI/bin/pip" install -q --disable-pip-version-check "openpi-client==0.1.2" typing_extensions
 fi
 
 python3 scripts/interop.py --lerobot-python "$LEROBOT/bin/python" --openpi-python "$OPENPI/bin/python" "$@"

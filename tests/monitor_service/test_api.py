@@ -40,7 +40,8 @@ def test_decision_scoring_matches_paper_nmse_and_early_score(client, robot, oper
     recs, pairs = episode_records("ep-1", "Square", rng, noise=0.5, n_steps=7)
     r = post_batch(client, robot, recs)
     assert r.status_code == 200, r.text
-    assert r.json() == {"accepted": 14, "decisions": 7, "targets": 7, "outcomes": 0, "scored": 7, "alerts_raised": []}
+    assert r.json() == {"accepted": 14, "decisions": 7, "targets": 7, "outcomes": 0, "scored": 7, "alerts_raised": [],
+                        "alert_state": {"ep-1": None}}
     ep = client.get("/v1/episodes/ep-1", headers=operator).json()
     expected = [scoring.nmse(zh, z) for zh, z in pairs]
     # d_NMSE(z_hat, z) = ||(z_hat - z) / max(rms(z), 1e-6)||^2 / d_z, written out independently:
