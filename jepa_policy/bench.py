@@ -8,6 +8,7 @@ model's top-level parts during one decision, not assumed.
 from __future__ import annotations
 
 import contextlib
+from pathlib import Path
 import os
 import resource
 import time
@@ -281,3 +282,160 @@ def format_rollouts(result: dict) -> str:
             f"on {result['cores']} cores): 1 worker {rates[1]:.1f} episodes/min, {w} workers {rates[w]:.1f} "
             f"episodes/min, speed-up {result['speedup']:.2f}x; in-process (no workers) {rates[0]:.1f} episodes/min; "
             f"pool start-up {result['startup_s'][w]:.1f} s, once; records identical: {result['identical_records']}")
+
+
+def _random_checkpoint(task: str, preset: str, path) -> str:
+    """A checkpoint of the preset's model with random weights: serving costs the same as a trained one's."""
+    from jepa_policy.checkpoint import save_eval_snapshot
+
+    cfg = load_config(task, preset)
+    spec = get_task_spec(task)
+    spec = spec.with_image_size(cfg.image_size or spec.image_size)
+    model_cfg = ModelConfig.for_task(spec, arm=cfg.arm, **cfg.model)
+    model = build_model(model_cfg)
+    model.set_normalizer_stats(_random_stats(spec))
+    ema = AveragedModel(model, multi_avg_fn=get_ema_multi_avg_fn(0.995), use_buffers=True)
+    save_eval_snapshot(Path(path), ema=ema, step=0, cfg=cfg, model_cfg=model_cfg, spec=spec)
+    return str(path)
+
+
+def bench_serve(task: str = "PushT", preset: str = "cpu", checkpoint: str | None = None, iters: int = 200,
+                seconds: float = 5.0, clients=(1, 4, 16), threads: int = 1) -> dict:
+    """``jepa-policy serve`` beside in-process decisions, in one run: round-trip overhead at batch 1 (the same
+    history decided in-process and over the websocket, alternately), then decisions/s with several clients,
+    cross-client batching on (``--max-batch 16``) and off (``--max-batch 1``)."""
+    import socket
+    import subprocess
+    import sys
+    import tempfile
+    import threading
+    from pathlib import Path
+
+    from websockets.sync.client import connect
+
+    from jepa_policy.serve import pack, unpack
+
+    torch.set_num_threads(threads)
+    tmp = tempfile.mkdtemp(prefix="jepa-bench-serve-")
+    checkpoint = checkpoint or _random_checkpoint(task, preset, Path(tmp) / "random.pt")
+    policy = Policy.from_checkpoint(checkpoint)
+    spec = policy.spec
+    rng = np.random.default_rng(0)
+
+    def history():
+        return [{**{k: rng.integers(0, 256, (spec.image_size, spec.image_size, 3), dtype=np.uint8)
+                    for k in spec.image_keys},
+                 **{k: rng.uniform(-1, 1, d).astype(np.float32) for k, d in spec.lowdim}}
+                for _ in range(policy.obs_steps)]
+
+    def request(frames) -> bytes:
+        return pack({k: np.stack([f[k] for f in frames]) for k in frames[0]})
+
+    def start_server(max_batch: int):
+        with socket.socket() as s:
+            s.bind(("127.0.0.1", 0))
+            port = s.getsockname()[1]
+        proc = subprocess.Popen([sys.executable, "-m", "jepa_policy.cli", "serve", "--checkpoint", checkpoint,
+                                 "--port", str(port), "--threads", str(threads), "--max-batch", str(max_batch),
+                                 "--max-queue", "1024"], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+        deadline = time.monotonic() + 60
+        while True:
+            try:
+                ws = connect(f"ws://127.0.0.1:{port}", compression=None, max_size=None)
+                ws.close()
+                return proc, port
+            except OSError:
+                if time.monotonic() > deadline or proc.poll() is not None:
+                    raise RuntimeError(f"jepa-policy serve did not start: {proc.stderr.read().decode()[-1500:]}")
+                time.sleep(0.2)
+
+    result = {"task": spec.name, "preset": preset, "torch_threads": threads, "cores": os.cpu_count(),
+              "load_average_before": os.getloadavg()[0]}
+    proc, port = start_server(16)
+    try:
+        ws = connect(f"ws://127.0.0.1:{port}", compression=None, max_size=None)
+        unpack(ws.recv())
+        local_ms, remote_ms = [], []
+        for i in range(iters + 20):
+            frames = history()
+            body = request(frames)
+            t0 = time.perf_counter()
+            policy.decide_from(frames)
+            t1 = time.perf_counter()
+            ws.send(body)
+            reply = unpack(ws.recv())
+            t2 = time.perf_counter()
+            if i >= 20:   # warm-up first
+                local_ms.append((t1 - t0) * 1e3)
+                remote_ms.append((t2 - t1) * 1e3)
+            assert reply["actions"].shape[0] == policy.n_action_steps
+        ws.close()
+        local, remote = np.array(local_ms), np.array(remote_ms)
+        result["overhead"] = {"in_process_p50_ms": float(np.percentile(local, 50)),
+                              "in_process_p99_ms": float(np.percentile(local, 99)),
+                              "served_p50_ms": float(np.percentile(remote, 50)),
+                              "served_p99_ms": float(np.percentile(remote, 99)),
+                              "overhead_p50_ms": float(np.percentile(remote - local, 50)),
+                              "overhead_p99_ms": float(np.percentile(remote - local, 99))}
+        proc.terminate()
+        proc.wait(timeout=30)
+        result["concurrency"] = {}
+        for max_batch in (16, 1):
+            proc, port = start_server(max_batch)
+            for n in clients:
+                counts, latencies = [0] * n, [[] for _ in range(n)]
+                bodies = [request(history()) for _ in range(8)]
+                stop = time.perf_counter() + seconds
+                barrier = threading.Barrier(n)
+
+                def client(i):
+                    c = connect(f"ws://127.0.0.1:{port}", compression=None, max_size=None)
+                    unpack(c.recv())
+                    barrier.wait()
+                    while time.perf_counter() < stop:
+                        t = time.perf_counter()
+                        c.send(bodies[counts[i] % len(bodies)])
+                        reply = c.recv()
+                        if isinstance(reply, str):
+                            raise RuntimeError(reply)
+                        latencies[i].append((time.perf_counter() - t) * 1e3)
+                        counts[i] += 1
+                    c.close()
+                workers = [threading.Thread(target=client, args=(i,)) for i in range(n)]
+                start = time.perf_counter()
+                for w in workers:
+                    w.start()
+                for w in workers:
+                    w.join()
+                elapsed = time.perf_counter() - start
+                lat = np.concatenate([np.array(x) for x in latencies])
+                result["concurrency"][f"batch{max_batch}_clients{n}"] = {
+                    "decisions_per_s": sum(counts) / elapsed, "p50_ms": float(np.percentile(lat, 50)),
+                    "p99_ms": float(np.percentile(lat, 99))}
+            proc.terminate()
+            proc.wait(timeout=30)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    result["load_average_after"] = os.getloadavg()[0]
+    return result
+
+
+def format_serve(result: dict) -> str:
+    o = result["overhead"]
+    lines = [f"jepa-policy serve vs in-process, {result['task']} ({result['preset']}), torch threads "
+             f"{result['torch_threads']}, {result['cores']} cores, load {result['load_average_before']:.2f} -> "
+             f"{result['load_average_after']:.2f}",
+             f"{'batch 1':<22}{'p50 ms':>9}{'p99 ms':>9}",
+             f"{'in-process decision':<22}{o['in_process_p50_ms']:>9.2f}{o['in_process_p99_ms']:>9.2f}",
+             f"{'served (round trip)':<22}{o['served_p50_ms']:>9.2f}{o['served_p99_ms']:>9.2f}",
+             f"{'overhead (paired)':<22}{o['overhead_p50_ms']:>9.2f}{o['overhead_p99_ms']:>9.2f}",
+             f"{'clients':<10}{'batched dec/s':>15}{'p50/p99 ms':>16}{'unbatched dec/s':>18}{'p50/p99 ms':>16}"
+             f"{'gain':>7}"]
+    c = result["concurrency"]
+    for n in sorted({int(k.split("clients")[1]) for k in c}):
+        b, u = c[f"batch16_clients{n}"], c[f"batch1_clients{n}"]
+        lines.append(f"{n:<10}{b['decisions_per_s']:>15.1f}{b['p50_ms']:>8.1f}/{b['p99_ms']:<7.1f}"
+                     f"{u['decisions_per_s']:>18.1f}{u['p50_ms']:>8.1f}/{u['p99_ms']:<7.1f}"
+                     f"{b['decisions_per_s'] / u['decisions_per_s']:>7.2f}")
+    return "\n".join(lines)

@@ -110,6 +110,15 @@ def cmd_bench_latency(args) -> int:
     return 0
 
 
+def cmd_bench_serve(args) -> int:
+    from jepa_policy.bench import bench_serve, format_serve
+
+    result = bench_serve(args.task, args.preset, args.checkpoint, iters=args.iters, seconds=args.seconds,
+                         clients=tuple(int(c) for c in args.clients.split(",")), threads=args.threads)
+    print(json.dumps(result, indent=2) if args.json else format_serve(result))
+    return 0
+
+
 def cmd_bench_rollouts(args) -> int:
     from jepa_policy.bench import bench_rollouts, format_rollouts
 
@@ -266,6 +275,18 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--device", default="auto", help="auto | cpu | cuda | cuda:N")
     p.add_argument("--json", action="store_true", help="print JSON instead of a table")
     p.set_defaults(func=cmd_bench_train)
+
+    p = bsub.add_parser("serve", help="jepa-policy serve beside in-process decisions: round-trip overhead at batch "
+                                      "1, decisions/s with 1, 4 and 16 clients, batched and not")
+    p.add_argument("--task", default="PushT")
+    p.add_argument("--preset", default="cpu", help="model of configs/<task>.json (random weights)")
+    p.add_argument("--checkpoint", help="serve this checkpoint instead")
+    p.add_argument("--iters", type=int, default=200, help="paired round trips at batch 1")
+    p.add_argument("--seconds", type=float, default=5.0, help="per concurrency level")
+    p.add_argument("--clients", default="1,4,16", help="concurrent clients to measure")
+    p.add_argument("--threads", type=int, default=1, help="torch threads of the server and the in-process policy")
+    p.add_argument("--json", action="store_true", help="print JSON instead of a table")
+    p.set_defaults(func=cmd_bench_serve)
 
     p = bsub.add_parser("rollouts", help="episodes/min of rollouts with 1 and N pool workers, side by side")
     p.add_argument("--task", default="PushT", help="task whose env to roll out (PushT, Square, ToolHang, ...)")

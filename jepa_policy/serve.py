@@ -328,6 +328,20 @@ class ServeConfig:
     monitor_buffer: int = MONITOR_BUFFER
 
 
+def check_config(config: ServeConfig) -> None:
+    """Refuse a configuration that cannot serve safely, before any checkpoint is loaded."""
+    if not is_loopback_host(config.host) and not (config.api_key or config.tls_cert):
+        raise ValueError(f"--host {config.host} is reachable from the network: pass --api-key KEY (clients send "
+                         "'Authorization: Api-Key KEY', openpi-client's api_key) or --tls-cert/--tls-key; a "
+                         "policy server drives robots")
+    if (config.tls_cert is None) != (config.tls_key is None):
+        raise ValueError("TLS needs both --tls-cert and --tls-key")
+    if config.monitor_url and not config.monitor_key:
+        raise ValueError("--monitor-url needs --monitor-key (a robot key of the monitor service)")
+    if config.max_batch < 1 or config.max_queue < 1:
+        raise ValueError("--max-batch and --max-queue must be >= 1")
+
+
 def is_loopback_host(host: str) -> bool:
     if host in ("localhost",):
         return True
@@ -341,14 +355,7 @@ class PolicyServer:
     """Serves one checkpoint's policy to any number of robots over openpi's websocket protocol."""
 
     def __init__(self, policy: Policy, config: ServeConfig, checkpoint: str = ""):
-        if not is_loopback_host(config.host) and not (config.api_key or config.tls_cert):
-            raise ValueError(f"--host {config.host} is reachable from the network: pass --api-key KEY (clients send "
-                             "'Authorization: Api-Key KEY', openpi-client's api_key) or --tls-cert/--tls-key; a "
-                             "policy server drives robots")
-        if (config.tls_cert is None) != (config.tls_key is None):
-            raise ValueError("TLS needs both --tls-cert and --tls-key")
-        if config.monitor_url and not config.monitor_key:
-            raise ValueError("--monitor-url needs --monitor-key (a robot key of the monitor service)")
+        check_config(config)
         self.policy, self.config, self.checkpoint = policy, config, checkpoint
         self.metadata = server_metadata(policy, checkpoint, config)
         self.monitor: MonitorClient | None = None
@@ -418,7 +425,8 @@ class PolicyServer:
         if parsed.reset or (parsed.episode is not None and parsed.episode != session.episode):
             session.new_episode(parsed.episode)
         fed, padded = session.feed(parsed.frames, parsed.step) if parsed.frames else ([], False)
-        targets = [(s, f) for s, f in fed if s in session.pending]
+        # realized latents only for the monitor: without it a reply costs one decision, as in-process act
+        targets = [(s, f) for s, f in fed if s in session.pending] if self.monitor is not None else []
         want_actions = bool(parsed.frames) and not parsed.observe and parsed.outcome is None
         reply: dict = {"episode": session.episode, "step": session.step, "server_timing": {}}
         if want_actions or targets:
@@ -438,11 +446,10 @@ class PolicyServer:
         if actions is not None:
             chunk = actions if parsed.full_chunk else actions[: self.policy.n_action_steps]
             reply["actions"] = np.ascontiguousarray(chunk, dtype=np.float32)
-            if z_hat is not None:
+            if z_hat is not None and self.monitor is not None:
                 session.pending[session.step + self.policy.k] = (session.step, z_hat)
-                if self.monitor is not None:
-                    self.monitor.decision(self.config.task_id or self.policy.spec.name, session.episode,
-                                          session.step, self.policy.k, z_hat, checkpoint=self.checkpoint or None)
+                self.monitor.decision(self.config.task_id or self.policy.spec.name, session.episode, session.step,
+                                      self.policy.k, z_hat, checkpoint=self.checkpoint or None)
         if padded:
             reply["history_padded"] = True
         if parsed.outcome is not None:
@@ -521,6 +528,7 @@ def server_metadata(policy: Policy, checkpoint: str, config: ServeConfig) -> dic
 
 def serve_checkpoint(checkpoint: str, config: ServeConfig, device: str = "cpu", threads: int | None = None) -> None:
     """Load a checkpoint (refused unread if it is not plain data) and serve it until interrupted."""
+    check_config(config)
     if threads:
         torch.set_num_threads(threads)
     policy = Policy.from_checkpoint(checkpoint, device=device)

@@ -74,7 +74,8 @@ def test_object_arrays_are_refused_too(tmp_path):
      "--out-dir", "{tmp}/resumed", "--no-progress"],
     ["train", "--task", "PushT", "--preset", "quick", "--dataset", "{demos}", "--model",
      '{{"encoder_weights": "{weights}"}}', "--steps", "2", "--out-dir", "{tmp}/encoder", "--no-progress"],
-], ids=["eval", "audit", "protocols", "robot", "train-resume", "train-encoder-weights"])
+    ["serve", "--checkpoint", "{ckpt}", "--port", "0"],
+], ids=["eval", "audit", "protocols", "robot", "train-resume", "train-encoder-weights", "serve"])
 def test_every_command_refuses_a_crafted_file(command, crafted, pusht_demo_file, tmp_path, capsys):
     ckpt, weights, marker = crafted
     argv = [a.format(ckpt=ckpt, weights=weights, demos=pusht_demo_file, tmp=tmp_path) for a in command]

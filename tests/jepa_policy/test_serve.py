@@ -1,0 +1,250 @@
+"""jepa-policy serve over openpi's websocket protocol: what openpi-client sees (metadata, packing, replies, errors as
+text frames), the same actions as in-process act, several robots at once without cross-talk and batched, every bad
+request answered with the connection kept, auth, and the monitor inside (real service, and one that is down).
+The published openpi-client itself drives a whole episode in `make interop` (its numpy < 2 needs its own venv)."""
+from __future__ import annotations
+
+import threading
+import time
+
+import gymnasium as gym
+import httpx
+import numpy as np
+import pytest
+import websockets
+from websockets.sync.client import connect
+
+import jepa_envs  # noqa: F401
+from jepa_policy.cli import main as policy_main
+from jepa_policy.policy import Policy
+from jepa_policy.serve import PolicyServer, ServeConfig, pack, unpack
+
+pytestmark = pytest.mark.timeout(300)
+
+
+@pytest.fixture(scope="module")
+def checkpoint(tmp_path_factory, pusht_demo_file):
+    out = tmp_path_factory.mktemp("serve") / "run"
+    assert policy_main(["train", "--task", "PushT", "--preset", "quick", "--dataset", str(pusht_demo_file),
+                        "--steps", "4", "--warmup-steps", "1", "--eval-every", "0", "--out-dir", str(out),
+                        "--no-progress"]) == 0
+    return out / "checkpoints" / "latest.pt"
+
+
+@pytest.fixture
+def serve(checkpoint):
+    servers = []
+
+    def start(**config) -> PolicyServer:
+        policy = Policy.from_checkpoint(checkpoint)
+        server = PolicyServer(policy, ServeConfig(port=0, **config), str(checkpoint)).start_in_thread()
+        servers.append(server)
+        return server
+    yield start
+    for server in servers:
+        server.stop()
+
+
+def _client(server, headers=None):
+    ws = connect(f"ws://127.0.0.1:{server.port}", compression=None, max_size=None, additional_headers=headers)
+    return ws, unpack(ws.recv())
+
+
+def _frame(env_obs) -> dict:
+    return {k: np.asarray(v) for k, v in env_obs.items()}
+
+
+def test_metadata_and_a_served_episode_equal_in_process_act(serve, checkpoint):
+    server = serve()
+    ws, meta = _client(server)
+    assert meta["task"] == "PushT" and meta["obs_steps"] == 2 and meta["action"]["chunk"] == [8, 2]
+    assert meta["observation"] == {"top_image": {"shape": [32, 32, 3], "dtype": "uint8"},
+                                   "agent_pos": {"shape": [2], "dtype": "float32"}}
+    local = Policy.from_checkpoint(checkpoint)
+    env = gym.make("JEPA/PushT-v0", image_size=32)
+    obs, _ = env.reset(seed=5)
+    chunk = None
+    for t in range(24):
+        ws.send(pack(_frame(obs)))   # a loop that calls every step: the server keeps the history
+        reply = unpack(ws.recv())
+        assert reply["step"] == t and reply["actions"].shape == (8, 2) and reply["actions"].dtype == np.float32
+        assert {"infer_ms", "queue_ms", "prev_total_ms"} <= set(reply["server_timing"])
+        if t % 8 == 0:
+            chunk = reply["actions"]
+        action = local.act(obs)
+        assert np.allclose(chunk[t % 8], action, atol=1e-5), t   # the same decisions as the in-process runtime
+        obs, *_ = env.step(action)
+    ws.close()
+    env.close()
+
+
+def test_client_side_history_and_full_chunk(serve, checkpoint):
+    """A loop that calls once per chunk sends its own two newest frames; the server decides from them."""
+    server = serve()
+    ws, _ = _client(server)
+    env = gym.make("JEPA/PushT-v0", image_size=32)
+    obs0, _ = env.reset(seed=2)
+    obs1, *_ = env.step(obs0["agent_pos"])
+    stacked = {k: np.stack([obs0[k], obs1[k]]) for k in obs0}
+    ws.send(pack({**stacked, "step": 1, "full_chunk": True}))
+    reply = unpack(ws.recv())
+    local = Policy.from_checkpoint(checkpoint)
+    chunk, _ = local.decide_from([obs0, obs1]).actions, None
+    assert reply["actions"].shape == (16, 2) and np.allclose(reply["actions"], chunk, atol=1e-5)
+    ws.send(pack({**_frame(obs1), "step": 9}))   # a gap in the steps: the history restarts, as at an episode start
+    assert unpack(ws.recv())["history_padded"] is True
+    env.close()
+
+
+BAD = [
+    (b"\x93\xff\xfe", "is not msgpack as openpi-client packs it"),
+    ("a text frame", "send binary frames packed with msgpack"),
+    (pack({"agent_pos": np.zeros(2, np.float32)}), "the observation lacks ['top_image']"),
+    (pack({"top_image": np.zeros((84, 84, 3), np.uint8), "agent_pos": np.zeros(2, np.float32)}),
+     "top_image has shape [84, 84, 3]; send [32, 32, 3]"),
+    (pack({"top_image": np.zeros((32, 32, 3), np.float32), "agent_pos": np.zeros(2, np.float32)}),
+     "top_image has dtype float32; send uint8"),
+    (pack({"top_image": np.zeros((32, 32, 3), np.uint8), "agent_pos": np.array([np.nan, 1], np.float32)}),
+     "agent_pos has NaN or infinite values"),
+    (pack({"top_image": np.zeros((3, 32, 32, 3), np.uint8), "agent_pos": np.zeros((3, 2), np.float32)}),
+     "with n <= 2"),
+    (pack({"top_image": np.zeros((32, 32, 3), np.uint8), "agent_pos": np.zeros(2, np.float32), "step": "x"}),
+     "'step' must be int"),
+    (pack([1, 2, 3]), "a request is a map of observation keys"),
+    (b"\x00" * (9 * 2**20), "above the limit"),
+]
+
+
+def test_every_bad_request_gets_a_message_and_the_connection_survives(serve):
+    server = serve()
+    ws, _ = _client(server)
+    good = {"top_image": np.zeros((32, 32, 3), np.uint8), "agent_pos": np.zeros(2, np.float32)}
+    for frame, message in BAD:
+        ws.send(frame)
+        reply = ws.recv()
+        assert isinstance(reply, str) and message in reply, (message, reply[:300])
+        ws.send(pack(good))   # and the same connection still serves
+        assert unpack(ws.recv())["actions"].shape == (8, 2)
+    ws.close()
+
+
+def test_a_client_leaving_mid_request_and_a_full_queue(serve):
+    server = serve(max_queue=1)
+    good = pack({"top_image": np.zeros((32, 32, 3), np.uint8), "agent_pos": np.zeros(2, np.float32)})
+    ws, _ = _client(server)
+    ws.send(good)
+    ws.close()   # gone before its reply
+    clients = [_client(server)[0] for _ in range(6)]
+    server.batcher.executor.submit(time.sleep, 1.0)   # the model is busy: one request is taken, one waits
+    for ws in clients:
+        ws.send(good)
+        time.sleep(0.05)
+    replies = [ws.recv() for ws in clients]
+    refused = [r for r in replies if isinstance(r, str)]
+    assert len(refused) == 4 and all("the server is busy: 1 requests are waiting (limit 1)" in r for r in refused)
+    for ws in clients:   # a refused request does not close the connection
+        ws.send(good)
+        reply = ws.recv()
+        while isinstance(reply, str):
+            time.sleep(0.05)
+            ws.send(good)
+            reply = ws.recv()
+        assert unpack(reply)["actions"].shape == (8, 2)
+        ws.close()
+
+
+def test_robots_at_once_keep_their_own_episodes_and_share_batches(serve, checkpoint):
+    """Eight robots, each with its own episode: every reply equals that robot's own in-process decision, and
+    requests that arrive together run in one forward pass."""
+    server = serve(max_batch=8)
+    local = Policy.from_checkpoint(checkpoint)
+    rng = np.random.default_rng(0)
+    frames = [{"top_image": rng.integers(0, 255, (32, 32, 3), dtype=np.uint8),
+               "agent_pos": rng.uniform(0, 512, 2).astype(np.float32)} for _ in range(8)]
+    expected = [local.decide_from([f]).actions[:8] for f in frames]
+    results = [None] * 8
+    barrier = threading.Barrier(8)
+
+    def robot(i):
+        ws, _ = _client(server)
+        barrier.wait()
+        ws.send(pack({**frames[i], "episode": f"robot-{i}"}))
+        results[i] = unpack(ws.recv())
+        ws.close()
+    threads = [threading.Thread(target=robot, args=(i,)) for i in range(8)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    for i, reply in enumerate(results):
+        assert reply["episode"] == f"robot-{i}"
+        assert np.allclose(reply["actions"], expected[i], atol=1e-4), i
+    assert max(r["server_timing"]["batch"] for r in results) > 1
+    assert server.batcher.items == 8 and server.batcher.batches < 8
+
+
+def test_auth_and_a_network_bind(serve, checkpoint):
+    server = serve(api_key="s3cret")
+    with pytest.raises(websockets.InvalidStatus, match="401"):
+        _client(server)
+    with pytest.raises(websockets.InvalidStatus, match="401"):
+        _client(server, headers={"Authorization": "Api-Key wrong"})
+    ws, meta = _client(server, headers={"Authorization": "Api-Key s3cret"})
+    assert meta["task"] == "PushT"
+    ws.close()
+    assert httpx.get(f"http://127.0.0.1:{server.port}/healthz").text == "OK\n"
+    with pytest.raises(ValueError, match="reachable from the network: pass --api-key"):
+        PolicyServer(Policy.from_checkpoint(checkpoint), ServeConfig(host="0.0.0.0", port=0))
+
+
+def _episode(ws, env, steps, episode, outcome=None):
+    obs, _ = env.reset(seed=1)
+    replies = []
+    for t in range(steps):
+        ws.send(pack({**_frame(obs), "episode": episode}))
+        replies.append(unpack(ws.recv()))
+        obs, *_ = env.step(replies[-1]["actions"][0])
+    if outcome is not None:
+        ws.send(pack({"episode": episode, "outcome": outcome}))
+        replies.append(unpack(ws.recv()))
+    return replies
+
+
+def test_the_monitor_inside_scores_decisions_and_never_blocks(serve, tmp_path):
+    from monitor_service.server import start_server
+
+    admin = "serve-test-admin"
+    with start_server(f"sqlite:///{tmp_path / 'monitor.db'}", admin_key=admin) as monitor:
+        with httpx.Client(base_url=monitor.url, headers={"X-API-Key": admin}) as http:
+            assert http.put("/v1/tasks/PushT", json={}).status_code == 200
+            key = http.post("/v1/keys", json={"name": "arm", "role": "robot", "robot": "arm"}).json()["key"]
+            server = serve(monitor_url=monitor.url, monitor_key=key, robot="arm")
+            ws, meta = _client(server)
+            assert meta["monitor"] == {"task_id": "PushT"}
+            env = gym.make("JEPA/PushT-v0", image_size=32)
+            replies = _episode(ws, env, 12, "ep-a", outcome=True)
+            scored = [s for r in replies for s in r.get("monitor", {}).get("scored", [])]
+            # every step is a decision here (the loop calls every step); decision t is scored by frame t + 4
+            assert [s["target_step"] - s["decision_step"] for s in scored] == [4] * 8
+            assert all(s["nmse"] >= 0 for s in scored) and replies[-1]["ended"] == {"episode": "ep-a", "success": True}
+            assert server.monitor.flush(30)
+            ep = http.get("/v1/episodes/ep-a").json()
+            assert ep["n_decisions"] == 12 and ep["n_scored"] == 8 and ep["success"] is True
+            monitored = {d["step"]: d["nmse"] for d in ep["decisions"] if d["nmse"] is not None}
+            assert all(monitored[s["decision_step"]] == pytest.approx(s["nmse"], rel=1e-5) for s in scored)
+            ws.close()
+            env.close()
+
+
+def test_a_down_monitor_costs_the_replies_nothing(serve):
+    """The monitor is unreachable: replies come at the same pace and the records wait in the bounded buffer."""
+    server = serve(monitor_url="http://127.0.0.1:9", monitor_key="k")
+    ws, _ = _client(server)
+    env = gym.make("JEPA/PushT-v0", image_size=32)
+    start = time.perf_counter()
+    replies = _episode(ws, env, 16, "ep-down")
+    per_request = (time.perf_counter() - start) / 16
+    assert per_request < 0.5, f"{per_request * 1e3:.0f} ms per request with the monitor down"
+    assert replies[-1]["monitor"]["pending_records"] > 0 and replies[-1]["monitor"]["dropped_records"] == 0
+    ws.close()
+    env.close()
