@@ -183,12 +183,24 @@ def _lerobot_args(p: argparse.ArgumentParser) -> None:
                    help="feature -> spec key, e.g. observation.images.front=agentview_image, "
                         "observation.state=robot0_eef_pos,robot0_eef_quat,robot0_gripper_qpos (repeat)")
     i.add_argument("--fps", type=int, help="accept a dataset recorded at this rate when it differs from the task's")
+    b = sub.add_parser("bench", help="export and import frames/s and peak memory beside an h5py read of the same "
+                                     "frames, each phase in a fresh process")
+    b.add_argument("src", help="a demos HDF5 file (e.g. the main job's demo_out/default/data/*.hdf5)")
+    b.add_argument("--codec", default="lossless", choices=("lossless", "av1", "h264"))
 
 
 @subcommand("lerobot", "LeRobotDataset v3.0: export our demos, import a LeRobot dataset", _lerobot_args)
 def lerobot(args: argparse.Namespace) -> int:
     from jepa_envs import lerobot_format as lr
 
+    if args.action == "bench":
+        result = lr.bench_lerobot(args.src, args.codec)
+        print(f"LeRobot v3.0 export/import of {result['src']} ({result['codec']}), load {result['load_average']:.2f}; "
+              f"HDF5 {result['hdf5_mib']:.1f} MiB, LeRobot folder {result['dataset_mib']:.1f} MiB")
+        for name, row in result["phases"].items():
+            print(f"  {name:<10} {row['frames']:>7} frames {row['seconds']:>7.1f} s {row['frames_per_s']:>8.0f} frames/s "
+                  f"peak RSS {row['peak_rss_mib']:>6.0f} MiB")
+        return 0
     t0 = time.perf_counter()
     if args.action == "export":
         summary = lr.export_lerobot(args.src, args.out, task=args.task, fps=args.fps, codec=args.codec,
