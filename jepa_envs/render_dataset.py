@@ -22,7 +22,12 @@ from pathlib import Path
 
 import numpy as np
 
-from jepa_envs.data import DatasetError, DemoWriter, demo_names, open_hdf5, task_for_env_name
+from jepa_envs.convert_abs_actions import delta_to_abs_by_replay
+from jepa_envs.data import DatasetError, DemoWriter, demo_names, load_dataset, open_hdf5, task_for_env_name
+from jepa_envs.pusht import PushTEnv
+from jepa_envs.robomimic_env import (ROBOSUITE_ENV_TYPE, make_backend_from_env_args,
+                                     robomimic_env_args)
+from jepa_envs.robosuite_common import RobosuiteTaskEnv
 from jepa_envs.spec import TaskSpec, get_task_spec
 
 NATIVE_DIM_PER_ARM = 7
@@ -31,8 +36,6 @@ NATIVE_DIM_PER_ARM = 7
 def source_env_args(data, path) -> dict:
     """robomimic's env_args of a raw file; robosuite's own ``env_info`` (its demonstration format) becomes
     env_args with robomimic's rendering settings."""
-    from jepa_envs.robomimic_env import ROBOSUITE_ENV_TYPE, robomimic_env_args
-
     if "env_args" in data.attrs:
         try:
             return json.loads(data.attrs["env_args"])
@@ -114,8 +117,6 @@ class PushTRenderer:
     """PushT states are poses (agent xy, block xy, angle): each is set and rendered."""
 
     def __init__(self, spec: TaskSpec):
-        from jepa_envs.pusht import PushTEnv
-
         self.spec = spec
         self.env = PushTEnv(image_size=spec.image_size)
 
@@ -155,16 +156,11 @@ class RobosuiteRenderer:
         self.env = self._make()
 
     def _make(self):
-        from jepa_envs.robomimic_env import make_backend_from_env_args
-        from jepa_envs.robosuite_common import RobosuiteTaskEnv
-
         backend = make_backend_from_env_args(self.env_args, control_delta=self.delta, cameras=self.spec.cameras,
                                              image_size=self.spec.image_size)
         return RobosuiteTaskEnv(self.spec, backend, action_mode="delta" if self.delta else "abs")
 
     def output_env_args(self) -> dict:
-        from jepa_envs.robomimic_env import robomimic_env_args
-
         task_kwargs = {k: v for k, v in self.env_args["env_kwargs"].items()
                        if k not in ("camera_names", "camera_heights", "camera_widths", "controller_configs")}
         out = robomimic_env_args(self.env_args["env_name"], self.spec.cameras, self.spec.image_size,
@@ -190,8 +186,6 @@ class RobosuiteRenderer:
         return "own"
 
     def episode(self, states, actions, model) -> tuple[dict, dict]:
-        from jepa_envs.convert_abs_actions import delta_to_abs_by_replay
-
         states = np.asarray(states, np.float64)
         actions = np.asarray(actions, np.float64)
         which = self._reset_to(states, model)
@@ -223,8 +217,6 @@ def replay_in_env(path: str | Path, task: str, episodes: int | None = None) -> d
     """Replay a rendered file's actions open-loop in ``gym.make(<task's id>)`` from each episode's recorded first
     state, the actions read through the training loader (``load_dataset``); counts the episodes that succeed."""
     import gymnasium as gym
-
-    from jepa_envs.data import load_dataset
 
     demos = load_dataset(path, task=task, cache_dir=False)
     spec = demos.spec

@@ -19,10 +19,11 @@ from torch.optim.swa_utils import AveragedModel, get_ema_multi_avg_fn
 
 from jepa_envs.pool import available_cores
 from jepa_envs.spec import get_task_spec
-from jepa_policy.checkpoint import build_model
+from jepa_policy.checkpoint import build_model, save_eval_snapshot
 from jepa_policy.config import ModelConfig
 from jepa_policy.evaluate import evaluate, make_pool
 from jepa_policy.policy import Policy
+from jepa_policy.serve import pack, unpack
 from jepa_policy.train import load_config, resolve_device
 
 
@@ -286,8 +287,6 @@ def format_rollouts(result: dict) -> str:
 
 def _random_checkpoint(task: str, preset: str, path) -> str:
     """A checkpoint of the preset's model with random weights: serving costs the same as a trained one's."""
-    from jepa_policy.checkpoint import save_eval_snapshot
-
     cfg = load_config(task, preset)
     spec = get_task_spec(task)
     spec = spec.with_image_size(cfg.image_size or spec.image_size)
@@ -313,7 +312,6 @@ def bench_serve(task: str = "PushT", preset: str = "cpu", checkpoint: str | None
 
     from websockets.sync.client import connect
 
-    from jepa_policy.serve import pack, unpack
 
     torch.set_num_threads(threads)
     tmp = tempfile.mkdtemp(prefix="jepa-bench-serve-")

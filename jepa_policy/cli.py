@@ -74,7 +74,8 @@ def cmd_eval(args) -> int:
 
     policy = Policy.from_checkpoint(args.checkpoint, device=resolve_device(args.device), ema=not args.no_ema)
     report = evaluate(policy, episodes=args.episodes, seed=args.seed, num_envs=args.num_envs,
-                      max_steps=args.max_steps, video_dir=args.video, out=args.out, workers=args.workers)
+                      max_steps=args.max_steps, video_dir=args.video, out=args.out, workers=args.workers,
+                      save_rollouts=args.save_rollouts)
     summary = {k: v for k, v in report.items() if k != "records"}
     print(json.dumps(summary))
     return 0
@@ -242,6 +243,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--max-steps", type=int, default=None, help="episode step limit (default: the task's)")
     p.add_argument("--video", default=None, help="directory for one GIF per episode")
     p.add_argument("--out", default=None, help="JSONL file of per-episode records")
+    p.add_argument("--save-rollouts", default=None, metavar="FILE.hdf5",
+                   help="also write every episode (all frames, actions, rewards, outcome) as robomimic-layout HDF5, "
+                        "e.g. for `jepa-envs lerobot export` (outcomes become next.success)")
     p.add_argument("--device", default="auto", help="auto (CUDA when present) | cpu | cuda | cuda:N")
     p.add_argument("--no-ema", action="store_true", help="act with the raw instead of the EMA weights")
     p.set_defaults(func=cmd_eval)
@@ -278,7 +282,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = bsub.add_parser("serve", help="jepa-policy serve beside in-process decisions: round-trip overhead at batch "
                                       "1, decisions/s with 1, 4 and 16 clients, batched and not")
-    p.add_argument("--task", default="PushT")
+    p.add_argument("--task", default="PushT", help="task whose model to serve")
     p.add_argument("--preset", default="cpu", help="model of configs/<task>.json (random weights)")
     p.add_argument("--checkpoint", help="serve this checkpoint instead")
     p.add_argument("--iters", type=int, default=200, help="paired round trips at batch 1")
@@ -347,7 +351,7 @@ def build_parser() -> argparse.ArgumentParser:
                                      "monitor inside")
     p.add_argument("--checkpoint", required=True, help="a `jepa-policy train` checkpoint")
     p.add_argument("--host", default="127.0.0.1", help="bind address (another than loopback needs --api-key or TLS)")
-    p.add_argument("--port", type=int, default=8000)
+    p.add_argument("--port", type=int, default=8000, help="TCP port (0: a free one)")
     p.add_argument("--api-key", help="clients must send 'Authorization: Api-Key KEY' (openpi-client's api_key)")
     p.add_argument("--tls-cert", help="serve wss:// with this certificate (PEM)")
     p.add_argument("--tls-key", help="the certificate's private key (PEM)")

@@ -18,6 +18,7 @@ import numpy as np
 import torch.distributed as dist
 
 import jepa_envs  # noqa: F401  (registers the JEPA/* ids)
+from jepa_envs.data import DemoWriter
 from jepa_envs.pool import EnvPool, WorkerFailure
 
 
@@ -105,7 +106,8 @@ def make_pool(policy, num_envs: int, workers: int | None = 0, max_steps: int | N
 def evaluate(policy, episodes: int, seed: int, num_envs: int = 4, max_steps: int | None = None,
              video_dir: str | Path | None = None, on_decision: Callable[[DecisionEvent], None] | None = None,
              keep_latents: bool = False, out: str | Path | None = None, pool: EnvPool | None = None,
-             workers: int | None = 0, max_reruns: int = 2, shard: tuple[int, int] | None = None) -> dict:
+             workers: int | None = 0, max_reruns: int = 2, shard: tuple[int, int] | None = None,
+             save_rollouts: str | Path | None = None) -> dict:
     """Run ``episodes`` rollouts with seeds seed, seed+1, ... in rounds of ``num_envs`` lockstep environments.
 
     The environments live in ``pool`` (a persistent ``EnvPool`` from ``make_pool``, reused across calls; its
@@ -122,6 +124,9 @@ def evaluate(policy, episodes: int, seed: int, num_envs: int = 4, max_steps: int
     returns the whole report (``out`` is written by rank 0) and it equals the one-process report. Each rank runs
     its own pool and delivers ``on_decision`` events of its own episodes. Without a process group, an explicit
     ``shard`` runs and reports that shard's episodes only.
+
+    ``save_rollouts``: also write every episode (all frames rendered, actions, rewards, its seed and outcome as
+    ``success``) as a robomimic-layout HDF5 file, e.g. for ``jepa-envs lerobot export`` (its ``next.success``).
     """
     if episodes < 1 or num_envs < 1:
         raise ValueError(f"need episodes >= 1 and num_envs >= 1, got {episodes}, {num_envs}")
@@ -139,14 +144,22 @@ def evaluate(policy, episodes: int, seed: int, num_envs: int = 4, max_steps: int
     if not 0 <= rank < world:
         raise ValueError(f"shard must be (rank, world) with 0 <= rank < world, got {(rank, world)}")
     records, reruns = [], []
+    writer = None
+    if save_rollouts is not None:
+        writer = DemoWriter(save_rollouts, {**(getattr(policy, "env_args", None) or {}), "env_name": spec.name,
+                                            "rollouts": {"seed": seed, "checkpoint_step": policy.checkpoint_step}})
+        writer.__enter__()
     try:
         for first in list(range(0, episodes, n))[rank::world]:
             ids = list(range(first, min(first + n, episodes)))
             for attempt in range(max_reruns + 1):
                 events: list[DecisionEvent] = []
+                steps: list | None = [] if writer is not None else None
                 try:
                     records += _run_round(pool, policy, ids, seed, video_dir,
-                                          events.append if on_decision else None, keep_latents)
+                                          events.append if on_decision else None, keep_latents, steps)
+                    for episode in steps or []:
+                        writer.add(episode)
                     break
                 except WorkerFailure as exc:
                     if attempt == max_reruns:
@@ -159,9 +172,16 @@ def evaluate(policy, episodes: int, seed: int, num_envs: int = 4, max_steps: int
                         pool.restart(worker, reason)
             for event in events:
                 on_decision(event)
+    except BaseException as exc:
+        if writer is not None:
+            writer.__exit__(type(exc), exc, None)
+            writer = None
+        raise
     finally:
         if own_pool:
             pool.close()
+    if writer is not None:
+        writer.__exit__(None, None, None)
     shares = {rank: [r["episode"] for r in records]}
     if world > 1 and dist.is_available() and dist.is_initialized():
         gathered = [None] * world
@@ -205,7 +225,9 @@ def _process_group() -> tuple[int, int]:
     return 0, 1
 
 
-def _run_round(envs, policy, ids, seed, video_dir, on_decision, keep_latents) -> list[dict]:
+def _run_round(envs, policy, ids, seed, video_dir, on_decision, keep_latents, steps: list | None = None) -> list[dict]:
+    """One round of lockstep episodes; ``steps`` (a list) receives each episode's frames, actions, rewards and
+    outcome, every frame rendered."""
     n = envs.num_envs
     seeds = [seed + i for i in ids] + [seed + ids[-1] + 1 + j for j in range(n - len(ids))]  # spares
     live = np.array([j < len(ids) for j in range(n)])
@@ -215,6 +237,8 @@ def _run_round(envs, policy, ids, seed, video_dir, on_decision, keep_latents) ->
     pending: list = []          # (decision, z_now) pairs whose target frame has not arrived
     frames = [[] for _ in range(n)]
     want_video = video_dir is not None
+    keep = steps is not None
+    kept = [{"obs": [], "actions": [], "rewards": []} for _ in range(n)]
 
     policy.reset()
     envs.set_render_images(True)
@@ -225,6 +249,10 @@ def _run_round(envs, policy, ids, seed, video_dir, on_decision, keep_latents) ->
                 frames[j].append(np.concatenate([obs[key][j] for key in policy.spec.image_keys], axis=1))
         before = policy.last_decision
         action = policy.act(obs)
+        if keep:
+            for j in np.flatnonzero(live):
+                kept[j]["obs"].append({k: np.array(v[j]) for k, v in obs.items()})
+                kept[j]["actions"].append(np.array(action[j], np.float32))
         decision = policy.last_decision
         if decision is not before and decision.z_hat is not None:
             z_now = policy.encode_future(obs)
@@ -236,11 +264,14 @@ def _run_round(envs, policy, ids, seed, video_dir, on_decision, keep_latents) ->
         elif decision is not before:
             for j in np.flatnonzero(live):
                 decisions[j].append({"step": decision.step, "target_step": decision.target_step, "nmse": None})
-        envs.set_render_images(want_video or policy.images_needed(policy.t + 1))
+        envs.set_render_images(want_video or keep or policy.images_needed(policy.t + 1))
         obs, reward, terminated, truncated, infos = envs.step(action)
         t_new = policy.t + 1
         length += live
         max_reward = np.where(live, np.maximum(max_reward, reward), max_reward)
+        if keep:
+            for j in np.flatnonzero(live):
+                kept[j]["rewards"].append(float(reward[j]))
         if "is_success" in infos:
             success |= live & np.asarray(infos["is_success"], bool)
         due = [p for p in pending if p[0].target_step == t_new]
@@ -268,6 +299,12 @@ def _run_round(envs, policy, ids, seed, video_dir, on_decision, keep_latents) ->
     for j, episode in enumerate(ids):
         records.append({"episode": episode, "seed": seeds[j], "success": bool(success[j]),
                         "length": int(length[j]), "max_reward": float(max_reward[j]), "decisions": sorted(decisions[j], key=lambda d: d["step"])})
+        if keep:
+            ep = kept[j]
+            steps.append({"obs": {k: np.stack([o[k] for o in ep["obs"]]) for k in ep["obs"][0]},
+                          "actions": np.stack(ep["actions"]), "rewards": np.asarray(ep["rewards"], np.float32),
+                          "dones": np.eye(1, len(ep["actions"]), len(ep["actions"]) - 1, dtype=np.uint8)[0],
+                          "attrs": {"success": bool(success[j]), "seed": int(seeds[j]), "episode": int(episode)}})
         if want_video and frames[j]:
             import imageio.v2 as imageio
             Path(video_dir).mkdir(parents=True, exist_ok=True)

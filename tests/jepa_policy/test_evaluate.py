@@ -217,3 +217,32 @@ def test_a_worker_that_keeps_failing_ends_the_evaluation_with_the_reason(checkpo
     with make_pool(policy, 2, workers=2, max_steps=10) as pool:
         with pytest.raises(RuntimeError, match=r"worker 1 failed: process ended \(exit code 3\).*failed 2 times"):
             evaluate(_AlwaysCrash(policy, pool, 0, "crash", 3), episodes=2, seed=0, pool=pool, max_reruns=1)
+
+
+def test_saved_rollouts_carry_frames_actions_and_outcomes_into_a_lerobot_dataset(checkpoint, tmp_path):
+    """``save_rollouts`` writes each evaluated episode (every frame rendered); exported to LeRobot v3.0 its outcome
+    becomes next.success, and the import gives it back."""
+    import h5py
+    import pyarrow.parquet as pq
+
+    from jepa_envs.lerobot_format import export_lerobot, import_lerobot
+    from jepa_policy.evaluate import evaluate
+    from jepa_policy.policy import Policy
+
+    policy = Policy.from_checkpoint(checkpoint)
+    report = evaluate(policy, episodes=3, seed=40, num_envs=2, max_steps=12, save_rollouts=tmp_path / "r.hdf5")
+    with h5py.File(tmp_path / "r.hdf5") as f:
+        demos = [f[f"data/demo_{i}"] for i in range(3)]
+        assert [bool(d.attrs["success"]) for d in demos] == [r["success"] for r in report["records"]]
+        assert [int(d.attrs["seed"]) for d in demos] == [r["seed"] for r in report["records"]]
+        for d, r in zip(demos, report["records"]):
+            images = d["obs/top_image"][()]
+            assert len(images) == r["length"] and d["actions"].shape == (r["length"], 2)
+            assert images.reshape(len(images), -1).any(axis=1).all(), "every frame rendered, none blank"
+    export_lerobot(tmp_path / "r.hdf5", tmp_path / "ds")
+    success = pq.read_table(tmp_path / "ds/data/chunk-000/file-000.parquet").column("next.success").to_pylist()
+    assert sum(success) == sum(r["success"] for r in report["records"])
+    import_lerobot(tmp_path / "ds", tmp_path / "back.hdf5", "PushT")
+    with h5py.File(tmp_path / "back.hdf5") as f:
+        assert [bool(f[f"data/demo_{i}"].attrs["success"]) for i in range(3)] == [r["success"] for r in
+                                                                                   report["records"]]

@@ -20,7 +20,7 @@ def demos(pusht_demo_file):
 
 def test_every_task_has_validated_presets():
     sim = [s for s in all_task_specs() if s.suite in ("embedded", "robomimic", "libero", "mimicgen")]
-    assert len(sim) == 10  # PushT + the paper's nine simulated tasks
+    assert len(sim) == 12  # PushT + the paper's nine simulated tasks + robomimic's Lift and Can
     for spec in sim:
         paper = load_config(spec.name, "paper")
         assert (paper.steps, paper.batch_size, paper.lr, paper.ema_decay) == (300_000, 256, 1e-4, 0.995)
