@@ -97,6 +97,19 @@ def task_for_env_name(env_name: str) -> TaskSpec | None:
     return None
 
 
+def resolve_task(task: str | None, env_args: dict, path) -> TaskSpec:
+    """The task a file is for: ``task`` when given, else the one its env_args name; DatasetError otherwise."""
+    if task is not None:
+        try:
+            return get_task_spec(task)
+        except KeyError as exc:
+            raise DatasetError(exc.args[0]) from None
+    found = task_for_env_name(str(env_args.get("env_name", "")))
+    if found is None:
+        raise DatasetError(f"{path}: env {env_args.get('env_name')!r} is not one of our tasks; pass --task NAME")
+    return found
+
+
 def _known_env_names() -> str:
     return ", ".join(sorted({s.source_task for s in all_task_specs()} | {s.name for s in all_task_specs()}))
 

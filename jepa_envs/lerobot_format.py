@@ -44,7 +44,7 @@ import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
 
-from jepa_envs.data import DemoWriter, default_cache_dir, demo_names, open_hdf5, task_for_env_name
+from jepa_envs.data import DemoWriter, default_cache_dir, demo_names, open_hdf5, resolve_task
 from jepa_envs.spec import TaskSpec, get_task_spec
 
 CODEBASE_VERSION = "v3.0"
@@ -345,7 +345,7 @@ def export_lerobot(src: str | Path, out_dir: str | Path, task: str | None = None
         if "data" not in f or not demo_names(f["data"]):
             raise LeRobotError(f"{src} holds no data/demo_N episodes; write demos with `jepa-envs make-demos`")
         env_args = json.loads(f["data"].attrs.get("env_args", "{}"))
-        spec = _spec(task, env_args, src)
+        spec = resolve_task(task, env_args, src)
         fps = int(fps or round(spec.control_hz))
         if fps <= 0:
             raise LeRobotError(f"--fps must be a positive number of frames per second, got {fps}")
@@ -362,18 +362,6 @@ def export_lerobot(src: str | Path, out_dir: str | Path, task: str | None = None
             shutil.rmtree(tmp, ignore_errors=True)
             raise
     return {**summary, "out": str(out)}
-
-
-def _spec(task: str | None, env_args: dict, src) -> TaskSpec:
-    if task is not None:
-        try:
-            return get_task_spec(task)
-        except KeyError as exc:
-            raise LeRobotError(exc.args[0]) from None
-    found = task_for_env_name(str(env_args.get("env_name", "")))
-    if found is None:
-        raise LeRobotError(f"{src}: its env {env_args.get('env_name')!r} is not a known task; pass --task NAME")
-    return found
 
 
 def _export_features(spec: TaskSpec, demo, src) -> dict:

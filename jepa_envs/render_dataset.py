@@ -23,12 +23,12 @@ from pathlib import Path
 import numpy as np
 
 from jepa_envs.convert_abs_actions import delta_to_abs_by_replay
-from jepa_envs.data import DatasetError, DemoWriter, demo_names, load_dataset, open_hdf5, task_for_env_name
+from jepa_envs.data import DatasetError, DemoWriter, demo_names, load_dataset, open_hdf5, resolve_task
 from jepa_envs.pusht import PushTEnv
 from jepa_envs.robomimic_env import (ROBOSUITE_ENV_TYPE, make_backend_from_env_args,
                                      robomimic_env_args)
 from jepa_envs.robosuite_common import RobosuiteTaskEnv
-from jepa_envs.spec import TaskSpec, get_task_spec
+from jepa_envs.spec import TaskSpec
 
 NATIVE_DIM_PER_ARM = 7
 
@@ -68,7 +68,7 @@ def render_dataset(src: str | Path, out: str | Path, task: str | None = None, ca
                                        "states and actions (robomimic's dataset_states_to_obs), so a file without "
                                        "them cannot be rendered: record the states with the demonstrations")
         env_args = source_env_args(data, src)
-        spec = _task(task, env_args, src)
+        spec = resolve_task(task, env_args, src)
         spec = spec.with_image_size(int(size or spec.image_size))
         if cameras:
             from dataclasses import replace
@@ -99,18 +99,6 @@ def render_dataset(src: str | Path, out: str | Path, task: str | None = None, ca
             renderer.close()
     return {"task": spec.name, "episodes": episodes, "out": str(out), "cameras": list(spec.cameras),
             "size": spec.image_size, "replay_successes": sum(bool(e["replay_success"]) for e in episodes)}
-
-
-def _task(task: str | None, env_args: dict, src) -> TaskSpec:
-    if task is not None:
-        try:
-            return get_task_spec(task)
-        except KeyError as exc:
-            raise DatasetError(exc.args[0]) from None
-    found = task_for_env_name(str(env_args.get("env_name", "")))
-    if found is None:
-        raise DatasetError(f"{src}: env {env_args.get('env_name')!r} is not one of our tasks; pass --task NAME")
-    return found
 
 
 class PushTRenderer:
