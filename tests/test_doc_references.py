@@ -1,0 +1,45 @@
+"""The user documents point at things that exist: every quoted section reference (`see "X"`, `"X" below`) names a
+heading or a bold paragraph title of the same file, and every repository path a document names is there."""
+import re
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+DOCS = [ROOT / "README.md", *sorted((ROOT / "docs").rglob("*.md")), *sorted((ROOT / "deploy").rglob("*.md"))]
+SECTION_REF = re.compile(r'(?:see (?:the )?"([^"]+)"|"([^"]+)" (?:below|above))', re.IGNORECASE)
+REPO_PATH = re.compile(r"(?<![/~\w.-])(?:docs|deploy|scripts|tests|jepa_envs|jepa_policy|monitor_service)/[A-Za-z0-9_./-]+"
+                       r"\.(?:md|toml|py|sh|yml|yaml|service|json|txt|ini)\b")
+
+
+def _squash(text: str) -> str:
+    return " ".join(text.split())
+
+
+def _titles(text: str) -> list[str]:
+    headings = re.findall(r"^#+\s+(.*)$", text, re.MULTILINE)
+    bold = re.findall(r"^\*\*([^*]+)", text, re.MULTILINE)
+    return [_squash(t) for t in headings + bold]
+
+
+@pytest.mark.parametrize("doc", DOCS, ids=lambda p: str(p.relative_to(ROOT)))
+def test_section_references_name_a_section_of_the_same_document(doc):
+    text = doc.read_text()
+    titles = _titles(text)
+    dangling = [ref for m in SECTION_REF.finditer(text)
+                if not any(t.startswith(ref := _squash(m.group(1) or m.group(2))) for t in titles)]
+    assert not dangling, f"{doc.name}: references to sections it does not have: {dangling}"
+
+
+@pytest.mark.parametrize("doc", DOCS, ids=lambda p: str(p.relative_to(ROOT)))
+def test_repository_paths_in_documents_exist(doc):
+    missing = sorted({p for p in REPO_PATH.findall(doc.read_text()) if not (ROOT / p).exists()})
+    assert not missing, f"{doc.name} names files that are not in the repository: {missing}"
+
+
+def test_the_reference_checker_catches_a_dangling_reference():
+    text = '# Start\n\nsee "Start" and see "Stop", as "Keys" below says\n'
+    titles = _titles(text)
+    refs = [_squash(m.group(1) or m.group(2)) for m in SECTION_REF.finditer(text)]
+    assert refs == ["Start", "Stop", "Keys"]
+    assert [r for r in refs if not any(t.startswith(r) for t in titles)] == ["Stop", "Keys"]
