@@ -13,6 +13,7 @@ import pytest
 import jepa_envs  # noqa: F401  registers the ids
 from jepa_envs.data import DatasetError, load_dataset
 from jepa_envs.render_dataset import render_dataset, replay_in_env
+from jepa_envs.spec import get_task_spec
 
 
 def _raw_file(path, env_args, episodes):
@@ -75,11 +76,12 @@ def test_a_file_without_states_or_environment_is_refused(tmp_path):
 robosuite = pytest.importorskip("robosuite", reason="robosuite is part of the [sim] extra")
 
 
-@pytest.mark.robosuite
-def test_lift_states_re_render_to_the_live_frames(tmp_path):
-    """Our own Lift rollout recorded as robomimic records one (model XML, states, absolute actions): rendered
-    again from the states, every frame of both cameras is array-equal to the frame rendered live."""
-    env = gym.make("JEPA/Lift-v0", image_size=32).unwrapped
+def _record_and_re_render(tmp_path, task, detect_task=False):
+    """A rollout of ``task`` recorded as robomimic / MimicGen record one (model XML, states, absolute actions),
+    rendered again from the states: every frame must be array-equal to the one rendered live."""
+    spec = get_task_spec(task)
+    keys = [f"{camera}_image" for camera in spec.cameras]
+    env = gym.make(f"JEPA/{task}-v0", image_size=32).unwrapped
     env.reset(seed=3)
     # the rollout runs in the model as stored (MJCF text keeps fewer digits than the model built in Python: the
     # cube's randomised size would differ in its last digits), as robomimic's recorded episodes do
@@ -89,7 +91,7 @@ def test_lift_states_re_render_to_the_live_frames(tmp_path):
     states, actions, frames = [], [], []
     for _ in range(8):
         states.append(env.backend.sim.get_state().flatten())
-        frames.append({k: obs[k] for k in ("agentview_image", "robot0_eye_in_hand_image")})
+        frames.append({k: obs[k] for k in keys})
         action = env.hold_action()
         action[:3] += rng.normal(0, 0.01, 3)
         actions.append(action)
@@ -98,13 +100,30 @@ def test_lift_states_re_render_to_the_live_frames(tmp_path):
     env.close()
     raw = _raw_file(tmp_path / "raw.hdf5", env_args, [{"states": np.array(states), "actions": np.array(actions),
                                                        "model": model}])
-    report = render_dataset(raw, tmp_path / "out.hdf5", task="Lift", size=32)
+    report = render_dataset(raw, tmp_path / "out.hdf5", task=None if detect_task else task, size=32)
     episode = report["episodes"][0]
     assert episode["model"] == "recorded" and episode["state_error"] == 0.0
     with h5py.File(tmp_path / "out.hdf5") as f:
-        for key in ("agentview_image", "robot0_eye_in_hand_image"):
+        for key in keys:
             assert np.array_equal(f[f"data/demo_0/obs/{key}"][()], np.stack([fr[key] for fr in frames])), key
         assert np.allclose(f["data/demo_0/actions"][()], np.array(actions), atol=1e-6)
+
+
+@pytest.mark.robosuite
+def test_lift_states_re_render_to_the_live_frames(tmp_path):
+    """Our own Lift rollout recorded as robomimic records one: rendered again from the states, every frame of
+    both cameras is array-equal to the frame rendered live."""
+    _record_and_re_render(tmp_path, "Lift")
+
+
+@pytest.mark.robosuite
+@pytest.mark.parametrize("task", ["ThreePieceAssembly", "CoffeePreparation"])
+def test_mimicgen_states_re_render_to_the_live_frames(tmp_path, task):
+    """A MimicGen D1 rollout recorded as MimicGen's generated datasets store it (env_args naming the MimicGen env,
+    model XML, states): the task is found from env_args alone and every frame re-renders array-equal. Runs where
+    MimicGen is installed (`jepa-envs install-mimicgen CLONE`); MimicGen is not on PyPI."""
+    pytest.importorskip("mimicgen", reason="MimicGen is not installed (jepa-envs install-mimicgen CLONE)")
+    _record_and_re_render(tmp_path, task, detect_task=True)
 
 
 @pytest.mark.robosuite
