@@ -37,7 +37,6 @@ from __future__ import annotations
 import asyncio
 import hmac
 import http
-import ipaddress
 import logging
 import socket
 import ssl
@@ -56,6 +55,7 @@ import websockets
 from websockets.asyncio.server import ServerConnection, serve
 from websockets.http11 import Request, Response
 
+from jepa_envs.real_robot.protocol import is_loopback_host
 from jepa_policy.evaluate import nmse
 from jepa_policy.policy import Policy, predict_frames
 from monitor_service.client import MonitorClient
@@ -298,9 +298,9 @@ class Batcher:
         targets = [f for w in batch for f in w.targets]
         latents = list(policy.encode_future({k: np.stack([f[k] for f in targets]) for k in policy.spec.image_keys})) \
             if targets else []
-        out, d = [], 0
+        out, d, latent_iter = [], 0, iter(latents)
         for w in batch:
-            mine = [latents.pop(0) for _ in w.targets]
+            mine = [next(latent_iter) for _ in w.targets]
             if w.history is not None:
                 out.append((actions[d], None if z_hat is None else z_hat[d], mine))
                 d += 1
@@ -340,15 +340,6 @@ def check_config(config: ServeConfig) -> None:
         raise ValueError("--monitor-url needs --monitor-key (a robot key of the monitor service)")
     if config.max_batch < 1 or config.max_queue < 1:
         raise ValueError("--max-batch and --max-queue must be >= 1")
-
-
-def is_loopback_host(host: str) -> bool:
-    if host in ("localhost",):
-        return True
-    try:
-        return ipaddress.ip_address(host).is_loopback
-    except ValueError:
-        return False
 
 
 class PolicyServer:

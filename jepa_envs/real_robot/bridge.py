@@ -93,7 +93,7 @@ def chunk_budget_for(spec) -> int:
 def is_loopback(endpoint: str) -> bool:
     """Whether a ZeroMQ endpoint is reachable from this computer only."""
     host = endpoint.split("://", 1)[-1].rsplit(":", 1)[0]
-    return endpoint.startswith(("inproc://", "ipc://")) or host in ("127.0.0.1", "localhost", "[::1]", "::1")
+    return endpoint.startswith(("inproc://", "ipc://")) or P.is_loopback_host(host)
 
 
 def network_bind_problem(control_address: str, curve: bool, insecure_network: bool) -> str | None:
@@ -565,7 +565,8 @@ class RobotBridge:
     def _execute(self, action: np.ndarray, index: int) -> tuple[StepResult | None, dict | None, bool]:
         """Check and run one validated action: (result or None when refused, violation report, stop the rest)."""
         ep = self._episode
-        if self._apply_estop_if_latched() or self.estop_latch.is_set():
+        self._apply_estop_if_latched()
+        if self.estop_latch.is_set():
             return None, None, True   # latched since the last check: nothing more is applied
         verdict = self.guard.check(action, self._prev_action)
         report = None

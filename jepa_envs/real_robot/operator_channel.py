@@ -22,7 +22,7 @@ from typing import Callable
 import zmq
 
 from jepa_envs.real_robot import protocol as P
-from jepa_envs.real_robot.wire import decode_request
+from jepa_envs.real_robot.wire import decode_request, encode_reply
 
 log = logging.getLogger(__name__)
 
@@ -88,7 +88,7 @@ class OperatorChannel:
                     reply = P.error(P.ERR_INTERNAL, f"the bridge failed on this operator request "
                                                     f"({type(exc).__name__}); see its log")
                 finally:
-                    self.sock.send(_encode(reply))
+                    self.sock.send(encode_reply(reply))
         finally:
             self.sock.close(linger=0)
 
@@ -136,11 +136,3 @@ class OperatorChannel:
             return P.error(P.ERR_INTERNAL, f"the bridge's event loop did not answer {kind!r} within "
                                            f"{self.command_timeout_s:.1f}s; the e-stop still works (it does not "
                                            "wait for the loop)")
-
-
-def _encode(reply: dict | None) -> bytes:
-    try:
-        return P.encode(reply if reply is not None else P.error(P.ERR_INTERNAL, "no reply was built; see the log"))
-    except Exception:
-        log.exception("an operator reply could not be encoded")
-        return P.encode(P.error(P.ERR_INTERNAL, "the bridge built a reply it cannot encode; see its log"))

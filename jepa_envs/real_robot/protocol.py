@@ -9,6 +9,7 @@ message catalogue is in ``docs/real_robot.md``; the operator's side of it is spo
 """
 from __future__ import annotations
 
+import ipaddress
 from typing import Any
 
 import msgpack
@@ -55,6 +56,10 @@ ERR_LOST = "request_lost"          # the request never arrived (the connection d
 
 class ProtocolError(RuntimeError):
     """A message that does not follow the protocol (wrong version, malformed map, refused dtype)."""
+
+
+class VersionMismatch(ProtocolError):
+    """The peer speaks another protocol version."""
 
 
 def _encode_default(obj: Any) -> Any:
@@ -119,11 +124,23 @@ def check_version(message: dict) -> None:
     """
     version = message.get("v")
     if type(version) is not int or version != PROTOCOL_VERSION:
-        raise ProtocolError(
+        raise VersionMismatch(
             f"protocol version mismatch: peer speaks v{version if type(version) is int else _short(version)}, "
             f"this side speaks v{PROTOCOL_VERSION}; "
             "install the same jepa-policy-toolkit version on the robot computer and the policy computer"
         )
+
+
+def is_loopback_host(host: str) -> bool:
+    """Whether a host name or address (``[::1]`` bracketed or not) is reachable from this computer only: the
+    one rule for the bridge's ZeroMQ endpoints and the policy server's websocket bind."""
+    host = host.strip("[]")
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False
 
 
 def _short(value: Any) -> str:

@@ -48,11 +48,23 @@ def decode_request(payload: bytes) -> tuple[dict | None, dict | None]:
         message = P.decode(payload)
         P.check_version(message)
     except P.ProtocolError as exc:
-        code = P.ERR_VERSION if "version mismatch" in str(exc) else P.ERR_BAD_MESSAGE
-        return None, P.error(code, str(exc))
+        return None, P.error(P.ERR_VERSION if isinstance(exc, P.VersionMismatch) else P.ERR_BAD_MESSAGE, str(exc))
     except Exception as exc:   # decode wraps what msgpack raises; this is the belt to those braces
         return None, P.error(P.ERR_BAD_MESSAGE, f"undecodable message ({type(exc).__name__})")
     return message, None
+
+
+def encode_reply(message: dict | None) -> bytes:
+    """A reply's bytes, always: a reply built from a peer's values that msgpack cannot hold (or none at all)
+    becomes an internal-error reply, so a socket that owes an answer always has one to send."""
+    try:
+        if message is None:
+            raise ValueError("no reply was built")
+        return P.encode(message)
+    except Exception:
+        log.exception("a reply could not be encoded")
+        return P.encode(P.error(P.ERR_INTERNAL, "the bridge built a reply it cannot encode; see its log",
+                                seq=message.get("seq") if isinstance(message, dict) else None))
 
 
 class ControlWire:
@@ -79,12 +91,7 @@ class ControlWire:
 
     def send(self, identity: bytes, message: dict, envelope: list = (), count: bool = True) -> bool:
         """Send one message; False when the client is gone (or not reading), which is never an error here."""
-        try:
-            payload = P.encode(message)
-        except Exception:   # a reply built from a peer's values that msgpack cannot hold
-            log.exception("a reply could not be encoded")
-            payload = P.encode(P.error(P.ERR_INTERNAL, "the bridge built a reply it cannot encode; see its log",
-                                       seq=message.get("seq")))
+        payload = encode_reply(message)
         try:
             # copy=False: observations are ~150 KB with three 128x128 cameras; let ZeroMQ own the buffer
             self.sock.send_multipart([identity, *envelope, payload], flags=zmq.NOBLOCK, copy=False)
