@@ -14,6 +14,7 @@ from dataclasses import asdict, dataclass
 from typing import Callable
 
 from jepa_envs import install_mimicgen
+from jepa_envs.errors import USER_ERRORS, user_error
 from jepa_envs.spec import all_task_specs, backend_available, get_task_spec
 
 @dataclass(frozen=True)
@@ -250,18 +251,12 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-# What a user gets wrong (a path, a task, a file of another kind): one line naming it, exit code 2.
-USER_ERRORS = (FileNotFoundError, ValueError, KeyError)
-
-
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
         return SUBCOMMANDS[args.command].run(args)
     except USER_ERRORS as exc:
-        message = exc.args[0] if isinstance(exc, KeyError) and exc.args else exc
-        print(f"jepa-envs {args.command}: error: {message}", file=sys.stderr)
-        return 2
+        return user_error(f"jepa-envs {args.command}", exc)
 
 
 if __name__ == "__main__":

@@ -45,6 +45,7 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 
 from jepa_envs.data import DemoWriter, default_cache_dir, demo_names, open_hdf5, resolve_task
+from jepa_envs.errors import first_line
 from jepa_envs.spec import TaskSpec, get_task_spec
 
 CODEBASE_VERSION = "v3.0"
@@ -593,7 +594,7 @@ def _task_strings(table) -> list[str]:
 
 
 def _short(exc: Exception) -> str:
-    return (str(exc).strip().splitlines() or [type(exc).__name__])[0][:160]
+    return first_line(str(exc) or type(exc).__name__)
 
 
 def _check_features(ds: LeRobotDataset, spec: TaskSpec, km: KeyMap, fps: int | None) -> None:
@@ -698,10 +699,7 @@ class _RowStream:
             rel = path.relative_to(self.ds.root)
             try:
                 pfile = pq.ParquetFile(str(path))
-                for batch in pfile.iter_batches(batch_size=4096):
-                    yield batch
-            except LeRobotError:
-                raise
+                yield from pfile.iter_batches(batch_size=4096)
             except Exception as exc:
                 raise LeRobotError(f"{rel} is not a readable parquet file ({_short(exc)}); re-download it") from None
 

@@ -17,6 +17,7 @@ another robosuite release) is reported and the task's own model is used with the
 from __future__ import annotations
 
 import copy
+import dataclasses
 import json
 from pathlib import Path
 
@@ -24,6 +25,7 @@ import numpy as np
 
 from jepa_envs.convert_abs_actions import delta_to_abs_by_replay
 from jepa_envs.data import DatasetError, DemoWriter, demo_names, load_dataset, open_hdf5, resolve_task
+from jepa_envs.errors import first_line
 from jepa_envs.pusht import PushTEnv
 from jepa_envs.robomimic_env import (ROBOSUITE_ENV_TYPE, make_backend_from_env_args,
                                      robomimic_env_args)
@@ -71,8 +73,7 @@ def render_dataset(src: str | Path, out: str | Path, task: str | None = None, ca
         spec = resolve_task(task, env_args, src)
         spec = spec.with_image_size(int(size or spec.image_size))
         if cameras:
-            from dataclasses import replace
-            spec = replace(spec, cameras=tuple(cameras))
+            spec = dataclasses.replace(spec, cameras=tuple(cameras))
         if spec.suite == "embedded":
             renderer = PushTRenderer(spec)
         else:   # the recorded actions say the convention (the env_args of some files say delta regardless)
@@ -165,7 +166,7 @@ class RobosuiteRenderer:
                 self.env.reset(seed=0, options={"model": model, "state": states[0]})
                 return "recorded"
             except Exception as exc:   # another robosuite's geometry: rebuild ours, keep the states
-                why = str(exc).splitlines()[0][:120]
+                why = first_line(str(exc), 120)
                 self.env.close()
                 self.env = self._make()
                 self.env.reset(seed=0, options={"state": states[0]})
@@ -191,7 +192,7 @@ class RobosuiteRenderer:
             success = success or bool(info["is_success"])
             if t + 1 < len(states):   # the first entry is MuJoCo's clock, which a replay restarts
                 drift = max(drift, float(np.abs(sim.get_state().flatten()[1:] - states[t + 1][1:]).max()))
-        if self.delta and actions.shape[1] == NATIVE_DIM_PER_ARM * self.spec.num_arms:
+        if self.delta:   # set from the recorded actions' width (render_dataset)
             actions = delta_to_abs_by_replay(self.env.backend, states, actions)
         episode = {"obs": {k: np.stack([o[k] for o in obs]) for k in obs[0]},
                    "actions": actions.astype(np.float32), "states": states}

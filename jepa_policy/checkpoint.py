@@ -17,6 +17,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from jepa_envs.errors import first_line
 from jepa_policy.blocks import BasePolicyModel
 from jepa_policy.config import ModelConfig
 from jepa_policy.diffusion import DiffusionPolicyModel
@@ -67,8 +68,7 @@ def safe_load(path: Path, map_location="cpu", what: str = "checkpoint"):
 
 def _first_line(text: str) -> str:
     """The first sentence of an error text, bounded (torch's messages run on for paragraphs)."""
-    first = (text.strip().splitlines() or ["?"])[0]
-    return first.split(". ")[0][:160]
+    return first_line(text).split(". ")[0]
 
 
 def build_model(cfg: ModelConfig) -> BasePolicyModel:

@@ -7,6 +7,7 @@ import json
 import sys
 from pathlib import Path
 
+from jepa_envs.errors import USER_ERRORS, user_error
 from jepa_policy.train import TRAIN_HELP, TrainConfig
 
 
@@ -367,18 +368,12 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-# What a user gets wrong (a path, an option, a dataset of another kind): one line naming it, exit code 2.
-USER_ERRORS = (FileNotFoundError, ValueError, KeyError)
-
-
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
         return args.func(args)
     except USER_ERRORS as exc:
-        message = exc.args[0] if isinstance(exc, KeyError) and exc.args else exc
-        print(f"jepa-policy {args.command}: error: {message}", file=sys.stderr)
-        return 2
+        return user_error(f"jepa-policy {args.command}", exc)
 
 
 if __name__ == "__main__":

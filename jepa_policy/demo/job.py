@@ -33,6 +33,7 @@ import torch
 from tqdm import tqdm
 
 from jepa_envs.data import load_dataset, write_dataset
+from jepa_envs.errors import USER_ERRORS, user_error
 from jepa_envs.pusht_expert import generate_demos
 from jepa_policy.audit import audit_checkpoint, gradient_audit, retrieval_audit
 from jepa_policy.bench import count_passes, time_calls
@@ -467,7 +468,7 @@ def main(argv: list[str] | None = None) -> int:
             result = state_ceiling(args.dataset, seed=args.seed, episodes=args.episodes, eval_seed=args.eval_seed,
                                    steps=args.steps)
         except USER_ERRORS as exc:
-            return _user_error("jepa-demo ceiling", exc)
+            return user_error("jepa-demo ceiling", exc)
         print(json.dumps(result))
         return 0
     mode = "quick" if args.quick else "full" if args.full else "default"
@@ -482,18 +483,10 @@ def main(argv: list[str] | None = None) -> int:
     try:
         run(cfg, Path(args.out) / name, fresh=args.fresh)
     except USER_ERRORS as exc:   # e.g. a checkpoint in the output folder that is refused unread
-        return _user_error("jepa-demo", exc)
+        return user_error("jepa-demo", exc)
     return 0
 
 
-# What a user gets wrong (a path, a file of another kind): one line naming it, exit code 2.
-USER_ERRORS = (FileNotFoundError, ValueError, KeyError)
-
-
-def _user_error(prog: str, exc: Exception) -> int:
-    message = exc.args[0] if isinstance(exc, KeyError) and exc.args else exc
-    print(f"{prog}: error: {message}", file=sys.stderr)
-    return 2
 
 
 def demo_config(mode: str, steps: int | None = None) -> tuple[DemoConfig, str]:
