@@ -8,10 +8,11 @@ model's top-level parts during one decision, not assumed.
 from __future__ import annotations
 
 import contextlib
-from pathlib import Path
 import os
 import resource
+import shutil
 import time
+from pathlib import Path
 
 import numpy as np
 import torch
@@ -45,13 +46,18 @@ def _synthetic_obs(spec, batch: int, steps: int, device, gen: torch.Generator) -
     return obs
 
 
-def _ema_model(spec, arm: str, device, **overrides):
-    """A randomly initialised model wrapped like training wraps it; the benchmark acts with the EMA copy."""
+def _random_ema(spec, arm: str, device, **overrides) -> AveragedModel:
+    """A randomly initialised model wrapped like training wraps it (its EMA copy is what acts)."""
     model = build_model(ModelConfig.for_task(spec, arm=arm, **overrides)).to(device)
     model.set_normalizer_stats(_random_stats(spec))
     ema = AveragedModel(model, multi_avg_fn=get_ema_multi_avg_fn(0.995), use_buffers=True)
     ema.update_parameters(model)
-    return ema.module.eval()
+    return ema
+
+
+def _ema_model(spec, arm: str, device, **overrides):
+    """The EMA copy of a random model, as the benchmark acts with it."""
+    return _random_ema(spec, arm, device, **overrides).module.eval()
 
 
 def count_passes(model: torch.nn.Module, call) -> dict[str, int]:
@@ -290,11 +296,8 @@ def _random_checkpoint(task: str, preset: str, path) -> str:
     cfg = load_config(task, preset)
     spec = get_task_spec(task)
     spec = spec.with_image_size(cfg.image_size or spec.image_size)
-    model_cfg = ModelConfig.for_task(spec, arm=cfg.arm, **cfg.model)
-    model = build_model(model_cfg)
-    model.set_normalizer_stats(_random_stats(spec))
-    ema = AveragedModel(model, multi_avg_fn=get_ema_multi_avg_fn(0.995), use_buffers=True)
-    save_eval_snapshot(Path(path), ema=ema, step=0, cfg=cfg, model_cfg=model_cfg, spec=spec)
+    ema = _random_ema(spec, cfg.arm, "cpu", **cfg.model)
+    save_eval_snapshot(Path(path), ema=ema, step=0, cfg=cfg, model_cfg=ema.module.cfg, spec=spec)
     return str(path)
 
 
@@ -308,10 +311,8 @@ def bench_serve(task: str = "PushT", preset: str = "cpu", checkpoint: str | None
     import sys
     import tempfile
     import threading
-    from pathlib import Path
 
     from websockets.sync.client import connect
-
 
     torch.set_num_threads(threads)
     tmp = tempfile.mkdtemp(prefix="jepa-bench-serve-")
@@ -415,6 +416,7 @@ def bench_serve(task: str = "PushT", preset: str = "cpu", checkpoint: str | None
     finally:
         if proc.poll() is None:
             proc.kill()
+        shutil.rmtree(tmp, ignore_errors=True)
     result["load_average_after"] = os.getloadavg()[0]
     return result
 

@@ -8,6 +8,7 @@ Sec. 4.10; ``jepa-monitor study`` and the monitor's calibration compare the two)
 """
 from __future__ import annotations
 
+import contextlib
 import json
 import sys
 from dataclasses import dataclass
@@ -144,12 +145,12 @@ def evaluate(policy, episodes: int, seed: int, num_envs: int = 4, max_steps: int
     if not 0 <= rank < world:
         raise ValueError(f"shard must be (rank, world) with 0 <= rank < world, got {(rank, world)}")
     records, reruns = [], []
-    writer = None
-    if save_rollouts is not None:
-        writer = DemoWriter(save_rollouts, {**(getattr(policy, "env_args", None) or {}), "env_name": spec.name,
-                                            "rollouts": {"seed": seed, "checkpoint_step": policy.checkpoint_step}})
-        writer.__enter__()
-    try:
+    with contextlib.ExitStack() as stack:
+        if own_pool:
+            stack.callback(pool.close)
+        writer = None if save_rollouts is None else stack.enter_context(DemoWriter(save_rollouts, {
+            **(getattr(policy, "env_args", None) or {}), "env_name": spec.name,
+            "rollouts": {"seed": seed, "checkpoint_step": policy.checkpoint_step}}))
         for first in list(range(0, episodes, n))[rank::world]:
             ids = list(range(first, min(first + n, episodes)))
             for attempt in range(max_reruns + 1):
@@ -172,16 +173,6 @@ def evaluate(policy, episodes: int, seed: int, num_envs: int = 4, max_steps: int
                         pool.restart(worker, reason)
             for event in events:
                 on_decision(event)
-    except BaseException as exc:
-        if writer is not None:
-            writer.__exit__(type(exc), exc, None)
-            writer = None
-        raise
-    finally:
-        if own_pool:
-            pool.close()
-    if writer is not None:
-        writer.__exit__(None, None, None)
     shares = {rank: [r["episode"] for r in records]}
     if world > 1 and dist.is_available() and dist.is_initialized():
         gathered = [None] * world
