@@ -1,0 +1,220 @@
+"""The ingest path's statements: raw DB-API SQL in the database's own parameter style, a few per request.
+
+SQLAlchemy's ORM would cost more per record than the rest of the request (``docs/monitor.md``, "Tests and
+benchmark"); the schema itself stays SQLAlchemy's (``db.py``, migrations).
+"""
+from __future__ import annotations
+
+import json
+
+from monitor_service.db import utcnow
+from monitor_service.ingest.state import Dec, EpisodeState, Request, StaleState, Tgt, decision_digest, target_digest
+
+EPISODE_COLUMNS = ("id, task, robot, checkpoint, group_name, held_out, success, length, version, n_decisions, "
+                   "n_scored, last_evaluated_step, over_count, under_count, open_alert_id, early_score, "
+                   "running_score, risk_score, alert_note, ended_at")
+
+
+class Sql:
+    """Statements in the database's own parameter style (sqlite3: ?, psycopg2: %s), on a raw DB-API cursor."""
+
+    def __init__(self, dialect: str):
+        self.dialect = dialect
+        self.mark = "?" if dialect == "sqlite" else "%s"
+
+    def q(self, text: str) -> str:
+        return text if self.mark == "?" else text.replace("?", "%s")
+
+    def begin(self, cur) -> None:
+        if self.dialect == "sqlite":
+            cur.execute("BEGIN IMMEDIATE")   # a writer from the start: never an upgrade from reader (locks)
+
+    def commit(self, conn, cur) -> None:
+        if self.dialect == "sqlite":
+            cur.execute("COMMIT")
+        else:
+            conn.commit()
+
+    def rollback(self, conn, cur) -> None:
+        if self.dialect != "sqlite":
+            conn.rollback()
+        elif conn.in_transaction:
+            cur.execute("ROLLBACK")
+
+    def insert_many(self, cur, table: str, columns: str, rows: list[tuple]) -> None:
+        """One statement for all rows: sqlite3's executemany runs it in C; psycopg2's executemany would send one
+        statement per row, so PostgreSQL gets a single multi-row INSERT (execute_values)."""
+        if self.dialect == "sqlite":
+            marks = ", ".join("?" * (columns.count(",") + 1))
+            cur.executemany(f"INSERT INTO {table} ({columns}) VALUES ({marks})", rows)
+        else:
+            from psycopg2.extras import execute_values
+            execute_values(cur, f"INSERT INTO {table} ({columns}) VALUES %s", rows, page_size=len(rows))
+
+    def set_scores(self, cur, rows: list[tuple]) -> None:
+        """``UPDATE decisions SET nmse, nmse_persistence`` for (nmse, persistence, episode_id, step) rows."""
+        if self.dialect == "sqlite":
+            cur.executemany("UPDATE decisions SET nmse = ?, nmse_persistence = ? WHERE episode_id = ? AND step = ?",
+                            rows)
+        else:
+            from psycopg2.extras import execute_values
+            execute_values(cur, "UPDATE decisions AS d SET nmse = v.nmse, nmse_persistence = v.pers FROM (VALUES %s) "
+                                "AS v (nmse, pers, episode_id, step) WHERE d.episode_id = v.episode_id AND "
+                                "d.step = v.step", rows, template="(%s::float8, %s::float8, %s, %s)",
+                           page_size=len(rows))
+
+    def time(self, value):
+        """A naive-UTC datetime as this database stores it (SQLite: SQLAlchemy's text format)."""
+        return value.strftime("%Y-%m-%d %H:%M:%S.%f") if self.dialect == "sqlite" else value
+
+
+# ---------------------------------------------------------------------------------------------------- reading
+
+def lock_versions(sql: Sql, cur, episode_ids: list[str]) -> list[tuple[str, int]]:
+    """(id, version) of the given episodes, their rows locked for this transaction (PostgreSQL: FOR UPDATE, in
+    id order; SQLite: the transaction is a writer already)."""
+    marks = ", ".join([sql.mark] * len(episode_ids))
+    lock = "" if sql.dialect == "sqlite" else " FOR UPDATE"
+    cur.execute(f"SELECT id, version FROM episodes WHERE id IN ({marks}) ORDER BY id{lock}", episode_ids)
+    return cur.fetchall()
+
+
+def load_episode(sql: Sql, cur, episode_id: str) -> EpisodeState | None:
+    """An episode's state from its rows (decision latents kept only while unscored), or None if unknown."""
+    q = sql.q
+    cur.execute(q(f"SELECT {EPISODE_COLUMNS} FROM episodes WHERE id = ?"), (episode_id,))
+    row = cur.fetchone()
+    if row is None:
+        return None
+    ep = EpisodeState(row[0], row[1], row[2], row[3], row[4], bool(row[5]),
+                      None if row[6] is None else bool(row[6]), row[7], row[8], row[9], row[10], row[11],
+                      row[12], row[13], row[14], row[15], row[16], row[17], row[18], ended=row[19] is not None)
+    cur.execute(q("SELECT step, horizon, nmse, nmse_persistence, z_hat, z_now FROM decisions "
+                  "WHERE episode_id = ? ORDER BY step"), (episode_id,))
+    for step, horizon, nmse, pers, z_hat, z_now in cur.fetchall():
+        z_hat, z_now = bytes(z_hat), None if z_now is None else bytes(z_now)
+        d = Dec(horizon, decision_digest(horizon, z_hat, z_now), nmse, pers)
+        if nmse is None:
+            d.z_hat, d.z_now = z_hat, z_now
+            ep.unscored.add(step)
+        else:
+            ep.scored.append((step, nmse))
+        ep.decisions[step] = d
+    aimed = {s + d.horizon for s, d in ep.decisions.items()}
+    cur.execute(q("SELECT step, z FROM targets WHERE episode_id = ?"), (episode_id,))
+    for step, z in cur.fetchall():
+        z = bytes(z)
+        ep.targets[step] = Tgt(target_digest(z), None if step in aimed else z)
+    return ep
+
+
+def target_latent(sql: Sql, cur, episode_id: str, step: int) -> bytes | None:
+    """A stored realized latent (dropped from memory once a decision used it)."""
+    cur.execute(sql.q("SELECT z FROM targets WHERE episode_id = ? AND step = ?"), (episode_id, step))
+    row = cur.fetchone()
+    return None if row is None else bytes(row[0])
+
+
+def task_latent_dim(sql: Sql, cur, task: str, dim: int) -> tuple[int, bool] | None:
+    """(the task's latent size, whether this transaction fixed it): the first latent fixes it, and a concurrent
+    first latent cannot fix another. None when the task is not registered."""
+    cur.execute(sql.q("SELECT latent_dim FROM tasks WHERE name = ?"), (task,))
+    row = cur.fetchone()
+    if row is None:
+        return None
+    if row[0] is not None:
+        return row[0], False
+    cur.execute(sql.q("UPDATE tasks SET latent_dim = ? WHERE name = ? AND latent_dim IS NULL"), (dim, task))
+    cur.execute(sql.q("SELECT latent_dim FROM tasks WHERE name = ?"), (task,))
+    return cur.fetchone()[0], True
+
+
+def active_calibration(sql: Sql, cur, task: str, checkpoint: str | None) -> tuple[int | None, dict | None]:
+    """(id, result) of the active calibration of a checkpoint, else of its task; (None, None) without one."""
+    for ckpt in ([checkpoint] if checkpoint is not None else []) + [None]:
+        cond = "checkpoint IS NULL" if ckpt is None else "checkpoint = ?"
+        cur.execute(sql.q(f"SELECT id, result FROM calibrations WHERE task = ? AND {cond} AND active = ?"
+                          " ORDER BY id DESC"), (task, True) if ckpt is None else (task, ckpt, True))
+        row = cur.fetchone()
+        if row is not None:   # JSON column: text on SQLite, already decoded by psycopg2
+            return row[0], row[1] if isinstance(row[1], dict) else json.loads(row[1])
+    return None, None
+
+
+def idempotent_answer(sql: Sql, cur, key_id: int, key: str) -> tuple[str, int, dict] | None:
+    """(body hash, status, answer) stored for this key's Idempotency-Key, or None."""
+    cur.execute(sql.q("SELECT request_hash, status_code, response FROM idempotency_keys "
+                      "WHERE api_key_id = ? AND key = ?"), (key_id, key))
+    row = cur.fetchone()
+    if row is None:
+        return None
+    return row[0], row[1], row[2] if isinstance(row[2], dict) else json.loads(row[2])
+
+
+# ---------------------------------------------------------------------------------------------------- writing
+
+def insert_alert(sql: Sql, cur, ep: EpisodeState, cal_id: int, step: int, value: float, threshold: float,
+                 note: str, webhook_urls: list[str]) -> int:
+    """A raised alert (and a pending delivery per webhook URL); returns its id."""
+    now = sql.time(utcnow())
+    cur.execute(sql.q(
+        "INSERT INTO alerts (episode_id, task, robot, step, score, threshold, calibration_id, state, note, "
+        "raised_at) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?) RETURNING id"),
+        (ep.id, ep.task, ep.robot, step, value, threshold, cal_id, "open", note, now))
+    alert_id = cur.fetchone()[0]
+    if webhook_urls:
+        cur.executemany(sql.q(
+            "INSERT INTO webhook_deliveries (alert_id, url, status, attempts, next_attempt_at, last_error) "
+            "VALUES (?, ?, ?, ?, ?, ?)"), [(alert_id, url, "pending", 0, now, "") for url in webhook_urls])
+    return alert_id
+
+
+def clear_alert(sql: Sql, cur, alert_id: int) -> None:
+    cur.execute(sql.q("UPDATE alerts SET state = ?, cleared_at = ? WHERE id = ?"),
+                ("cleared", sql.time(utcnow()), alert_id))
+
+
+def write_rows(sql: Sql, cur, req: Request, now) -> None:
+    """The request's new episodes, decisions and targets, and the late scores of stored decisions."""
+    q = sql.q
+    for ep in req.drafts.values():
+        if ep.new:
+            cur.execute(q(
+                "INSERT INTO episodes (id, task, robot, checkpoint, group_name, held_out, n_decisions, n_scored, "
+                "last_evaluated_step, over_count, under_count, alert_note, started_at, updated_at, version) "
+                "VALUES (?, ?, ?, ?, ?, ?, 0, 0, -1, 0, 0, '', ?, ?, 0)"),
+                (ep.id, ep.task, ep.robot, ep.checkpoint, ep.group, ep.held_out, now, now))
+    rows = [(eid, step, d.horizon, step + d.horizon, d.z_hat, d.nmse, d.z_now, d.nmse_persistence, now)
+            for eid, step in req.new_decisions for d in [req.drafts[eid].decisions[step]]]
+    if rows:
+        sql.insert_many(cur, "decisions", "episode_id, step, horizon, target_step, z_hat, nmse, z_now, "
+                                          "nmse_persistence, created_at", rows)
+    if req.new_targets:
+        sql.insert_many(cur, "targets", "episode_id, step, z, created_at",
+                        [(eid, step, z, now) for eid, step, z in req.new_targets])
+    if req.scored_stored:
+        sql.set_scores(cur, [(req.drafts[eid].decisions[s].nmse, req.drafts[eid].decisions[s].nmse_persistence,
+                              eid, s) for eid, s in req.scored_stored])
+
+
+def update_episode(sql: Sql, cur, ep: EpisodeState, now) -> None:
+    """Write an episode's state under its version counter; StaleState when another process changed it."""
+    cur.execute(sql.q(
+        "UPDATE episodes SET version = ?, group_name = ?, held_out = ?, success = ?, length = ?, "
+        "n_decisions = ?, n_scored = ?, last_evaluated_step = ?, over_count = ?, under_count = ?, "
+        "open_alert_id = ?, early_score = ?, running_score = ?, risk_score = ?, alert_note = ?, "
+        "updated_at = ?, ended_at = COALESCE(ended_at, ?) WHERE id = ? AND version = ?"),
+        (ep.version + 1, ep.group, ep.held_out, ep.success, ep.length, ep.n_decisions, ep.n_scored,
+         ep.last_evaluated_step, ep.over_count, ep.under_count, ep.open_alert_id, ep.early_score,
+         ep.running_score, ep.risk_score, ep.alert_note[:512], now, now if ep.ended else None, ep.id,
+         ep.version))
+    if cur.rowcount != 1:
+        raise StaleState(f"episode {ep.id!r} changed in another process")
+    ep.version += 1
+
+
+def store_idempotency(sql: Sql, cur, idem: tuple[int, str, str], result: dict) -> None:
+    key_id, key, body_hash = idem
+    cur.execute(sql.q("INSERT INTO idempotency_keys (api_key_id, key, request_hash, status_code, response, "
+                      "created_at) VALUES (?, ?, ?, ?, ?, ?)"),
+                (key_id, key, body_hash, 200, json.dumps(result), sql.time(utcnow())))
