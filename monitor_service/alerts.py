@@ -58,6 +58,8 @@ def alert_payload(alert: Alert) -> dict:
         "threshold": alert.threshold,
         "state": alert.state,
         "acknowledged_by": alert.acknowledged_by,
+        "beyond_calibration": alert.beyond_calibration,
+        "signals": alert.signals,
         "raised_at": alert.raised_at.isoformat() + "Z",
     }
 

@@ -20,10 +20,12 @@ import numpy as np
 from monitor_service import rules, scoring, stats
 
 ASSUMPTIONS = (
-    "The false-alert guarantee P(a successful episode raises any alert) <= alpha holds for new episodes "
-    "exchangeable with the held-out successes: the same task, checkpoint and robot set-up, episodes of the same "
-    "length regime, scored with the same window, debounce and hysteresis. It is marginal over the calibration "
-    "set (finite-sample, split conformal over whole episodes), not a per-episode failure probability."
+    "The false-alert guarantee P(a successful episode raises any alert) <= alpha holds in each length regime of "
+    "the calibration (rule.regimes: episodes of lo..hi scored decisions) for new episodes exchangeable with that "
+    "regime's held-out successes: the same task, checkpoint and robot set-up, scored with the same window, "
+    "debounce and hysteresis. It is finite-sample split conformal over whole episodes, averaged over the "
+    "calibration draw; not a per-episode failure probability. Decisions beyond rule.calibrated_decisions are "
+    "flagged beyond_calibration: no guarantee covers them."
 )
 
 
@@ -117,7 +119,7 @@ def calibrate(episodes: list[LabelledEpisode], params: rules.RuleParams, alpha: 
     rule = rules.calibrate_rule(successes, params, alpha, seed)
     judged = [s for s in scored if s.steps.size]
     detection = {kind: rules.cross_fit(judged, rules.RuleParams(kind, params.window, params.debounce,
-                                                                params.clear_ratio), alpha, folds, seed)
+                                                                params.clear_ratio, params.shape), alpha, folds, seed)
                  for kind in rules.RULE_KINDS}
     return {
         **figures,

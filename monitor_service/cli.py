@@ -119,7 +119,7 @@ def cmd_calibrate(args) -> int:
     settings, make_session = _sessionmaker(args)
     row = calibrate_task(
         make_session, settings, args.task, args.checkpoint, args.alpha, args.rule, args.n_bootstrap,
-        args.n_permutation, args.seed, args.folds,
+        args.n_permutation, args.seed, args.folds, args.shape,
     )
     r = row.result
     print(f"calibration #{row.id} task={row.task} checkpoint={row.checkpoint or '-'} "
@@ -258,6 +258,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--checkpoint", help="calibrate only this checkpoint's episodes")
     s.add_argument("--alpha", type=float, help="guaranteed false-alert rate per successful episode (default 0.1)")
     s.add_argument("--rule", choices=["running", "band"], help="alert rule (default: JEPA_MONITOR_ALERT_RULE)")
+    s.add_argument("--shape", choices=["flat", "running-max"],
+                   help="threshold shape over the decision index (default: JEPA_MONITOR_THRESHOLD_SHAPE)")
     s.add_argument("--folds", type=int, help="folds of the cross-fitted detection figures (default 5)")
     s.add_argument("--n-bootstrap", type=int, help="AUROC bootstrap resamples (default 10000)")
     s.add_argument("--n-permutation", type=int, help="label permutations of the p-value (default 10000)")

@@ -16,6 +16,7 @@ from sqlalchemy import (
     UniqueConstraint,
     create_engine,
     event,
+    false,
     text,
 )
 from sqlalchemy.engine import Engine
@@ -49,6 +50,7 @@ class Task(Base):
     name: Mapped[str] = mapped_column(String(128), primary_key=True)
     latent_dim: Mapped[int | None] = mapped_column(Integer, nullable=True)
     description: Mapped[str] = mapped_column(String(512), default="")
+    signals: Mapped[list | None] = mapped_column(JSON, nullable=True)   # named per-decision scores robots may send
     created_at: Mapped[dt.datetime] = mapped_column(DateTime, default=utcnow)
 
 
@@ -77,6 +79,14 @@ class Episode(Base):
     risk_score: Mapped[float | None] = mapped_column(Float, nullable=True)  # the calibrated rule's latest statistic
     # bumped by every ingest write: a server process's cached state of the episode is current when it matches
     version: Mapped[int] = mapped_column(Integer, default=0, server_default="0")
+    risk_threshold: Mapped[float | None] = mapped_column(Float, nullable=True)   # T(i) the risk was judged against
+    calibrated_decisions: Mapped[int | None] = mapped_column(Integer, nullable=True)   # the rule's longest length
+    beyond_calibration: Mapped[bool] = mapped_column(Boolean, default=False, server_default=false())
+    gaps: Mapped[int] = mapped_column(Integer, default=0, server_default="0")   # decision indices still missing
+    gap_steps: Mapped[list | None] = mapped_column(JSON, nullable=True)         # their steps (the first ones)
+    late_decisions: Mapped[int] = mapped_column(Integer, default=0, server_default="0")
+    early_revisions: Mapped[int] = mapped_column(Integer, default=0, server_default="0")
+    signal_state: Mapped[dict | None] = mapped_column(JSON, nullable=True)      # per-signal rule state
 
 
 class Decision(Base):
@@ -86,13 +96,14 @@ class Decision(Base):
     id: Mapped[int] = mapped_column(Integer, primary_key=True)
     episode_id: Mapped[str] = mapped_column(ForeignKey("episodes.id"))
     step: Mapped[int] = mapped_column(Integer)
-    horizon: Mapped[int] = mapped_column(Integer)
-    target_step: Mapped[int] = mapped_column(Integer)
-    z_hat: Mapped[bytes] = mapped_column(LargeBinary)
+    horizon: Mapped[int | None] = mapped_column(Integer, nullable=True)
+    target_step: Mapped[int | None] = mapped_column(Integer, nullable=True)
+    z_hat: Mapped[bytes | None] = mapped_column(LargeBinary, nullable=True)   # none: the decision sent scores only
     nmse: Mapped[float | None] = mapped_column(Float, nullable=True)
     # the current latent z_t, when the client sends it: the persistence baseline NMSE(z_t, z_{t+k}) (Sec. 4.10)
     z_now: Mapped[bytes | None] = mapped_column(LargeBinary, nullable=True)
     nmse_persistence: Mapped[float | None] = mapped_column(Float, nullable=True)
+    scores: Mapped[dict | None] = mapped_column(JSON, nullable=True)   # named per-decision scores {signal: value}
     created_at: Mapped[dt.datetime] = mapped_column(DateTime, default=utcnow)
 
 
@@ -129,12 +140,18 @@ class Alert(Base):
     score: Mapped[float] = mapped_column(Float)
     threshold: Mapped[float] = mapped_column(Float)
     calibration_id: Mapped[int] = mapped_column(Integer)
-    state: Mapped[str] = mapped_column(String(16), default="open", index=True)  # open -> cleared; ack is separate
+    # open -> acknowledged (an operator took it) -> resolved (the episode's outcome arrived); open or acknowledged
+    # -> cleared (the rule's statistic fell back below its hysteresis level while the episode ran)
+    state: Mapped[str] = mapped_column(String(16), default="open", index=True)
     acknowledged_by: Mapped[str | None] = mapped_column(String(128), nullable=True)
     acknowledged_at: Mapped[dt.datetime | None] = mapped_column(DateTime, nullable=True)
     note: Mapped[str] = mapped_column(String(512), default="")
     raised_at: Mapped[dt.datetime] = mapped_column(DateTime, default=utcnow)
     cleared_at: Mapped[dt.datetime | None] = mapped_column(DateTime, nullable=True)
+    resolved_at: Mapped[dt.datetime | None] = mapped_column(DateTime, nullable=True)
+    resolution: Mapped[str | None] = mapped_column(String(16), nullable=True)   # failure (true) or success (false)
+    beyond_calibration: Mapped[bool] = mapped_column(Boolean, default=False, server_default=false())
+    signals: Mapped[str] = mapped_column(String(512), default="nmse", server_default="nmse")
 
 
 class WebhookDelivery(Base):

@@ -25,12 +25,17 @@ DECISIONS = Counter("jepa_monitor_decisions", "Decisions ingested", ["task", "ro
 TARGETS = Counter("jepa_monitor_targets", "Realized latents ingested", ["task", "robot"])
 OUTCOMES = Counter("jepa_monitor_outcomes", "Episode outcomes ingested", ["task", "robot"])
 ALERTS = Counter("jepa_monitor_alerts", "Intervention alerts raised", ["task", "robot"])
+GAPS = Counter("jepa_monitor_decision_gaps", "Decision indices skipped when a later decision arrived (a lost or "
+               "unsent decision; a late one may fill it)", ["task", "robot"])
+LATE = Counter("jepa_monitor_late_decisions", "Decisions that arrived after a later decision of their episode",
+               ["task", "robot"])
 WEBHOOK_FAILURES = Counter("jepa_monitor_webhook_failures", "Failed webhook delivery attempts")
 
 
 def publish(observations: list[tuple[str, str, str, float]]) -> None:
     """Turn a committed request's (kind, task, robot, value) observations into Prometheus samples."""
-    counters = {"decision": DECISIONS, "target": TARGETS, "outcome": OUTCOMES, "alert": ALERTS}
+    counters = {"decision": DECISIONS, "target": TARGETS, "outcome": OUTCOMES, "alert": ALERTS, "gap": GAPS,
+                "late": LATE}
     counts: dict[tuple[str, str, str], float] = {}
     histograms: dict[tuple[str, str], object] = {}
     for kind, task, robot, value in observations:
@@ -61,7 +66,8 @@ class DatabaseGauges:
         thr = GaugeMetricFamily(
             "jepa_monitor_task_threshold", "Active alarm threshold (+Inf: too few successes)", labels=["task"]
         )
-        open_alerts = GaugeMetricFamily("jepa_monitor_open_alerts", "Alerts raised and not yet cleared", labels=["task"])
+        open_alerts = GaugeMetricFamily("jepa_monitor_open_alerts", "Alerts raised, neither cleared nor resolved by their "
+                                        "episode's outcome (open or acknowledged)", labels=["task"])
         target = GaugeMetricFamily(
             "jepa_monitor_calibration_false_alert_target",
             "Calibrated bound on the share of successful episodes that raise any alert (alpha)",
@@ -92,7 +98,7 @@ class DatabaseGauges:
                 if self.rule_params is not None:
                     params = (rule or {}).get("params", {})
                     made_for = (params.get("window"), params.get("debounce"), params.get("clear_ratio"))
-                    stale.add_metric(labels, float(made_for != self.rule_params))
+                    stale.add_metric(labels, float(made_for != self.rule_params or "shape" not in (rule or {})))
             live = Episode.held_out.is_(False)
             episodes = dict(session.execute(select(Episode.task, func.count()).where(live).group_by(Episode.task)).all())
             alerted = dict(session.execute(
@@ -108,7 +114,7 @@ class DatabaseGauges:
             for task, n in successes.items():
                 live_false.add_metric([task], alerted_successes.get(task, 0) / n)
             for task, n in session.execute(
-                select(Alert.task, func.count()).where(Alert.state == "open").group_by(Alert.task)
+                select(Alert.task, func.count()).where(Alert.state.in_(("open", "acknowledged"))).group_by(Alert.task)
             ):
                 open_alerts.add_metric([task], n)
             session.rollback()

@@ -9,14 +9,23 @@ Two rules:
   (time-varying band, as in FAIL-Detect): z = (log NMSE - m(step)) / s(step), with m and s the median and the
   MAD-scale of log NMSE of calibration successes at that step; r_i = median of the last ``window`` z values.
 
-Episode-level guarantee. For a whole episode let A = max_i min(r_{i-d+1}, ..., r_i) (d = debounce): the smallest
-threshold at which the episode would never have alerted (-inf when it has fewer than d scored decisions). The
-threshold is the split-conformal quantile of A over held-out successful episodes, the r-th smallest with
-r = ceil((n+1)(1-alpha)). A new successful episode exchangeable with those n then raises *any* alert with
-probability <= alpha, finite-sample, however long it runs. For ``band`` the successes are split once (seeded):
-one part fits the band, the other gives the conformal quantile, so the new episode stays exchangeable with
-the quantile's episodes. Assumptions: episodes of the same task, checkpoint and length regime, run the same
-way; window, debounce and the band belong to the calibrated rule (change them and recalibrate).
+Guarantee per episode length. The statistic is judged against a threshold that depends on the decision index i
+(the position among the episode's scored decisions): T(i) = q(i) + lambda (``band``) or q(i) x exp(lambda)
+(``running``, a ratio on NMSE), where the *shape* q(i) is the median, over fitting successes that reached index
+i, of their running maximum max_{i' <= i} r_{i'} (non-decreasing). An alert needs ``debounce`` consecutive values
+above their own T(i). For a whole episode let A = max_i min_{d consecutive} (r_i - q(i)) (log ratio for
+``running``): the smallest lambda at which it would never have alerted (-inf with fewer than d values).
+
+The successes are split once (seeded): one half fits the band (``band``) and the shape, the other half gives the
+conformal quantiles. Those are grouped into *length regimes* by their number of scored decisions (edges 20, 40,
+80, 160, ...; a regime with fewer successes than alpha needs is merged with the next, the last into the one
+before). In each regime B, lambda_B is the split-conformal quantile of A (the r-th smallest, r =
+ceil((n_B + 1)(1 - alpha))), and lambda = max_B lambda_B. A new successful episode whose length falls in regime
+B and that is exchangeable with B's calibration successes then raises *any* alert with probability <= alpha,
+finite-sample, in every regime at once (the shape makes the regimes' lambdas close, so little is lost to the
+max). Decisions beyond the longest calibrated episode (``calibrated_decisions``) keep the last threshold but
+are flagged: no guarantee covers them. Assumptions: the same task, checkpoint and set-up; window, debounce, band
+and shape belong to the calibrated rule (change them and recalibrate).
 
 Detection figures are cross-fitted: every held-out episode is judged by a rule calibrated without it.
 """
@@ -31,9 +40,13 @@ from scipy.stats import binomtest
 
 RuleKind = Literal["running", "band"]
 RULE_KINDS: tuple[str, ...] = ("running", "band")
+SHAPES: tuple[str, ...] = ("flat", "running-max")
 BAND_MIN_EPISODES = 3        # successes needed at a decision step before the band has a point there
 BAND_SCALE_FLOOR = 0.1       # per-step scale >= this fraction of the pooled scale (a step of identical values)
 LOG_FLOOR = 1e-12            # NMSE is >= 0; log of an exact match is floored
+SHAPE_MIN_EPISODES = 3       # fitting successes that must reach a decision index for the shape to move there
+LENGTH_EDGES = (20, 40, 80, 160, 320, 640, 1280, 2560)   # length regimes, in scored decisions (doubling)
+REGIME_MIN_SUCCESSES = 20    # conformal successes per length regime at least (fewer: merged with the next)
 
 
 @dataclass(frozen=True)
@@ -44,10 +57,13 @@ class RuleParams:
     window: int = 5
     debounce: int = 2
     clear_ratio: float = 0.8
+    shape: str = "flat"
 
     def __post_init__(self):
         if self.kind not in RULE_KINDS:
             raise ValueError(f"unknown alert rule {self.kind!r}; choose one of {list(RULE_KINDS)}")
+        if self.shape not in SHAPES:
+            raise ValueError(f"unknown threshold shape {self.shape!r}; choose one of {list(SHAPES)}")
         if self.window < 1 or self.debounce < 1:
             raise ValueError(f"window and debounce must be >= 1, got {self.window} and {self.debounce}")
         if not 0.0 < self.clear_ratio <= 1.0:
@@ -139,7 +155,7 @@ def fit_band(episodes: list[EpisodeScores], min_episodes: int = BAND_MIN_EPISODE
 
 
 # ----------------------------------------------------------------------------------------------------------
-# The running statistic, the alert statistic and the first alert
+# The running statistic, the threshold curve and the first alert
 # ----------------------------------------------------------------------------------------------------------
 
 def decision_values(params: RuleParams, episode: EpisodeScores, band: Band | None) -> np.ndarray:
@@ -161,33 +177,37 @@ def running_statistic(values: np.ndarray, window: int) -> np.ndarray:
     return np.concatenate([np.asarray(head, dtype=np.float64), full])
 
 
-def alert_statistic(running: np.ndarray, debounce: int) -> float:
-    """A = max_i min(r_{i-d+1..i}): the episode alerts at threshold T exactly when A > T; -inf if too short."""
-    running = np.asarray(running, dtype=np.float64)
-    if running.size < debounce:
+def alert_statistic(values: np.ndarray, debounce: int) -> float:
+    """A = max_i min(v_{i-d+1..i}): ``debounce`` consecutive values exceed a level T exactly when A > T; -inf
+    if too short."""
+    values = np.asarray(values, dtype=np.float64)
+    if values.size < debounce:
         return -math.inf
-    windows = np.lib.stride_tricks.sliding_window_view(running, debounce)
+    windows = np.lib.stride_tricks.sliding_window_view(values, debounce)
     return float(windows.min(axis=1).max())
 
 
-def first_alert(running: np.ndarray, threshold: float, debounce: int) -> int | None:
-    """Index of the decision at which ``debounce`` consecutive values above ``threshold`` first complete."""
-    over = 0
-    for i, r in enumerate(np.asarray(running, dtype=np.float64)):
-        over = over + 1 if r > threshold else 0
-        if over >= debounce:
-            return i
-    return None
+def first_alert(running: np.ndarray, threshold, debounce: int) -> int | None:
+    """Index of the decision at which ``debounce`` consecutive values above their threshold (a number, or one per
+    index) first complete."""
+    over = (np.asarray(running, dtype=np.float64) > np.asarray(threshold, dtype=np.float64)).astype(np.int64)
+    if over.size < debounce:
+        return None
+    hits = np.flatnonzero(np.convolve(over, np.ones(debounce, dtype=np.int64), "valid") == debounce)
+    return int(hits[0]) + debounce - 1 if hits.size else None
 
 
-def alert_timing(episode: EpisodeScores, index: int | None) -> dict:
+def alert_timing(episode: EpisodeScores, index: int | None, calibrated: int | None = None) -> dict:
     """Where the first alert fell: decision index, its step, the env step at which it was known (its target
-    step) and the lead before the episode's end (env steps; None when the end is unknown)."""
+    step), the lead before the episode's end (env steps; None when the end is unknown), and whether the index
+    lies beyond the ``calibrated`` decisions (no guarantee there)."""
     if index is None:
-        return {"alerted": False, "decision_index": None, "step": None, "known_at": None, "lead": None}
+        return {"alerted": False, "decision_index": None, "step": None, "known_at": None, "lead": None,
+                "beyond_calibration": False}
     known = int(episode.known_at[index])
     return {"alerted": True, "decision_index": index, "step": int(episode.steps[index]), "known_at": known,
-            "lead": None if episode.end_step is None else int(episode.end_step) - known}
+            "lead": None if episode.end_step is None else int(episode.end_step) - known,
+            "beyond_calibration": calibrated is not None and index >= calibrated}
 
 
 def clear_level(params: RuleParams, threshold: float) -> float:
@@ -197,6 +217,43 @@ def clear_level(params: RuleParams, threshold: float) -> float:
     if params.kind == "band":
         return threshold + math.log(params.clear_ratio)
     return params.clear_ratio * threshold
+
+
+def excess(params: RuleParams, running: np.ndarray, shape: np.ndarray) -> np.ndarray:
+    """How far each running value lies above the shape: r - q (``band``), log(r / q) (``running``)."""
+    running = np.asarray(running, dtype=np.float64)
+    if params.kind == "band":
+        return running - shape
+    return np.log(np.maximum(running, LOG_FLOOR)) - np.log(shape)
+
+
+def threshold_curve(params: RuleParams, shape: np.ndarray, levels) -> np.ndarray:
+    """T(i) = q(i) + lambda(i) (``band``) or q(i) x exp(lambda(i)) (``running``)."""
+    shape, levels = np.asarray(shape, dtype=np.float64), np.asarray(levels, dtype=np.float64)
+    return shape + levels if params.kind == "band" else shape * np.exp(levels)
+
+
+def fit_shape(runnings: list[np.ndarray], length: int, kind: str,
+              min_episodes: int = SHAPE_MIN_EPISODES) -> np.ndarray:
+    """q(i) for i < ``length``: the median, over the episodes that reached index i, of their running maximum up
+    to i; where fewer than ``min_episodes`` reached it, the value before is held; made non-decreasing. A
+    ``running`` shape is floored at LOG_FLOOR (it divides)."""
+    if not runnings:
+        raise ValueError("no successful episodes to fit the threshold's shape to")
+    maxima = np.full((len(runnings), length), np.nan)
+    for j, r in enumerate(runnings):
+        cm = np.maximum.accumulate(np.asarray(r, dtype=np.float64)[:length])
+        maxima[j, : cm.size] = cm
+    counts = np.sum(~np.isnan(maxima), axis=0)
+    need = min(min_episodes, len(runnings))
+    shape = np.empty(length)
+    last = None
+    for i in range(length):
+        if counts[i] >= need or (last is None and counts[i] > 0):
+            last = float(np.nanmedian(maxima[:, i]))
+        shape[i] = last if last is not None else 0.0
+    shape = np.maximum.accumulate(shape)
+    return np.maximum(shape, LOG_FLOOR) if kind == "running" else shape
 
 
 # ----------------------------------------------------------------------------------------------------------
@@ -218,77 +275,174 @@ def min_conformal_episodes(alpha: float) -> int:
     return n
 
 
-def min_successes(kind: str, alpha: float) -> int:
-    """Successful held-out episodes a calibration of ``kind`` needs at ``alpha`` (band: half fit the band)."""
+def min_successes(alpha: float, params: RuleParams | None = None) -> int:
+    """Successful held-out episodes a calibration needs at ``alpha``: one length regime's conformal episodes,
+    and (unless nothing is fitted: a flat ``running`` rule) as many less one to fit the band and the shape."""
     m = min_conformal_episodes(alpha)
-    return m if kind == "running" else 2 * m - 1
+    if params is not None and params.kind == "running" and params.shape == "flat":
+        return m
+    return max(2 * m - 1, m + 1)
 
 
-def band_split(n: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
-    """Seeded split of n successes: (indices that fit the band, indices that give the conformal quantile)."""
+def fit_split(n: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """Seeded split of n successes: (indices that fit band and shape, indices that give the conformal quantiles)."""
     order = np.random.default_rng(seed).permutation(n)
-    n_band = n // 2
-    return np.sort(order[:n_band]), np.sort(order[n_band:])
+    n_fit = max(1, n // 2)
+    return np.sort(order[:n_fit]), np.sort(order[n_fit:])
+
+
+@dataclass
+class Regime:
+    """Calibration successes of lengths (scored decisions) lo..hi, and their conformal quantile of A."""
+
+    lo: int
+    hi: int
+    n: int
+    rank: int
+    level: float
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+def length_regimes(lengths: list[int], alpha: float, edges: tuple[int, ...] = LENGTH_EDGES,
+                   min_episodes: int = REGIME_MIN_SUCCESSES) -> list[tuple[int, int, np.ndarray]]:
+    """Group episodes by length into (lo, hi, indices): the bins between ``edges``, each merged with the next
+    until it holds ``min_episodes`` (and at least enough for a finite quantile at ``alpha``); the remainder joins
+    the last group. The top group ends at the longest episode. A regime's quantile from few episodes is noisy and
+    the threshold takes the largest of them, so tiny regimes cost detection for little gain."""
+    lengths = np.asarray(lengths, dtype=np.int64)
+    need = max(min_conformal_episodes(alpha), min_episodes)
+    bins = np.searchsorted(np.asarray(edges), lengths, side="left")
+    bounds = [0, *edges]
+    groups, start, members = [], 0, []
+    for b in range(len(edges) + 1):
+        members += np.flatnonzero(bins == b).tolist()
+        if len(members) >= need:
+            groups.append([start, b, members])
+            start, members = b + 1, []
+    if members:
+        if not groups:   # fewer than min_episodes in all: one regime (calibrate_rule checked alpha's minimum)
+            groups.append([0, len(edges), members])
+        else:
+            groups[-1][1], groups[-1][2] = len(edges), groups[-1][2] + members
+    out = []
+    for first, last, idx in groups:
+        hi = bounds[last + 1] if last < len(edges) else int(lengths.max())
+        out.append((bounds[first] + 1, min(hi, int(lengths.max())), np.sort(np.asarray(idx, dtype=np.int64))))
+    return out
 
 
 @dataclass
 class CalibratedRule:
     params: RuleParams
     alpha: float
-    threshold: float
+    level: float            # the largest lambda_B (lambda(i) at the first index)
+    shape: np.ndarray       # q(i) for the calibrated decision indices
     band: Band | None
+    regimes: list[Regime]
     n_successes: int        # successes the calibration was given
-    n_conformal: int        # of which the conformal quantile used (the rest fit the band)
-    rank: int
+    n_conformal: int        # of which the conformal quantiles used (the rest fit band and shape)
     note: str
 
+    @property
+    def calibrated_decisions(self) -> int:
+        """The longest calibrated episode's scored decisions; later indices hold the last threshold, unguaranteed."""
+        return int(self.shape.size)
+
+    def levels(self) -> np.ndarray:
+        """lambda(i) for the calibrated indices: the largest lambda_B of the regimes an episode that has reached
+        index i can still end in (those whose longest length exceeds i)."""
+        i = np.arange(self.shape.size)
+        out = np.full(self.shape.size, -math.inf)
+        for r in self.regimes:
+            out = np.where(i < r.hi, np.maximum(out, r.level), out)
+        return out
+
+    def thresholds(self, n: int) -> np.ndarray:
+        """T(i) for i < n (beyond the calibrated decisions: the last one)."""
+        curve = threshold_curve(self.params, self.shape, self.levels())
+        if n <= curve.size:
+            return curve[:n]
+        return np.concatenate([curve, np.full(n - curve.size, curve[-1])])
+
+    def threshold_at(self, index: int) -> float:
+        return float(self.thresholds(min(index, self.shape.size - 1) + 1)[-1])
+
+    @property
+    def threshold(self) -> float:
+        """The threshold at the longest calibrated index, the one held beyond it."""
+        return self.threshold_at(self.shape.size - 1)
+
     def to_dict(self) -> dict:
-        return {"params": self.params.to_dict(), "alpha": self.alpha, "threshold": self.threshold,
-                "band": None if self.band is None else self.band.to_dict(), "n_successes": self.n_successes,
-                "n_conformal": self.n_conformal, "rank": self.rank, "note": self.note}
+        return {"params": self.params.to_dict(), "alpha": self.alpha, "level": self.level,
+                "threshold": self.threshold, "shape": self.shape.tolist(),
+                "band": None if self.band is None else self.band.to_dict(),
+                "regimes": [r.to_dict() for r in self.regimes], "calibrated_decisions": self.calibrated_decisions,
+                "n_successes": self.n_successes, "n_conformal": self.n_conformal, "note": self.note}
 
     @classmethod
     def from_dict(cls, data: dict) -> "CalibratedRule":
-        return cls(RuleParams(**data["params"]), float(data["alpha"]), float(data["threshold"]),
-                   None if data.get("band") is None else Band.from_dict(data["band"]), int(data["n_successes"]),
-                   int(data["n_conformal"]), int(data["rank"]), str(data.get("note", "")))
+        """The rule of a stored calibration; KeyError for one made before per-length thresholds (no shape)."""
+        return cls(RuleParams(**data["params"]), float(data["alpha"]), float(data["level"]),
+                   np.asarray(data["shape"], dtype=np.float64),
+                   None if data.get("band") is None else Band.from_dict(data["band"]),
+                   [Regime(**r) for r in data["regimes"]], int(data["n_successes"]), int(data["n_conformal"]),
+                   str(data.get("note", "")))
 
     def running(self, episode: EpisodeScores) -> np.ndarray:
         return running_statistic(decision_values(self.params, episode, self.band), self.params.window)
 
     def judge(self, episode: EpisodeScores) -> dict:
         """Whether the episode alerts, and when (``alert_timing``)."""
-        return alert_timing(episode, first_alert(self.running(episode), self.threshold, self.params.debounce))
+        r = self.running(episode)
+        return alert_timing(episode, first_alert(r, self.thresholds(r.size), self.params.debounce),
+                            self.calibrated_decisions)
 
 
-def calibrate_rule(successes: list[EpisodeScores], params: RuleParams, alpha: float, seed: int = 0) -> CalibratedRule:
-    """The threshold of ``params`` at false-alert rate ``alpha`` from held-out successful episodes.
+def calibrate_rule(successes: list[EpisodeScores], params: RuleParams, alpha: float, seed: int = 0,
+                   edges: tuple[int, ...] = LENGTH_EDGES, regime_min: int = REGIME_MIN_SUCCESSES) -> CalibratedRule:
+    """The threshold curve of ``params`` at false-alert rate ``alpha`` in every length regime, from held-out
+    successful episodes (module docstring).
 
     Raises ValueError naming how many successes are needed when there are too few, and when most successes are
     too short to be judged at all (fewer scored decisions than ``debounce``).
     """
     n = len(successes)
-    need = min_successes(params.kind, alpha)
+    need = min_successes(alpha, params)
     if n < need:
         raise ValueError(
             f"the {params.kind} rule at alpha={alpha} needs at least {need} successful held-out episodes with scored "
             f"decisions, got {n}; record {need - n} more (or raise alpha)")
-    band, conformal = None, list(range(n))
-    if params.kind == "band":
-        fit_idx, conf_idx = band_split(n, seed)
-        band = fit_band([successes[i] for i in fit_idx])
-        conformal = list(conf_idx)
-    stats = np.sort([alert_statistic(running_statistic(decision_values(params, successes[i], band), params.window),
-                                     params.debounce) for i in conformal])
-    rank = conformal_rank(len(stats), alpha)
-    threshold = float(stats[rank - 1])
-    if not math.isfinite(threshold):
+    if params.kind == "running" and params.shape == "flat":
+        fit_idx, conf_idx = np.zeros(0, dtype=np.int64), np.arange(n)
+    else:
+        fit_idx, conf_idx = fit_split(n, seed)
+    fit = [successes[i] for i in fit_idx]
+    band = fit_band(fit) if params.kind == "band" else None
+    fit_running = [running_statistic(decision_values(params, e, band), params.window) for e in fit]
+    conf_running = [running_statistic(decision_values(params, successes[i], band), params.window) for i in conf_idx]
+    lengths = [r.size for r in conf_running]
+    if params.shape == "flat":
+        shape = np.full(max(lengths), 1.0 if params.kind == "running" else 0.0)
+    else:
+        shape = fit_shape(fit_running, max(lengths), params.kind)
+    stats = np.array([alert_statistic(excess(params, r, shape[: r.size]), params.debounce) for r in conf_running])
+    regimes = []
+    for lo, hi, idx in length_regimes(lengths, alpha, edges, regime_min):
+        ordered = np.sort(stats[idx])
+        rank = conformal_rank(idx.size, alpha)
+        regimes.append(Regime(lo, hi, int(idx.size), rank, float(ordered[rank - 1])))
+    level = max(r.level for r in regimes)
+    if not math.isfinite(min(r.level for r in regimes)):
         raise ValueError(
             f"most successful episodes have fewer than {params.debounce} scored decisions, too few to be judged by a "
             f"rule with debounce {params.debounce}; lower the debounce or record longer episodes")
-    note = (f"threshold = {rank}-th smallest of {len(stats)} successes' alert statistics "
-            f"(rank ceil((n+1)(1-alpha)))" + (f"; band fitted on the other {n - len(stats)}" if band else ""))
-    return CalibratedRule(params, alpha, threshold, band, n, len(stats), rank, note)
+    note = (f"lambda(i) = max over the {len(regimes)} length regime(s) still open at index i of the "
+            f"ceil((n+1)(1-alpha))-th smallest alert "
+            f"statistic ({', '.join(f'{r.lo}-{r.hi} decisions: {r.n}' for r in regimes)} successes); "
+            + (f"band and shape fitted on the other {len(fit)}" if fit else "nothing fitted"))
+    return CalibratedRule(params, alpha, level, shape, band, regimes, n, len(conf_idx), note)
 
 
 # ----------------------------------------------------------------------------------------------------------

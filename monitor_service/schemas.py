@@ -171,6 +171,9 @@ class IngestResult(BaseModel):
     alert_state: dict[str, int | None] = Field(
         default_factory=dict, description="every episode this request touched -> the id of its open alert after "
                                           "the request, or null when none is open (a robot loop's alert state)")
+    beyond_calibration: list[str] = Field(
+        default_factory=list, description="episodes this request touched that have run beyond the longest "
+                                          "calibrated episode: no false-alert guarantee covers their later decisions")
 
 
 class TaskIn(_Strict):
@@ -201,9 +204,21 @@ class EpisodeOut(BaseModel):
     group: str | None
     held_out: bool
     success: bool | None
-    early_score: float | None
+    early_score: float | None = Field(description="median NMSE of the first five decisions of the episode's decision "
+                                      "grid, published once all five are scored")
+    early_revisions: int = Field(description="times a published early score changed or was withdrawn (a late "
+                                             "decision moved the grid); 0: never revised")
     running_score: float | None = Field(description="median NMSE of the last running_window scored decisions")
     risk_score: float | None = Field(description="latest value of the calibrated alert rule's statistic")
+    risk_threshold: float | None = Field(description="the threshold that value was judged against (it depends on "
+                                                     "the decision index)")
+    calibrated_decisions: int | None = Field(description="scored decisions of the longest calibrated episode")
+    beyond_calibration: bool = Field(description="the episode has run beyond calibrated_decisions: no false-alert "
+                                                 "guarantee covers its later decisions")
+    gaps: int = Field(description="decision indices up to the latest decision with no decision received (lost, "
+                                  "unsent, or still to arrive late), on the grid origin + k x cadence")
+    gap_steps: list[int] = Field(description="the steps of those missing decisions (the first 50)")
+    late_decisions: int = Field(description="decisions that arrived after a later decision of this episode")
     length: int | None = Field(description="episode length in env steps, from its outcome")
     n_decisions: int
     n_scored: int
@@ -218,12 +233,15 @@ class RiskPoint(BaseModel):
     step: int = Field(description="decision step t")
     known_at: int = Field(description="env step t + k at which its NMSE became known")
     value: float = Field(description="the alert rule's running statistic after this decision")
+    threshold: float = Field(description="the threshold of this decision index")
+    beyond_calibration: bool = Field(description="the index lies beyond the calibrated decisions")
 
 
 class EpisodeDetail(EpisodeOut):
     decisions: list[DecisionOut]
     rule: str | None = Field(description="the active calibration's alert rule (null: no usable calibration)")
-    threshold: float | None = Field(description="its threshold; an alert needs `debounce` values above it")
+    threshold: float | None = Field(description="its threshold at the longest calibrated decision index (the "
+                                                "highest); each risk point carries its own")
     risk: list[RiskPoint] = Field(description="the rule's statistic over the episode (the dashboard's trajectory)")
 
 
@@ -236,6 +254,9 @@ class CalibrateIn(_Strict):
     rule: Literal["running", "band"] | None = Field(
         None, description="the alert rule to calibrate (default: the service's alert_rule); window, debounce and "
         "hysteresis are the service's settings and become part of the calibration")
+    shape: Literal["flat", "running-max"] | None = Field(
+        None, description="the threshold's shape over the decision index (default: the service's threshold_shape; "
+        "docs/monitor.md)")
     folds: json_int(2, 20) | None = Field(None, description="folds of the cross-fitted detection figures")
     n_bootstrap: json_int(100, 200_000) | None = None
     n_permutation: json_int(100, 200_000) | None = None
@@ -275,12 +296,19 @@ class AlertOut(BaseModel):
     score: float
     threshold: float
     calibration_id: int
-    state: str
+    state: Literal["open", "acknowledged", "cleared", "resolved"] = Field(
+        description="open: raised, nobody took it; acknowledged: an operator took it; cleared: the statistic fell "
+                    "back below the hysteresis level while the episode ran; resolved: the episode's outcome arrived")
     acknowledged_by: str | None
     acknowledged_at: UtcDatetime | None
     note: str
     raised_at: UtcDatetime
     cleared_at: UtcDatetime | None
+    resolved_at: UtcDatetime | None
+    resolution: Literal["failure", "success"] | None = Field(
+        description="the outcome that resolved it: failure (a true alert) or success (a false alert)")
+    beyond_calibration: bool = Field(description="raised beyond the calibrated decisions (no guarantee there)")
+    signals: str = Field(description="the signal(s) whose calibrated rule raised it, comma-separated")
 
 
 class AckIn(_Strict):

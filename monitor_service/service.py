@@ -48,7 +48,7 @@ def calibration_data(session: Session, task: str, checkpoint: str | None) -> lis
 def calibrate_task(
     make_session, settings: MonitorSettings, task: str, checkpoint: str | None = None, alpha: float | None = None,
     rule: str | None = None, n_bootstrap: int | None = None, n_permutation: int | None = None,
-    seed: int | None = None, folds: int | None = None,
+    seed: int | None = None, folds: int | None = None, shape: str | None = None,
 ) -> CalibrationRow:
     """Calibrate one task (optionally one checkpoint) from its held-out episodes and make it the active one.
 
@@ -56,7 +56,7 @@ def calibrate_task(
     Raises LookupError for an unknown task and ValueError when the data cannot support a calibration.
     """
     alpha = settings.alpha if alpha is None else alpha
-    params = rule_params(settings, rule)
+    params = rule_params(settings, rule, shape)
     with make_session() as session:
         if session.get(Task, task) is None:
             raise LookupError(f"task {task!r} is not registered; register it with PUT /v1/tasks/{task}")

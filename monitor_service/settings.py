@@ -25,6 +25,9 @@ class MonitorSettings(BaseSettings):
     alert_rule: Literal["running", "band"] = Field(
         "band", description="alert rule of new calibrations: running median of NMSE, or NMSE judged against the "
         "successes' band at the same decision step (docs/monitor.md)")
+    threshold_shape: Literal["flat", "running-max"] = Field(
+        "flat", description="threshold shape of new calibrations over the decision index: flat (lambda of the length "
+        "regimes still open), or running-max (plus the successes' median running maximum: lower early thresholds)")
     detection_folds: int = Field(5, ge=2, le=20, description="folds of the cross-fitted detection figures")
     n_bootstrap: int = Field(10_000, ge=100)
     n_permutation: int = Field(10_000, ge=100)

@@ -18,10 +18,11 @@ from monitor_service.settings import MonitorSettings
 CALIBRATION_TTL_S = 1.0      # another process's new calibration is seen within this time
 
 
-def rule_params(settings: MonitorSettings, kind: str | None = None) -> rules.RuleParams:
-    """The alert rule the service runs now (its kind: the calibration's, or the settings' for a new one)."""
+def rule_params(settings: MonitorSettings, kind: str | None = None, shape: str | None = None) -> rules.RuleParams:
+    """The alert rule the service runs now: window, debounce and hysteresis from the settings; kind and threshold
+    shape the calibration's (or the settings' for a new one)."""
     return rules.RuleParams(kind or settings.alert_rule, settings.running_window, settings.alert_debounce,
-                            settings.alert_clear_ratio)
+                            settings.alert_clear_ratio, shape or settings.threshold_shape)
 
 
 class Alerting:
@@ -56,10 +57,13 @@ class Alerting:
         if "rule" not in result:
             return cal_id, None, (f"no alerts: calibration #{cal_id} predates episode-level alert rules (its "
                                   f"threshold covered the early score only); recalibrate with {fix}")
+        if "shape" not in result["rule"]:
+            return cal_id, None, (f"no alerts: calibration #{cal_id} predates per-length thresholds (its false-alert "
+                                  f"guarantee held only on average over episode lengths); recalibrate with {fix}")
         if cal_id not in self.rules:
             self.rules[cal_id] = rules.CalibratedRule.from_dict(result["rule"])
         rule = self.rules[cal_id]
-        now = rule_params(self.settings, rule.params.kind)
+        now = rule_params(self.settings, rule.params.kind, rule.params.shape)
         if rule.params != now:
             return cal_id, None, (
                 f"no alerts: calibration #{cal_id} holds for window={rule.params.window}, "
@@ -68,16 +72,28 @@ class Alerting:
                 f"guarantee does not cover that rule, so recalibrate with {fix}")
         return cal_id, rule, (
             f"alerting when {rule.params.debounce} consecutive values of the {rule.params.kind} statistic (median "
-            f"of {rule.params.window}) exceed {rule.threshold:.6g}: calibration #{cal_id}, at most {rule.alpha:g} "
-            f"of successful episodes alert")
+            f"of {rule.params.window}) exceed their decision's threshold (up to {rule.threshold:.6g}): calibration "
+            f"#{cal_id}, at most {rule.alpha:g} of successful episodes alert in each length regime up to "
+            f"{rule.calibrated_decisions} scored decisions")
+
+    def early_score(self, ep: EpisodeState) -> None:
+        """The early score from the first decisions of the episode's decision grid only (published once all of
+        them are scored); a change of a published value is counted as a revision."""
+        n = self.settings.early_decisions
+        grid = ep.grid_steps(n)
+        early = None
+        if grid is not None and all(s in ep.decisions for s in grid):
+            early = scoring.early_score([ep.decisions[s].nmse for s in grid], n)
+        if ep.early_score is not None and early != ep.early_score:
+            ep.early_revisions += 1
+        ep.early_score = early
 
     def refresh(self, cur, req: Request, ep: EpisodeState) -> None:
-        """Early score (the first decisions by step), running NMSE, and the alert rule over the decisions scored
-        since the last evaluated step, in step order. A decision scored after a later one was evaluated counts
-        for the scores but is not evaluated for alerts."""
+        """Early score, running NMSE, and the alert rule over the decisions scored since the last evaluated step,
+        in step order, each judged against its index's threshold. A decision scored after a later one was
+        evaluated counts for the scores but is not evaluated for alerts."""
         settings = self.settings
-        first = [ep.decisions[s].nmse for s in sorted(ep.decisions)[: settings.early_decisions]]
-        ep.early_score = scoring.early_score(first, settings.early_decisions)
+        self.early_score(ep)
         ep.n_scored += req.newly_scored.get(ep.id, 0)
         running = scoring.running_score([v for _, v in ep.scored], settings.running_window)
         if running is not None:
@@ -89,6 +105,7 @@ class Alerting:
         cal_id, rule, ep.alert_note = self.usable_rule(cur, ep)
         if rule is None:
             ep.last_evaluated_step = ep.scored[-1][0]
+            ep.risk_threshold = ep.calibrated_decisions = None
             return
         window = rule.params.window
         lo = max(0, todo[0] + 1 - window)
@@ -96,18 +113,26 @@ class Alerting:
         steps = np.array([s for s, _ in part], dtype=np.int64)
         values = rules.decision_values(rule.params, rules.EpisodeScores(steps, np.array([v for _, v in part]), steps),
                                        rule.band).tolist()
+        thresholds = rule.thresholds(len(ep.scored)).tolist()
+        ep.calibrated_decisions = rule.calibrated_decisions
         state = AlertState(ep.over_count, ep.under_count, ep.open_alert_id is not None)
-        clear = rules.clear_level(rule.params, rule.threshold)
         for i in todo:
             j = i - lo
             step = int(steps[j])
             ep.last_evaluated_step = step
             value = float(statistics.median(values[max(0, j + 1 - window): j + 1]))
-            ep.risk_score = value
-            state, event = step_alert(state, value, rule.threshold, rule.params.debounce, clear)
+            threshold = thresholds[i]
+            beyond = i >= rule.calibrated_decisions
+            ep.risk_score, ep.risk_threshold = value, threshold
+            ep.beyond_calibration = ep.beyond_calibration or beyond
+            state, event = step_alert(state, value, threshold, rule.params.debounce,
+                                      rules.clear_level(rule.params, threshold))
             if event == "raise":
-                ep.open_alert_id = statements.insert_alert(self.sql, cur, ep, cal_id, step, value, rule.threshold,
-                                                           f"{rule.params.kind} rule", self.settings.webhook_urls)
+                note = f"{rule.params.kind} rule" + (
+                    f"; decision index {i} lies beyond the {rule.calibrated_decisions} calibrated decisions: no "
+                    "false-alert guarantee covers it" if beyond else "")
+                ep.open_alert_id = statements.insert_alert(self.sql, cur, ep, cal_id, step, value, threshold,
+                                                           note, beyond, self.settings.webhook_urls)
                 req.alerts_raised.append(ep.open_alert_id)
                 req.observations.append(("alert", ep.task, ep.robot, 1.0))
             elif event == "clear":

@@ -117,6 +117,12 @@ def apply_decision(store: Episodes, cur, req: Request, rec: DecisionIn) -> None:
         raise IngestError(409, f"episode {ep.id!r} already has a different decision at step {rec.step}")
     d = Dec(rec.horizon, digest, z_hat=z_hat, z_now=z_now, stored=False)
     ep.decisions[rec.step] = d
+    skipped, late = ep.add_step(rec.step)
+    if skipped:
+        req.observations.append(("gap", ep.task, ep.robot, float(skipped)))
+    if late:
+        ep.late_decisions += 1
+        req.observations.append(("late", ep.task, ep.robot, 1.0))
     ep.unscored.add(rec.step)
     req.new_decisions.append((ep.id, rec.step))
     z = _target_z(store, cur, ep, rec.step + rec.horizon)
@@ -162,6 +168,7 @@ def apply_outcome(store: Episodes, cur, req: Request, rec: OutcomeIn) -> None:
     if rec.length is not None:
         ep.length = rec.length
     ep.ended = True
+    req.ended.add(ep.id)
     req.counts["outcome"] += 1
     req.observations.append(("outcome", ep.task, ep.robot, 1.0))
 

@@ -12,7 +12,8 @@ from monitor_service.ingest.state import Dec, EpisodeState, Request, StaleState,
 
 EPISODE_COLUMNS = ("id, task, robot, checkpoint, group_name, held_out, success, length, version, n_decisions, "
                    "n_scored, last_evaluated_step, over_count, under_count, open_alert_id, early_score, "
-                   "running_score, risk_score, alert_note, ended_at")
+                   "running_score, risk_score, alert_note, risk_threshold, calibrated_decisions, "
+                   "beyond_calibration, late_decisions, early_revisions, signal_state, ended_at")
 
 
 class Sql:
@@ -88,7 +89,10 @@ def load_episode(sql: Sql, cur, episode_id: str) -> EpisodeState | None:
         return None
     ep = EpisodeState(row[0], row[1], row[2], row[3], row[4], bool(row[5]),
                       None if row[6] is None else bool(row[6]), row[7], row[8], row[9], row[10], row[11],
-                      row[12], row[13], row[14], row[15], row[16], row[17], row[18], ended=row[19] is not None)
+                      row[12], row[13], row[14], row[15], row[16], row[17], row[18], row[19], row[20],
+                      bool(row[21]), late_decisions=row[22], early_revisions=row[23],
+                      signal_state=row[24] if row[24] is None or isinstance(row[24], dict) else json.loads(row[24]),
+                      ended=row[25] is not None)
     cur.execute(q("SELECT step, horizon, nmse, nmse_persistence, z_hat, z_now FROM decisions "
                   "WHERE episode_id = ? ORDER BY step"), (episode_id,))
     for step, horizon, nmse, pers, z_hat, z_now in cur.fetchall():
@@ -105,6 +109,7 @@ def load_episode(sql: Sql, cur, episode_id: str) -> EpisodeState | None:
     for step, z in cur.fetchall():
         z = bytes(z)
         ep.targets[step] = Tgt(target_digest(z), None if step in aimed else z)
+    ep.count_gaps()
     return ep
 
 
@@ -154,13 +159,13 @@ def idempotent_answer(sql: Sql, cur, key_id: int, key: str) -> tuple[str, int, d
 # ---------------------------------------------------------------------------------------------------- writing
 
 def insert_alert(sql: Sql, cur, ep: EpisodeState, cal_id: int, step: int, value: float, threshold: float,
-                 note: str, webhook_urls: list[str]) -> int:
+                 note: str, beyond: bool, webhook_urls: list[str], signals: str = "nmse") -> int:
     """A raised alert (and a pending delivery per webhook URL); returns its id."""
     now = sql.time(utcnow())
     cur.execute(sql.q(
         "INSERT INTO alerts (episode_id, task, robot, step, score, threshold, calibration_id, state, note, "
-        "raised_at) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?) RETURNING id"),
-        (ep.id, ep.task, ep.robot, step, value, threshold, cal_id, "open", note, now))
+        "raised_at, beyond_calibration, signals) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?) RETURNING id"),
+        (ep.id, ep.task, ep.robot, step, value, threshold, cal_id, "open", note[:512], now, beyond, signals))
     alert_id = cur.fetchone()[0]
     if webhook_urls:
         cur.executemany(sql.q(
@@ -172,6 +177,13 @@ def insert_alert(sql: Sql, cur, ep: EpisodeState, cal_id: int, step: int, value:
 def clear_alert(sql: Sql, cur, alert_id: int) -> None:
     cur.execute(sql.q("UPDATE alerts SET state = ?, cleared_at = ? WHERE id = ?"),
                 ("cleared", sql.time(utcnow()), alert_id))
+
+
+def resolve_alert(sql: Sql, cur, alert_id: int, success: bool) -> None:
+    """The episode's outcome arrived while the alert was open or acknowledged: a false alert on a success, a
+    true one on a failure."""
+    cur.execute(sql.q("UPDATE alerts SET state = ?, resolved_at = ?, resolution = ? WHERE id = ?"),
+                ("resolved", sql.time(utcnow()), "success" if success else "failure", alert_id))
 
 
 def write_rows(sql: Sql, cur, req: Request, now) -> None:
@@ -203,11 +215,15 @@ def update_episode(sql: Sql, cur, ep: EpisodeState, now) -> None:
         "UPDATE episodes SET version = ?, group_name = ?, held_out = ?, success = ?, length = ?, "
         "n_decisions = ?, n_scored = ?, last_evaluated_step = ?, over_count = ?, under_count = ?, "
         "open_alert_id = ?, early_score = ?, running_score = ?, risk_score = ?, alert_note = ?, "
+        "risk_threshold = ?, calibrated_decisions = ?, beyond_calibration = ?, gaps = ?, gap_steps = ?, "
+        "late_decisions = ?, early_revisions = ?, signal_state = ?, "
         "updated_at = ?, ended_at = COALESCE(ended_at, ?) WHERE id = ? AND version = ?"),
         (ep.version + 1, ep.group, ep.held_out, ep.success, ep.length, ep.n_decisions, ep.n_scored,
          ep.last_evaluated_step, ep.over_count, ep.under_count, ep.open_alert_id, ep.early_score,
-         ep.running_score, ep.risk_score, ep.alert_note[:512], now, now if ep.ended else None, ep.id,
-         ep.version))
+         ep.running_score, ep.risk_score, ep.alert_note[:512], ep.risk_threshold, ep.calibrated_decisions,
+         ep.beyond_calibration, ep.gaps, json.dumps(ep.gap_steps) if ep.gap_steps else None, ep.late_decisions,
+         ep.early_revisions, None if ep.signal_state is None else json.dumps(ep.signal_state), now,
+         now if ep.ended else None, ep.id, ep.version))
     if cur.rowcount != 1:
         raise StaleState(f"episode {ep.id!r} changed in another process")
     ep.version += 1

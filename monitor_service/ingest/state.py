@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import copy
 import hashlib
+import math
 from dataclasses import dataclass, field
 
 from monitor_service.auth import Principal
@@ -38,6 +39,9 @@ def decision_digest(horizon: int, z_hat: bytes, z_now: bytes | None) -> bytes:
 
 def target_digest(z: bytes) -> bytes:
     return hashlib.sha256(z).digest()
+
+
+GAP_STEPS_SHOWN = 50   # steps of missing decisions listed per episode (the count is exact)
 
 
 @dataclass(slots=True)
@@ -88,12 +92,23 @@ class EpisodeState:
     running_score: float | None = None
     risk_score: float | None = None
     alert_note: str = ""
+    risk_threshold: float | None = None
+    calibrated_decisions: int | None = None
+    beyond_calibration: bool = False
+    gaps: int = 0                     # decision indices below the latest one with no decision (yet)
+    gap_steps: list[int] = field(default_factory=list)   # their steps, the first GAP_STEPS_SHOWN
+    late_decisions: int = 0           # decisions that arrived after a later one
+    early_revisions: int = 0          # times a published early score changed or was withdrawn
+    signal_state: dict | None = None
     ended: bool = False               # an outcome arrived (ended_at set)
     new: bool = False                 # created by the current request
     decisions: dict[int, Dec] = field(default_factory=dict)
     targets: dict[int, Tgt] = field(default_factory=dict)
     scored: list[tuple[int, float]] = field(default_factory=list)   # (step, nmse), sorted by step
     unscored: set[int] = field(default_factory=set)                   # steps of decisions without a target yet
+    origin: int | None = None         # the decision grid: origin + k x cadence (``count_gaps``)
+    cadence: int | None = None
+    last_step: int | None = None
 
     def draft(self) -> "EpisodeState":
         """A copy the current request may change; the cache keeps the original until commit. The decisions
@@ -103,7 +118,53 @@ class EpisodeState:
         d.targets = dict(self.targets)
         d.scored = list(self.scored)
         d.unscored = set(self.unscored)
+        d.gap_steps = list(self.gap_steps)
         return d
+
+    def grid_steps(self, n: int) -> list[int] | None:
+        """The first ``n`` decision steps of the episode's grid, or None while the cadence is unknown."""
+        if self.cadence is None:
+            return None
+        return [self.origin + k * self.cadence for k in range(n)]
+
+    def count_gaps(self) -> None:
+        """The decision grid from the decisions received: origin = the first step, cadence = the greatest common
+        divisor of the steps' distances from it; gaps = grid points up to the latest step with no decision."""
+        steps = sorted(self.decisions)
+        self.origin = steps[0] if steps else None
+        self.last_step = steps[-1] if steps else None
+        cadence = 0
+        for s in steps[1:]:
+            cadence = math.gcd(cadence, s - self.origin)
+        self.cadence = cadence or None
+        if self.cadence is None:
+            self.gaps, self.gap_steps = 0, []
+            return
+        self.gaps = (self.last_step - self.origin) // self.cadence + 1 - len(steps)
+        self.gap_steps = [s for s in range(self.origin, self.last_step, self.cadence)
+                          if s not in self.decisions][:GAP_STEPS_SHOWN] if self.gaps else []
+
+    def add_step(self, step: int) -> tuple[int, bool]:
+        """Account for a new decision at ``step`` (already in ``decisions``): (grid points it skipped, whether it
+        arrived after a later decision). Off the current grid the grid is recomputed."""
+        late = self.last_step is not None and step < self.last_step
+        before = self.gaps
+        if self.cadence is None or step < self.origin or (step - self.origin) % self.cadence:
+            self.count_gaps()
+        elif step > self.last_step:
+            skipped = (step - self.last_step) // self.cadence - 1
+            if skipped and len(self.gap_steps) < GAP_STEPS_SHOWN:
+                self.gap_steps += list(range(self.last_step + self.cadence, step, self.cadence))
+                del self.gap_steps[GAP_STEPS_SHOWN:]
+            self.gaps += skipped
+            self.last_step = step
+        else:   # fills a gap
+            self.gaps -= 1
+            if step in self.gap_steps:
+                self.gap_steps.remove(step)
+            if len(self.gap_steps) < min(self.gaps, GAP_STEPS_SHOWN):
+                self.count_gaps()
+        return max(0, self.gaps - before), late
 
     def changed_decision(self, step: int) -> Dec:
         dec = self.decisions[step] = self.decisions[step].copy()
@@ -127,6 +188,7 @@ class Request:
     counts: dict[str, int] = field(default_factory=lambda: {"decision": 0, "target": 0, "outcome": 0})
     observations: list[tuple[str, str, str, float]] = field(default_factory=list)
     alerts_raised: list[int] = field(default_factory=list)
+    ended: set[str] = field(default_factory=set)                      # episodes whose outcome arrived now
     scored: int = 0
     task_dims: dict[str, int] = field(default_factory=dict)           # latent_dim fixed by this request
     to_score: list[tuple[EpisodeState, int, Dec, bytes]] = field(default_factory=list)   # (ep, step, dec, z)

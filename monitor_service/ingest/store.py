@@ -82,7 +82,8 @@ class IngestStore:
                 result = {"accepted": len(records), "decisions": req.counts["decision"],
                           "targets": req.counts["target"], "outcomes": req.counts["outcome"],
                           "scored": req.scored, "alerts_raised": req.alerts_raised,
-                          "alert_state": {ep.id: ep.open_alert_id for ep in req.drafts.values()}}
+                          "alert_state": {ep.id: ep.open_alert_id for ep in req.drafts.values()},
+                          "beyond_calibration": [ep.id for ep in req.drafts.values() if ep.beyond_calibration]}
                 if idem is not None:
                     statements.store_idempotency(self.sql, cur, idem, result)
                 self.sql.commit(conn, cur)
@@ -121,6 +122,9 @@ class IngestStore:
         statements.write_rows(self.sql, cur, req, now)
         for ep in req.drafts.values():
             self.alerting.refresh(cur, req, ep)
+            if ep.id in req.ended and ep.open_alert_id is not None:   # the outcome resolves its open alert
+                statements.resolve_alert(self.sql, cur, ep.open_alert_id, ep.success)
+                ep.open_alert_id = None
             statements.update_episode(self.sql, cur, ep, now)
 
     def idempotent_answer(self, key_id: int, key: str) -> tuple[str, int, dict] | None:

@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import asyncio
 import json
+from typing import Literal
 
 from fastapi import APIRouter, Depends, HTTPException, Query, Request
 from fastapi.concurrency import run_in_threadpool
@@ -24,12 +25,15 @@ def alert_out(a: Alert) -> AlertOut:
         id=a.id, episode_id=a.episode_id, task=a.task, robot=a.robot, step=a.step, score=a.score,
         threshold=a.threshold, calibration_id=a.calibration_id, state=a.state, acknowledged_by=a.acknowledged_by,
         acknowledged_at=a.acknowledged_at, note=a.note, raised_at=a.raised_at, cleared_at=a.cleared_at,
+        resolved_at=a.resolved_at, resolution=a.resolution, beyond_calibration=a.beyond_calibration,
+        signals=a.signals,
     )
 
 
 @router.get("", response_model=list[AlertOut])
 def list_alerts(
-    state: str | None = Query(None, description="open or cleared"),
+    state: Literal["open", "acknowledged", "cleared", "resolved"] | None = Query(
+        None, description="open, acknowledged, cleared or resolved (docs/monitor.md, 'Alert life cycle')"),
     acknowledged: bool | None = None,
     task: str | None = None,
     limit: int = Query(200, ge=1, le=5000),
@@ -47,18 +51,24 @@ def list_alerts(
     return [alert_out(a) for a in session.scalars(q.limit(limit))]
 
 
-@router.post("/{alert_id}/ack", response_model=AlertOut, responses=errors(404))
+@router.post("/{alert_id}/ack", response_model=AlertOut, responses=errors(404, 409))
 def acknowledge(
     alert_id: ObjectId, body: AckIn | None = None, session: Session = Depends(get_session),
     principal: Principal = Depends(require("operator")),
 ) -> AlertOut:
-    """An operator takes the alert; acknowledging twice keeps the first operator and time."""
+    """An operator takes an open alert (it becomes acknowledged); acknowledging twice keeps the first operator
+    and time. A cleared or resolved alert needs no one: 409."""
     alert = session.get(Alert, alert_id)
     if alert is None:
         raise HTTPException(404, f"alert {alert_id} does not exist; list alerts with GET /v1/alerts")
+    if alert.state in ("cleared", "resolved"):
+        raise HTTPException(409, f"alert {alert_id} is {alert.state} ("
+                            + ("its statistic fell back below the hysteresis level" if alert.state == "cleared"
+                               else f"its episode ended in {alert.resolution}") + "); there is nothing to acknowledge")
     if alert.acknowledged_at is None:
         alert.acknowledged_at = utcnow()
         alert.acknowledged_by = principal.name
+        alert.state = "acknowledged"
         alert.note = (body.note if body else "") or alert.note
     session.commit()
     return alert_out(alert)

@@ -22,8 +22,10 @@ def episode_out(e: Episode, live_s: float) -> dict:
     live = e.success is None and (utcnow() - e.updated_at) < dt.timedelta(seconds=live_s)
     return dict(
         id=e.id, task=e.task, robot=e.robot, checkpoint=e.checkpoint, group=e.group, held_out=e.held_out,
-        success=e.success, early_score=e.early_score, running_score=e.running_score, risk_score=e.risk_score,
-        length=e.length, n_decisions=e.n_decisions,
+        success=e.success, early_score=e.early_score, early_revisions=e.early_revisions,
+        running_score=e.running_score, risk_score=e.risk_score, risk_threshold=e.risk_threshold,
+        calibrated_decisions=e.calibrated_decisions, beyond_calibration=e.beyond_calibration, gaps=e.gaps,
+        gap_steps=e.gap_steps or [], late_decisions=e.late_decisions, length=e.length, n_decisions=e.n_decisions,
         n_scored=e.n_scored, open_alert_id=e.open_alert_id, alert_note=e.alert_note, live=live,
         started_at=e.started_at, updated_at=e.updated_at,
     )
@@ -64,16 +66,19 @@ def get_episode(
     decisions = session.scalars(select(Decision).where(Decision.episode_id == e.id).order_by(Decision.step)).all()
     rule = None
     cal = active_calibration(session, e.task, e.checkpoint)
-    if cal is not None and "rule" in cal.result:
+    if cal is not None and "shape" in cal.result.get("rule", {}):
         candidate = rules.CalibratedRule.from_dict(cal.result["rule"])
-        if candidate.params == rule_params(settings, candidate.params.kind):
+        if candidate.params == rule_params(settings, candidate.params.kind, candidate.params.shape):
             rule = candidate
     risk = []
     if rule is not None:
         scores = rules.EpisodeScores.from_decisions(
             [{"step": d.step, "target_step": d.target_step, "nmse": d.nmse} for d in decisions])
-        risk = [RiskPoint(step=int(s), known_at=int(k), value=float(v))
-                for s, k, v in zip(scores.steps, scores.known_at, rule.running(scores))]
+        running = rule.running(scores)
+        risk = [RiskPoint(step=int(s), known_at=int(k), value=float(v), threshold=float(t),
+                          beyond_calibration=i >= rule.calibrated_decisions)
+                for i, (s, k, v, t) in enumerate(zip(scores.steps, scores.known_at, running,
+                                                     rule.thresholds(running.size)))]
     return EpisodeDetail(
         **episode_out(e, settings.live_episode_s),
         decisions=[DecisionOut(step=d.step, horizon=d.horizon, target_step=d.target_step, nmse=d.nmse,

@@ -29,7 +29,7 @@ def _alerts_total(metrics: str) -> float:
 def test_health_and_readiness(client):
     assert client.get("/healthz").json()["status"] == "ok"
     r = client.get("/readyz")
-    assert r.status_code == 200 and r.json()["detail"] == "schema 0003"
+    assert r.status_code == 200 and r.json()["detail"] == "schema 0004"
     paths = client.get("/openapi.json").json()["paths"]
     assert "application/x-msgpack" in paths["/v1/batch"]["post"]["requestBody"]["content"]
 
@@ -41,7 +41,7 @@ def test_decision_scoring_matches_paper_nmse_and_early_score(client, robot, oper
     r = post_batch(client, robot, recs)
     assert r.status_code == 200, r.text
     assert r.json() == {"accepted": 14, "decisions": 7, "targets": 7, "outcomes": 0, "scored": 7, "alerts_raised": [],
-                        "alert_state": {"ep-1": None}}
+                        "alert_state": {"ep-1": None}, "beyond_calibration": []}
     ep = client.get("/v1/episodes/ep-1", headers=operator).json()
     expected = [scoring.nmse(zh, z) for zh, z in pairs]
     # d_NMSE(z_hat, z) = ||(z_hat - z) / max(rms(z), 1e-6)||^2 / d_z, written out independently:
@@ -281,14 +281,16 @@ def test_calibration_report_and_alerts_end_to_end(client, robot, operator, admin
     assert res["n_success"] == 30 and res["n_failure"] == 12 and res["skipped_episodes"] == 0
     assert res["auroc"] > 0.9 and res["auroc_ci_low"] <= res["auroc"] <= res["auroc_ci_high"]
     assert res["held_out_method"] == "leave-one-group-out over 2 groups"
-    # The threshold is the ceil(31 * 0.9) = 28th smallest of the successes' alert statistics: per episode the
-    # largest min over 2 consecutive running medians (window 5) of its NMSE, recomputed here from the stored rows.
+    # Every episode has 6 decisions: one length regime of all 30 successes, and the flat threshold is the
+    # ceil(31 * 0.9) = 28th smallest of their alert statistics (per episode the largest min over 2 consecutive
+    # running medians, window 5, of its NMSE), recomputed here from the stored rows.
     with client.app.state.sessionmaker() as s:
         ids = s.scalars(select(Episode.id).where(Episode.held_out.is_(True), Episode.success.is_(True))).all()
         stat = sorted(alert_statistic(running_statistic(np.array(s.scalars(
             select(Decision.nmse).where(Decision.episode_id == i).order_by(Decision.step)).all()), 5), 2) for i in ids)
     assert cal["threshold"] == pytest.approx(stat[27]) and cal["rule"] == "running"
-    assert res["rule"]["rank"] == 28 and res["rule"]["n_conformal"] == 30
+    assert res["rule"]["regimes"] == [{"lo": 1, "hi": 6, "n": 30, "rank": 28, "level": pytest.approx(np.log(stat[27]))}]
+    assert res["rule"]["n_conformal"] == 30 and res["rule"]["calibrated_decisions"] == 6
     for kind in ("running", "band"):   # cross-fitted detection figures of both rules
         d = res["detection"][kind]
         assert d["successes"] + d["failures"] + d["skipped_episodes"] == 42
@@ -303,7 +305,11 @@ def test_calibration_report_and_alerts_end_to_end(client, robot, operator, admin
     assert ep["open_alert_id"] is not None and "alerting when" in ep["alert_note"]
     alerts = client.get("/v1/alerts?state=open", headers=operator).json()
     assert [a["episode_id"] for a in alerts] == ["live-bad"]
-    assert alerts[0]["score"] > alerts[0]["threshold"] == pytest.approx(cal["threshold"])
+    assert alerts[0]["score"] > alerts[0]["threshold"]
+    detail = client.get("/v1/episodes/live-bad", headers=operator).json()
+    raised_at = next(p for p in detail["risk"] if p["step"] == alerts[0]["step"])
+    assert alerts[0]["threshold"] == pytest.approx(raised_at["threshold"])
+    assert raised_at["threshold"] <= cal["threshold"] == pytest.approx(detail["threshold"])
     # Operator acknowledges; the DB keeps who and when.
     ack = client.post(f"/v1/alerts/{alerts[0]['id']}/ack", json={"note": "taking over"}, headers=operator).json()
     assert ack["acknowledged_by"] == "op-key" and ack["note"] == "taking over"
@@ -400,7 +406,8 @@ def test_simpson_two_tasks_through_the_service(client, robot, operator, admin):
     # "Low": small errors, mostly failures; "High": large errors, mostly successes (NMSE ~ noise^2).
     _ingest_calibration_set(client, robot, "Low", rng, 12, 36, 0.40, 0.60)
     _ingest_calibration_set(client, robot, "High", rng, 36, 12, 0.75, 1.10)
-    per_task = {t: client.post("/v1/calibrations", json={"task": t, "rule": "running"}, headers=admin).json()["auroc"]
+    per_task = {t: client.post("/v1/calibrations", json={"task": t, "rule": "running", "alpha": 0.2},
+                               headers=admin).json()["auroc"]
                 for t in ("Low", "High")}
     assert min(per_task.values()) > 0.85, per_task
     rep = client.get("/v1/report", headers=operator).json()

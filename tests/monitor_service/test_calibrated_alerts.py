@@ -52,10 +52,12 @@ def test_live_alerts_are_exactly_the_calibrated_rules_alerts(client, robot, oper
         got = first.get(e.episode)
         assert (got is not None) == expected["alerted"], e.episode
         if got is not None:
-            assert got["step"] == expected["step"] and got["threshold"] == pytest.approx(rule.threshold)
+            threshold = rule.threshold_at(expected["decision_index"])
+            assert got["step"] == expected["step"] and got["threshold"] == pytest.approx(threshold)
             detail = client.get(f"/v1/episodes/{e.episode}", headers=operator).json()
             assert detail["rule"] == kind and detail["threshold"] == pytest.approx(rule.threshold)
             assert [p["value"] for p in detail["risk"]] == pytest.approx(rule.running(e).tolist(), rel=1e-4)
+            assert [p["threshold"] for p in detail["risk"]] == pytest.approx(rule.thresholds(12).tolist())
     assert sum(not e.success for e in live if e.episode in first) >= 5   # the drifting failures alert
     assert sum(e.success for e in live if e.episode in first) <= 3
 

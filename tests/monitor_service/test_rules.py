@@ -14,6 +14,7 @@ from monitor_service.synthetic import SyntheticTask, synthetic_episodes
 ALPHA = 0.1
 N_CAL = 20          # successes per calibration: running uses all 20, band fits on 10 and ranks 10
 PAIRS = 500         # independent (calibration set, fresh episode) pairs per configuration
+PAIRS_BY_LENGTH = 200
 
 
 def exact_false_alert_rate(kind: str) -> float:
@@ -40,6 +41,105 @@ def test_fresh_successes_alert_at_most_alpha_whatever_the_length(kind, decisions
     assert binomtest(alerts, PAIRS, ALPHA, alternative="greater").pvalue > 1e-3, alerts
     # and not a rule that never fires: inside the two-sided 99.8 % binomial range of the exact rate
     assert binom.ppf(0.001, PAIRS, p) <= alerts <= binom.ppf(0.999, PAIRS, p), (alerts, p * PAIRS)
+
+
+LENGTH_BINS = ((5, 20), (21, 40), (41, 80), (81, 150))
+
+
+def mixed_length_successes(n: int, rng: np.random.Generator) -> list[rules.EpisodeScores]:
+    """Successes of a known law: iid lognormal NMSE that does not depend on the decision index; a quarter of the
+    episodes in each bin of LENGTH_BINS, their lengths uniform within it."""
+    bins = np.asarray(LENGTH_BINS)[np.arange(n) % len(LENGTH_BINS)]
+    lengths = rng.integers(bins[:, 0], bins[:, 1] + 1)
+    out = []
+    for length in lengths:
+        steps = np.arange(length, dtype=np.int64) * 8
+        out.append(rules.EpisodeScores(steps, np.exp(rng.normal(-2.0, 0.5, length)), steps + 4, success=True,
+                                       end_step=8 * int(length)))
+    return out
+
+
+def one_per_bin(rng: np.random.Generator) -> list[rules.EpisodeScores]:
+    out = []
+    for lo, hi in LENGTH_BINS:
+        length = int(rng.integers(lo, hi + 1))
+        steps = np.arange(length, dtype=np.int64) * 8
+        out.append(rules.EpisodeScores(steps, np.exp(rng.normal(-2.0, 0.5, length)), steps + 4, success=True))
+    return out
+
+
+@pytest.mark.parametrize("kind, shape, n_cal, alphas", [("running", "flat", 100, (0.05, 0.2)),
+                                                       ("band", "flat", 200, (0.05, 0.2)),
+                                                       ("running", "running-max", 200, (0.2,))])
+def test_fresh_successes_alert_at_most_alpha_in_every_length_bin(kind, shape, n_cal, alphas):
+    """Independent (calibration set, fresh success) pairs, one fresh success per length bin: per bin the number
+    of alerted episodes is Binomial(PAIRS_BY_LENGTH, p) with p <= alpha (the guarantee per length regime; the
+    calibration is sized so that its regimes are these bins, or nearly: band and running-max rank half of
+    theirs). The former marginal rule gave 0.31 at alpha 0.2 in the 81-150 bin."""
+    params = rules.RuleParams(kind, shape=shape)
+    counts = {alpha: np.zeros(len(LENGTH_BINS), dtype=np.int64) for alpha in alphas}
+    for i in range(PAIRS_BY_LENGTH):
+        rng = np.random.default_rng([17, n_cal, i])
+        cal = mixed_length_successes(n_cal, rng)
+        fresh = one_per_bin(rng)
+        for alpha in alphas:
+            rule = rules.calibrate_rule(cal, params, alpha, seed=i)
+            if kind == "running" and shape == "flat":   # all 100 rank: the regimes are the bins, so the promise
+                assert [(r.lo, r.hi) for r in rule.regimes][:3] == [(1, 20), (21, 40), (41, 80)]   # is per bin
+            counts[alpha] += [rule.judge(e)["alerted"] for e in fresh]
+    for alpha, alerted in counts.items():
+        for (lo, hi), k in zip(LENGTH_BINS, alerted):
+            # not above the promise: a one-sided binomial test against alpha does not reject at 0.001
+            assert binomtest(int(k), PAIRS_BY_LENGTH, alpha, alternative="greater").pvalue > 1e-3, \
+                (alpha, lo, hi, k)
+        # and a rule that fires: the binding (longest) bin sits near alpha, not at zero
+        assert alerted[-1] >= binom.ppf(0.001, PAIRS_BY_LENGTH, alpha / 4), (alpha, alerted)
+
+
+def test_running_max_shape_against_a_direct_computation():
+    """q(i) = the median over fitting successes reaching index i of their running maximum (held where fewer
+    than 3 reach it, non-decreasing); lambda per regime = the conformal rank of max_i min over d of log(r/q)."""
+    rng = np.random.default_rng(3)
+    cal = mixed_length_successes(60, rng)
+    params = rules.RuleParams("running", shape="running-max")
+    rule = rules.calibrate_rule(cal, params, 0.2, seed=4)
+    fit, conf = rules.fit_split(60, 4)
+    runs = [rules.running_statistic(e.nmse, 5) for e in cal]
+    longest = max(runs[i].size for i in conf)
+    q, last = [], None
+    for i in range(longest):
+        reach = [np.maximum.accumulate(runs[j])[i] for j in fit if runs[j].size > i]
+        last = float(np.median(reach)) if len(reach) >= 3 else last
+        q.append(last)
+    q = np.maximum.accumulate(q)
+    assert np.allclose(rule.shape, q)
+    stats = {j: max(min(np.log(runs[j][k] / q[k]) for k in (i - 1, i)) for i in range(1, runs[j].size))
+             for j in conf}
+    for regime in rule.regimes:
+        members = sorted(v for j, v in stats.items() if regime.lo <= runs[j].size <= regime.hi)
+        assert regime.n == len(members) and regime.level == pytest.approx(members[regime.rank - 1])
+        assert regime.rank == rules.conformal_rank(len(members), 0.2)
+    # lambda(i): the largest level among the regimes an episode at index i can still end in
+    levels = rule.levels()
+    for i in range(longest):
+        assert levels[i] == max(r.level for r in rule.regimes if r.hi > i)
+    assert np.allclose(rule.thresholds(longest), q * np.exp(levels))
+
+
+def test_length_regimes_merge_until_each_holds_enough_and_flag_beyond():
+    lengths = [3] * 25 + [30] * 9 + [60] * 22 + [200] * 3
+    # 1-20 holds 25; 21-40 (9) is too few for 20 and joins 41-80; 81-200 (3) joins the regime before it
+    assert [(lo, hi, idx.size) for lo, hi, idx in rules.length_regimes(lengths, 0.1)] == [(1, 20, 25), (21, 200, 34)]
+    # with 9 enough (alpha 0.1's minimum), 21-40 stands alone
+    assert [(lo, hi, idx.size) for lo, hi, idx in rules.length_regimes(lengths, 0.1, min_episodes=9)] == \
+        [(1, 20, 25), (21, 40, 9), (41, 200, 25)]
+    cal = synthetic_episodes(30, 0, 10, seed=1)
+    rule = rules.calibrate_rule(cal, rules.RuleParams("running"), ALPHA)
+    assert rule.calibrated_decisions == 10
+    long_fail = synthetic_episodes(0, 1, 40, seed=2, task=SyntheticTask(drift=4.0))[0]
+    timing = rule.judge(long_fail)
+    assert timing["alerted"] and timing["beyond_calibration"] == (timing["decision_index"] >= 10)
+    assert np.all(rule.thresholds(40)[10:] == rule.threshold)   # held beyond the calibrated decisions
 
 
 def test_former_early_score_rule_exceeds_alpha_on_long_episodes():
@@ -106,7 +206,9 @@ def test_pure_pieces_against_brute_force():
 def test_conformal_rank_and_minimum_successes():
     assert rules.conformal_rank(9, 0.1) == 9 and rules.conformal_rank(8, 0.1) == 9
     assert rules.min_conformal_episodes(0.1) == 9 and rules.min_conformal_episodes(0.05) == 19
-    assert rules.min_successes("running", 0.1) == 9 and rules.min_successes("band", 0.1) == 17
+    assert rules.min_successes(0.1, rules.RuleParams("running")) == 9
+    assert rules.min_successes(0.1, rules.RuleParams("band")) == 17
+    assert rules.min_successes(0.1, rules.RuleParams("running", shape="running-max")) == 17
     with pytest.raises(ValueError, match="alpha"):
         rules.conformal_rank(10, 1.5)
 
