@@ -170,12 +170,20 @@ def cmd_report(args) -> int:
 
 def cmd_study(args) -> int:
     from monitor_service.rules import RuleParams
-    from monitor_service.study import load_episodes, run_study, study_table, synthetic_study
+    from monitor_service.study import (length_check, length_table, load_episodes, run_study, study_table,
+                                       synthetic_study)
 
     settings = _settings(args)
     params = RuleParams("running", args.window or settings.running_window, args.debounce or settings.alert_debounce,
-                        settings.alert_clear_ratio)
+                        settings.alert_clear_ratio, args.shape or settings.threshold_shape)
     alpha = args.alpha or settings.alpha
+    if args.length_check:
+        if args.records or args.synthetic:
+            raise ValueError("--length-check runs on its own synthetic episodes; drop the records file / --synthetic")
+        check = length_check(args.draws, args.fresh, args.successes, params=params, seed=args.seed,
+                             alphas=(args.alpha,) if args.alpha else (0.05, 0.2))
+        print(json.dumps(check, indent=2) if args.json else length_table(check))
+        return 0
     if args.synthetic:
         if args.records:
             raise ValueError("give either a records file or --synthetic N, not both")
@@ -277,6 +285,13 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--alpha", type=float, help="guaranteed false-alert rate (default: the service's alpha)")
     s.add_argument("--window", type=int, help="running-median window (default: the service's)")
     s.add_argument("--debounce", type=int, help="consecutive values over the threshold (default: the service's)")
+    s.add_argument("--shape", choices=["flat", "running-max"], help="threshold shape (default: the service's)")
+    s.add_argument("--length-check", action="store_true",
+                   help="instead of a file: the false-alert rate of fresh synthetic successes per length bin "
+                        "(lengths 5-150 decisions), both rules, alpha 0.05 and 0.2 (or --alpha)")
+    s.add_argument("--draws", type=int, default=200, help="--length-check: calibrations (default 200)")
+    s.add_argument("--fresh", type=int, default=200, help="--length-check: fresh successes per calibration")
+    s.add_argument("--successes", type=int, default=100, help="--length-check: successes per calibration")
     s.add_argument("--folds", type=int, default=5, help="cross-fitting folds within each checkpoint")
     s.add_argument("--seed", type=int, default=0, help="seed of the folds and the band split")
     s.add_argument("--json", action="store_true", help="print every figure as JSON")

@@ -508,7 +508,7 @@ def cross_fit_with(episodes: list[EpisodeScores], fit, k: int = 5, seed: int = 0
                 skipped += len(members)
                 continue
             for e in members:
-                judged[bool(e.success)].append(rule.judge(e))
+                judged[bool(e.success)].append({**rule.judge(e), "length": int(np.asarray(e.steps).size)})
     fa = sum(j["alerted"] for j in judged[True])
     ta = sum(j["alerted"] for j in judged[False])
     hits = [j for j in judged[False] if j["alerted"]]
@@ -525,5 +525,24 @@ def cross_fit_with(episodes: list[EpisodeScores], fit, k: int = 5, seed: int = 0
         "detection_decision": _quartiles([j["decision_index"] for j in hits]),
         "detection_step": _quartiles([j["known_at"] for j in hits]),
         "lead_steps": _quartiles([j["lead"] for j in hits if j["lead"] is not None]),
+        "false_alerts_by_length": by_length(judged[True]),
+        "alerts_beyond_calibration": sum(bool(j.get("beyond_calibration")) for j in judged[True] + judged[False]),
         "skipped_episodes": skipped,
     }
+
+
+def length_bin(length: int, edges: tuple[int, ...] = LENGTH_EDGES) -> tuple[int, int]:
+    """The (lo, hi) bin of LENGTH_EDGES an episode of ``length`` scored decisions falls in."""
+    i = int(np.searchsorted(np.asarray(edges), length, side="left"))
+    return (1 if i == 0 else edges[i - 1] + 1), (edges[i] if i < len(edges) else 10**9)
+
+
+def by_length(judged: list[dict]) -> list[dict]:
+    """Alert counts of judged episodes ({"length", "alerted"}) per length bin, with Clopper-Pearson intervals."""
+    bins: dict[tuple[int, int], list[int]] = {}
+    for j in judged:
+        k_n = bins.setdefault(length_bin(j["length"]), [0, 0])
+        k_n[0] += bool(j["alerted"])
+        k_n[1] += 1
+    return [{"lo": lo, "hi": hi, "alerts": k, "episodes": n, "rate": k / n, "ci": binomial_ci(k, n)}
+            for (lo, hi), (k, n) in sorted(bins.items())]

@@ -16,6 +16,7 @@ shown beside them: that rule's guarantee covers one number per episode, not the 
 """
 from __future__ import annotations
 
+import gzip
 import json
 from pathlib import Path
 
@@ -23,7 +24,7 @@ import numpy as np
 
 from monitor_service import rules, scoring, stats
 from monitor_service.calibration import LabelledEpisode
-from monitor_service.synthetic import synthetic_episodes
+from monitor_service.synthetic import mixed_length_episodes, synthetic_episodes
 
 OLD_RULE = "early-score threshold (former rule)"
 
@@ -37,7 +38,7 @@ def load_episodes(path: str | Path, where: dict | None = None) -> tuple[list[Lab
     if not path.is_file():
         raise FileNotFoundError(f"{path} does not exist; pass the records.jsonl of jepa-demo or jepa-policy eval")
     episodes, raw, skipped = [], {}, {"no outcome": 0, "no scored decision": 0, "filtered": 0}
-    with path.open() as f:
+    with (gzip.open(path, "rt") if path.suffix == ".gz" else path.open()) as f:
         for n, line in enumerate(f, 1):
             if not line.strip():
                 continue
@@ -133,7 +134,8 @@ def run_study(episodes: list[LabelledEpisode], params: rules.RuleParams, alpha: 
               seed: int = 0, n_bootstrap: int = 2000) -> dict:
     """Cross-fitted detection of both rules and the former one, and the early score's AUROC."""
     scored = [e.scores() for e in episodes]
-    out = {kind: rules.cross_fit(scored, rules.RuleParams(kind, params.window, params.debounce, params.clear_ratio),
+    out = {kind: rules.cross_fit(scored, rules.RuleParams(kind, params.window, params.debounce, params.clear_ratio,
+                                                          params.shape),
                                  alpha, folds, seed, within_groups=True) for kind in rules.RULE_KINDS}
     out[OLD_RULE] = {"rule": {"kind": "early", "window": params.window, "debounce": params.debounce},
                      "alpha": alpha, **rules.cross_fit_with(scored, lambda t: EarlyScoreRule(t, params, alpha),
@@ -169,6 +171,40 @@ def synthetic_study(decisions: int, successes: int, failures: int, params: rules
     return run_study(eps, params, alpha, folds, seed)
 
 
+def length_check(draws: int = 200, fresh: int = 200, successes: int = 100, lengths: tuple[int, int] = (5, 150),
+                 alphas: tuple[float, ...] = (0.05, 0.2), params: rules.RuleParams = rules.RuleParams(),
+                 seed: int = 0) -> dict:
+    """False-alert rate of fresh successes per length bin, averaged over ``draws`` calibrations on ``successes``
+    fresh successes each (``synthetic.mixed_length_episodes``: NMSE independent of the decision index). The check
+    of docs/monitor.md's per-length promise; kinds running and band."""
+    out = {}
+    for kind in rules.RULE_KINDS:
+        p = rules.RuleParams(kind, params.window, params.debounce, params.clear_ratio, params.shape)
+        for alpha in alphas:
+            judged = []
+            for d in range(draws):
+                cal = mixed_length_episodes(successes, 0, lengths, seed=seed + 2 * d)
+                rule = rules.calibrate_rule(cal, p, alpha, seed=d)
+                judged += [{**rule.judge(e), "length": e.steps.size}
+                           for e in mixed_length_episodes(fresh, 0, lengths, seed=seed + 2 * d + 1)]
+            out[f"{kind}, alpha {alpha:g}"] = rules.by_length(judged)
+    return {"draws": draws, "fresh_per_draw": fresh, "calibration_successes": successes, "lengths": list(lengths),
+            "shape": params.shape, "rules": out}
+
+
+def length_table(check: dict) -> str:
+    """One row per rule and alpha: the false-alert rate in each length bin."""
+    rows = next(iter(check["rules"].values()))
+    labels = [f"{max(b['lo'], check['lengths'][0])}-{min(b['hi'], check['lengths'][1])} decisions" for b in rows]
+    head = "".join(f"{label:>20}" for label in labels)
+    lines = [f"  {'rule, alpha':<22}{head}"]
+    for name, bins in check["rules"].items():
+        lines.append(f"  {name:<22}" + "".join(f"{b['rate']:>20.3f}" for b in bins))
+    lines.append(f"  false alerts of fresh successes; {check['draws']} calibrations on {check['calibration_successes']} "
+                 f"successes, {check['fresh_per_draw']} fresh successes each; threshold shape {check['shape']}")
+    return "\n".join(lines)
+
+
 def _rate(k, n, ci) -> str:
     if not n:
         return "n/a"
@@ -189,6 +225,13 @@ def study_table(detection: dict) -> str:
         lines.append(f"  {label:<38}{_rate(r['false_alerts'], r['successes'], r['false_alert_ci']):<36}"
                      f"{_rate(r['true_alerts'], r['failures'], r['true_alert_ci']):<36}"
                      f"{_quart(r['detection_decision']):<24}{_quart(r['lead_steps']):<16}")
+        per_length = r.get("false_alerts_by_length")
+        if per_length:
+            lines.append(f"  {'':<38}false alerts by length: " + ", ".join(
+                f"{b['lo']}-{b['hi'] if b['hi'] < 10**9 else ''} decisions {b['alerts']}/{b['episodes']}"
+                for b in per_length)
+                + (f"; alerts beyond the calibrated length: {r['alerts_beyond_calibration']}"
+                   if r.get("alerts_beyond_calibration") else ""))
     first = next(iter(detection.values()))
     lines.append(f"  cross-fitted: {first['folds']} folds; alpha = {first['alpha']}; "
                  "decision of the 1st alert as median (quartiles)")

@@ -62,3 +62,20 @@ def synthetic_episodes(n_success: int, n_failure: int, decisions: int, seed: int
                                  success=not failure, end_step=decisions * task.interval, group=group,
                                  episode=f"synthetic-{seed}-{i}"))
     return out
+
+
+def mixed_length_episodes(n_success: int, n_failure: int, lengths: tuple[int, int], seed: int, sigma: float = 0.5,
+                          shift: float = 0.7, interval: int = 8, horizon: int = 4) -> list[EpisodeScores]:
+    """Episodes whose per-decision log NMSE does not depend on the decision index: iid N(-2, sigma^2), failures
+    shifted up by ``shift``; each episode's length (scored decisions) uniform in ``lengths`` (the check of a
+    false-alert promise per episode length, docs/monitor.md)."""
+    rng = np.random.default_rng(seed)
+    out = []
+    for i in range(n_success + n_failure):
+        failure = i >= n_success
+        n = int(rng.integers(lengths[0], lengths[1] + 1))
+        steps = np.arange(n, dtype=np.int64) * interval
+        out.append(EpisodeScores(steps, np.exp(rng.normal(-2.0, sigma, n) + (shift if failure else 0.0)),
+                                 steps + horizon, success=not failure, end_step=n * interval,
+                                 episode=f"mixed-{seed}-{i}"))
+    return out
