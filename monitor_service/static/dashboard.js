@@ -1,9 +1,20 @@
 // Operator dashboard: reads the monitor's API with the operator key kept in sessionStorage (this tab only,
-// gone when it closes; docs/monitor.md). No external scripts (the deployment network may be closed): charts
-// are drawn as inline SVG.
+// gone when it closes; docs/monitor.md). The key may also come in the URL fragment (/dashboard#key=...): a
+// fragment never reaches the server or its logs, and it is removed from the address bar at once. No external
+// scripts (the deployment network may be closed): charts are drawn as inline SVG.
 "use strict";
 
-const state = { key: sessionStorage.getItem("jepaMonitorKey") || "", streamAbort: null };
+function keyFromFragment() {
+  const params = new URLSearchParams(location.hash.replace(/^#/, ""));
+  const key = params.get("key");
+  if (key) {
+    sessionStorage.setItem("jepaMonitorKey", key);
+    history.replaceState(null, "", location.pathname + location.search);
+  }
+  return key;
+}
+
+const state = { key: keyFromFragment() || sessionStorage.getItem("jepaMonitorKey") || "", streamAbort: null };
 const TRAJECTORIES = 12;  // live episodes drawn, most recently active first
 
 function h(tag, attrs = {}, ...children) {
@@ -86,10 +97,11 @@ function histogramChart(task, hist) {
 }
 
 // One live episode: the rule's statistic after each scored decision (by the env step at which it became
-// known) against the calibrated threshold; red points are above it.
+// known) against its decision index's threshold (dashed); red points are above it, hollow points lie beyond the
+// calibrated length (no guarantee there).
 function trajectoryChart(detail) {
   const pts = detail.risk;
-  const values = pts.map((p) => p.value).concat([detail.threshold]);
+  const values = pts.map((p) => p.value).concat(pts.map((p) => p.threshold));
   let lo = Math.min(...values), hi = Math.max(...values);
   if (hi - lo < 1e-9) { lo -= 1; hi += 1; }
   const pad = 0.08 * (hi - lo);
@@ -99,12 +111,14 @@ function trajectoryChart(detail) {
   const [root, X, Y] = frame("trajectory", { "data-episode": detail.id }, title, "env step",
     detail.rule === "band" ? "band z-score, running median" : "NMSE, running median", 320, 220);
   const fx = (s) => X((s - x0) / (x1 - x0)), fy = (v) => Y((v - lo) / (hi - lo));
-  root.append(svg("line", { x1: X(0), x2: X(1), y1: fy(detail.threshold), y2: fy(detail.threshold), stroke: "#b00020",
-    "stroke-dasharray": "5", class: "threshold" }));
+  root.append(svg("polyline", { points: pts.map((p) => `${fx(p.known_at)},${fy(p.threshold)}`).join(" "),
+    fill: "none", stroke: "#b00020", "stroke-dasharray": "5", class: "threshold" }));
   root.append(svg("polyline", { points: pts.map((p) => `${fx(p.known_at)},${fy(p.value)}`).join(" "), fill: "none",
-    stroke: "#1f3b57", "stroke-width": 2 }));
+    stroke: "#1f3b57", "stroke-width": 2, class: "risk" }));
   for (const p of pts) {
-    root.append(svg("circle", { cx: fx(p.known_at), cy: fy(p.value), r: 2.5, fill: p.value > detail.threshold ? "#b00020" : "#1f3b57" }));
+    const color = p.value > p.threshold ? "#b00020" : "#1f3b57";
+    root.append(svg("circle", { cx: fx(p.known_at), cy: fy(p.value), r: 2.5, stroke: color,
+      fill: p.beyond_calibration ? "white" : color, class: p.beyond_calibration ? "beyond" : "" }));
   }
   ticks(root, X, Y, x0, x1, "x", (v) => v.toFixed(0));
   ticks(root, X, Y, lo, hi, "y", (v) => v.toPrecision(2));
@@ -115,22 +129,22 @@ async function refresh() {
   const [report, alerts, episodes] = await Promise.all([
     api("/v1/report"), api("/v1/alerts?limit=100"), api("/v1/episodes?live=true&limit=200"),
   ]);
-  const thresholds = {};
   const tbody = document.querySelector("#tasks tbody");
   tbody.replaceChildren();
   const charts = document.getElementById("charts");
   charts.replaceChildren();
   for (const c of report.tasks) {
     if (c.checkpoint) continue;
-    thresholds[c.task] = c.threshold;
     const live = episodes.filter((e) => e.task === c.task);
-    const over = live.filter((e) => e.risk_score !== null && e.risk_score > c.threshold).length;
-    const openAlerts = alerts.filter((a) => a.task === c.task && a.state === "open").length;
+    const over = live.filter((e) => e.risk_score !== null && e.risk_score > e.risk_threshold).length;
+    const openAlerts = alerts.filter((a) => a.task === c.task && (a.state === "open" || a.state === "acknowledged")).length;
     const r = c.result;
+    const regimes = (r.rule.regimes || []).map((g) => `${g.lo}-${g.hi}`).join(", ");
     tbody.append(h("tr", { "data-task": c.task },
       h("td", {}, c.task), h("td", {}, `${fmt(r.auroc)} [${fmt(r.auroc_ci_low)}, ${fmt(r.auroc_ci_high)}]`),
       h("td", {}, fmt(r.average_precision)), h("td", {}, fmt(r.permutation_p, 4)),
-      h("td", {}, `${c.rule}: ${fmt(c.threshold, 4)}`), h("td", {}, r.alpha === undefined ? "-" : String(r.alpha)),
+      h("td", {}, `${c.rule}: up to ${fmt(c.threshold, 4)}`),
+      h("td", { class: "regimes" }, r.alpha === undefined ? "-" : `${r.alpha} in each of ${regimes} decisions`),
       h("td", {}, String(live.length)), h("td", { class: over ? "risk-high" : "" }, String(over)),
       h("td", {}, String(openAlerts))));
     const box = h("div", { class: "chart" });
@@ -145,24 +159,33 @@ async function refresh() {
   const abody = document.querySelector("#alerts tbody");
   abody.replaceChildren();
   for (const a of alerts) {
-    const ack = a.acknowledged_at ? `${a.acknowledged_by}` :
-      h("button", { class: "ack", "data-alert": a.id, onclick: () => acknowledge(a.id) }, "Acknowledge");
+    // Only an open alert waits for someone; acknowledged, cleared and resolved ones show what happened.
+    const action = a.state === "open" ?
+      h("button", { class: "ack", "data-alert": a.id, onclick: () => acknowledge(a.id) }, "Acknowledge") : "";
+    const stateText = a.state === "resolved" ? `resolved: ${a.resolution === "success" ? "success (false alert)" : "failure"}` : a.state;
     abody.append(h("tr", { class: a.state, "data-alert": a.id },
       h("td", {}, String(a.id)), h("td", {}, a.task), h("td", {}, a.robot), h("td", {}, a.episode_id),
-      h("td", {}, String(a.step)), h("td", {}, `${fmt(a.score, 4)} / ${fmt(a.threshold, 4)}`), h("td", {}, a.state),
-      h("td", {}, a.acknowledged_at ? a.acknowledged_by : "no"), h("td", {}, a.acknowledged_at ? "" : ack)));
+      h("td", {}, String(a.step)), h("td", {}, `${fmt(a.score, 4)} / ${fmt(a.threshold, 4)}`),
+      h("td", { class: "state" }, stateText + (a.beyond_calibration ? " (beyond the calibrated length)" : "")),
+      h("td", {}, a.acknowledged_at ? a.acknowledged_by : "no"), h("td", {}, action)));
   }
 
   const ebody = document.querySelector("#episodes tbody");
   ebody.replaceChildren();
   for (const e of episodes) {
-    const thr = thresholds[e.task];
-    const known = e.risk_score !== null && thr !== undefined;
+    const known = e.risk_score !== null && e.risk_threshold !== null;
+    const early = e.early_score === null ? "-" : fmt(e.early_score, 4) +
+      (e.early_revisions ? ` (revised ${e.early_revisions}x)` : "");
+    const gaps = e.gaps || e.late_decisions ? `${e.gaps} missing${e.gap_steps.length ? " at " + e.gap_steps.slice(0, 5).join(", ") : ""}` +
+      (e.late_decisions ? `, ${e.late_decisions} late` : "") : "0";
     ebody.append(h("tr", { "data-episode": e.id },
       h("td", {}, e.id), h("td", {}, e.task), h("td", {}, e.robot), h("td", {}, `${e.n_decisions} (${e.n_scored})`),
-      h("td", {}, e.early_score === null ? "-" : fmt(e.early_score, 4)),
+      h("td", { class: e.gaps ? "gaps risk-high" : "gaps" }, gaps),
+      h("td", { class: "early" }, early),
       h("td", {}, e.running_score === null ? "-" : fmt(e.running_score, 4)),
-      h("td", { class: known && e.risk_score > thr ? "risk-high" : "" }, known ? `${fmt(e.risk_score, 3)} / ${fmt(thr, 3)}` : "-"),
+      h("td", { class: known && e.risk_score > e.risk_threshold ? "risk-high" : "" },
+        known ? `${fmt(e.risk_score, 3)} / ${fmt(e.risk_threshold, 3)}` +
+          (e.beyond_calibration ? ` (beyond ${e.calibrated_decisions} calibrated decisions)` : "") : "-"),
       h("td", {}, e.alert_note)));
   }
 

@@ -1,5 +1,6 @@
 """The dashboard in headless Debian Chromium against a real uvicorn server: data and risk trajectories shown,
-charts labelled, acknowledge clicked, the key kept in sessionStorage."""
+charts labelled, the alert life cycle (acknowledge only on open alerts), gaps shown, the key kept in
+sessionStorage and taken from the URL fragment in one step."""
 import os
 
 import httpx
@@ -37,6 +38,12 @@ def test_dashboard_shows_risk_roc_and_acknowledges(tmp_path):
         http.post("/v1/calibrations", json={"task": "Square", "n_bootstrap": 200, "n_permutation": 200}, headers=A).raise_for_status()
         recs, _ = episode_records("live-bad", "Square", rng, 2.0, n_steps=8, held_out=False)
         alert_id = http.post("/v1/batch", json={"records": recs}, headers=robot).json()["alerts_raised"][0]
+        # an episode that alerted and then failed: its alert is resolved by the outcome, nothing to acknowledge
+        recs, _ = episode_records("done-bad", "Square", rng, 2.0, n_steps=8, held_out=False, success=False)
+        done_id = http.post("/v1/batch", json={"records": recs}, headers=robot).json()["alerts_raised"][0]
+        # a live episode whose decision at step 3 never came: a gap
+        recs, _ = episode_records("gappy", "Square", rng, 0.3, n_steps=6, held_out=False)
+        http.post("/v1/batch", json={"records": recs[:6] + recs[8:]}, headers=robot).raise_for_status()
 
         with sync_api.sync_playwright() as p:
             browser = p.chromium.launch(executable_path=CHROMIUM, args=ARGS)
@@ -53,8 +60,8 @@ def test_dashboard_shows_risk_roc_and_acknowledges(tmp_path):
                 assert "live-bad" in page.inner_text("#episodes")
                 # the live episode's risk trajectory against the band threshold, points above it in red
                 traj = page.locator("svg.trajectory[data-episode='live-bad']")
-                traj.locator("polyline").wait_for()
-                assert traj.locator("line.threshold").count() == 1
+                traj.locator("polyline.risk").wait_for()
+                assert traj.locator("polyline.threshold").count() == 1
                 assert traj.locator("circle[fill='#b00020']").count() >= 2
                 assert "band" in traj.locator("text.title").text_content()
                 # every chart has its axis labels, and its title fits inside it
@@ -70,12 +77,26 @@ def test_dashboard_shows_risk_roc_and_acknowledges(tmp_path):
                 assert page.evaluate("localStorage.getItem('jepaMonitorKey')") is None
                 assert "WARNING" in page.inner_text("#pooled")
                 row = page.locator(f"#alerts tr[data-alert='{alert_id}']")
-                assert row.count() == 1 and "open" in row.inner_text()
+                assert row.count() == 1 and row.locator("td.state").inner_text() == "open"
+                done = page.locator(f"#alerts tr[data-alert='{done_id}']")
+                assert done.locator("td.state").inner_text() == "resolved: failure"
+                assert done.locator("button.ack").count() == 0, "a resolved alert offers no Acknowledge"
+                assert "1 missing at 3" in page.locator("#episodes tr[data-episode='gappy'] td.gaps").inner_text()
                 row.locator("button.ack").click()
                 page.wait_for_selector(f"#alerts tr[data-alert='{alert_id}'] >> text=alice")
+                assert row.locator("td.state").inner_text() == "acknowledged" and row.locator("button.ack").count() == 0
                 assert all(u.startswith(server.url) for u in requests), "the page must not fetch anything external"
+
+                # one step: a fresh tab opened with the key in the URL fragment shows the data at once, and the
+                # key leaves the address bar (and never reaches the server: fragments are not sent)
+                fresh = browser.new_context().new_page()
+                fresh.goto(f"{server.url}/dashboard#key={op_key}")
+                fresh.wait_for_selector("#tasks tr[data-task='Square']")
+                assert fresh.inner_text("#status") == "connected" and op_key not in fresh.url
+                assert fresh.evaluate("sessionStorage.getItem('jepaMonitorKey')") == op_key
             finally:
                 browser.close()
+        assert op_key not in (tmp_path / "s.log").read_text()
         engine = make_engine(db_url)
         with make_sessionmaker(engine)() as s:
             alert = s.get(Alert, alert_id)
