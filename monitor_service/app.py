@@ -4,6 +4,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import ctypes
+import logging
 import os
 import signal
 import sys
@@ -27,7 +28,9 @@ from monitor_service.metrics import REQUEST_SECONDS
 from monitor_service.routers import alerts, calibrations, dashboard, episodes, health, ingest, keys, tasks
 from monitor_service.routers.ingest import IngestFastPath
 from monitor_service.schemas import ERROR_MEANING, Error
-from monitor_service.settings import MonitorSettings
+from monitor_service.settings import MonitorSettings, unknown_variables
+
+log = logging.getLogger(__name__)
 
 
 class BodyLimit:
@@ -136,6 +139,9 @@ def openapi_with_errors(app: FastAPI) -> dict:
 def create_app(settings: MonitorSettings | None = None) -> FastAPI:
     """Build the service: storage (migrated to head unless disabled), auth bootstrap, routers and background tasks."""
     settings = settings or MonitorSettings()
+    for warning in unknown_variables():
+        log.warning(warning)
+    db.check_database_url(settings.database_url, create=settings.create_database)
     supervisor = os.environ.get(SUPERVISOR_ENV, "")
     if supervisor.isdigit():   # a worker of `serve --workers N`
         if int(supervisor) != os.getppid():

@@ -9,19 +9,25 @@ import tempfile
 from pathlib import Path
 
 
-def _settings(args):
+def _settings(args, database: str | None = None):
+    """The settings; ``database``: "existing" (refused when missing) or "create" (made when missing) checks the
+    database URL first, with a one-line error naming the fix."""
+    from monitor_service import db
     from monitor_service.settings import MonitorSettings
 
     overrides = {}
     if getattr(args, "database_url", None):
         overrides["database_url"] = args.database_url
-    return MonitorSettings(**overrides)
+    settings = MonitorSettings(**overrides)
+    if database is not None:
+        db.check_database_url(settings.database_url, create=database == "create")
+    return settings
 
 
 def _sessionmaker(args):
     from monitor_service import db
 
-    settings = _settings(args)
+    settings = _settings(args, "existing")
     engine = db.make_engine(settings.database_url)
     db.upgrade(engine)
     return settings, db.make_sessionmaker(engine)
@@ -34,8 +40,8 @@ def cmd_serve(args) -> int:
 
     if args.database_url:
         os.environ["JEPA_MONITOR_DATABASE_URL"] = args.database_url
-    settings = _settings(args)
-    db.upgrade(db.make_engine(settings.database_url))  # once, before any worker starts
+    settings = _settings(args, "create" if args.create else "existing")
+    db.upgrade(db.make_engine(settings.database_url))  # once, before any worker starts (it creates the file)
     if args.workers > 1:   # each worker exits when this supervising process dies (app.exit_with_parent)
         os.environ["JEPA_MONITOR_SUPERVISOR_PID"] = str(os.getpid())
     if args.workers > 1 and not os.environ.get("PROMETHEUS_MULTIPROC_DIR"):
@@ -57,7 +63,7 @@ def cmd_serve(args) -> int:
 def cmd_db(args) -> int:
     from monitor_service import db
 
-    url = _settings(args).database_url
+    url = _settings(args, "create" if args.action in ("upgrade", "restore") else "existing").database_url
     if args.action in ("backup", "restore"):
         if not args.path:
             raise SystemExit(f"db {args.action} needs a file: jepa-monitor db {args.action} FILE")
@@ -234,6 +240,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--port", type=int, default=8765)
     s.add_argument("--workers", type=int, default=1)
     s.add_argument("--log-level", default="info")
+    s.add_argument("--create", action="store_true",
+                   help="create the SQLite database if it does not exist (else only `db upgrade` creates one)")
     s.set_defaults(func=cmd_serve)
 
     s = sub.add_parser("db", help="schema migrations (upgrade, current), housekeeping (prune), backup, restore")
@@ -321,11 +329,21 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    from sqlalchemy.exc import DBAPIError
+
+    from monitor_service.settings import unknown_variables
+
     args = build_parser().parse_args(argv)
+    for warning in unknown_variables():
+        print(f"jepa-monitor: warning: {warning}", file=sys.stderr)
     try:
         return args.func(args)
     except (ValueError, LookupError, FileNotFoundError) as exc:
         print(f"jepa-monitor: error: {_one_line(exc)}", file=sys.stderr)
+        return 2
+    except DBAPIError as exc:   # the database refused or could not be reached
+        print(f"jepa-monitor: error: the database failed: {_one_line(exc.orig or exc).split(' [SQL')[0]}; check "
+              "JEPA_MONITOR_DATABASE_URL / --database-url and that the database server runs", file=sys.stderr)
         return 2
 
 

@@ -19,7 +19,8 @@ from sqlalchemy import (
     false,
     text,
 )
-from sqlalchemy.engine import Engine
+from sqlalchemy.engine import Engine, make_url
+from sqlalchemy.exc import ArgumentError
 from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column, sessionmaker
 
 MIGRATIONS_DIR = Path(__file__).parent / "migrations"
@@ -178,6 +179,46 @@ class IdempotencyKey(Base):
     created_at: Mapped[dt.datetime] = mapped_column(DateTime, default=utcnow)
 
 
+def sqlite_file(url: str) -> Path | None:
+    """The file of an SQLite URL (None for other databases and for an in-memory one)."""
+    parsed = make_url(url)
+    if parsed.get_backend_name() != "sqlite" or parsed.database in (None, "", ":memory:"):
+        return None
+    return Path(parsed.database)
+
+
+def check_database_url(url: str, *, create: bool = False) -> None:
+    """Refuse, with one line naming the fix, a URL that cannot be parsed, an SQLite file in a folder that does not
+    exist, an SQLite file that does not exist (unless ``create``: `jepa-monitor db upgrade` or `serve --create`;
+    otherwise a mistyped name would serve a fresh, empty database) and a PostgreSQL URL whose driver is missing."""
+    try:
+        parsed = make_url(url)
+    except ArgumentError:
+        raise ValueError(f"database URL {url!r} is not a valid URL; use sqlite:///relative.db, "
+                         "sqlite:////absolute/path.db or postgresql+psycopg2://user:password@host/database") from None
+    backend = parsed.get_backend_name()
+    if backend == "sqlite":
+        path = sqlite_file(url)
+        if path is None:
+            return
+        if not path.parent.is_dir():
+            raise ValueError(f"the folder {path.parent} of the database {path} does not exist; create it "
+                             f"(mkdir -p {path.parent}) or fix the database URL {url!r}")
+        if not create and not path.exists():
+            raise ValueError(f"no database at {path}; create it with `jepa-monitor --database-url {url} db upgrade` "
+                             "(or `jepa-monitor serve --create`), or fix the path if it is mistyped")
+        return
+    if backend != "postgresql":
+        raise ValueError(f"database URL {url!r} is neither SQLite nor PostgreSQL; use sqlite:///path.db or "
+                         "postgresql+psycopg2://user@host/db")
+    try:
+        parsed.get_dialect().import_dbapi()
+    except ImportError as exc:
+        raise ValueError(f"the database URL {parsed.drivername}:// needs the {exc.name or 'its'} driver, which is not "
+                         "installed; write postgresql+psycopg2://... (psycopg2-binary comes with the monitor extra)"
+                         ) from None
+
+
 def make_engine(url: str) -> Engine:
     """Create the engine; SQLite gets WAL, a busy timeout and BEGIN IMMEDIATE so concurrent writers queue."""
     if url.startswith("sqlite"):
@@ -273,9 +314,10 @@ def mark_sqlite_in_use(url: str):
     of a server process); ``restore_sqlite`` refuses while any process holds it. None for other databases."""
     import fcntl
 
-    if not url.startswith("sqlite:///") or url.endswith(":memory:"):
+    path = sqlite_file(url)
+    if path is None:
         return None
-    marker = open(_in_use_marker(url[len("sqlite:///"):]), "a")   # noqa: SIM115 - kept open on purpose
+    marker = open(_in_use_marker(str(path)), "a")   # noqa: SIM115 - kept open on purpose
     fcntl.flock(marker, fcntl.LOCK_SH)
     return marker
 

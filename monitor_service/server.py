@@ -57,8 +57,10 @@ class ServerProcess:
 def start_server(
     database_url: str, *, admin_key: str | None = None, port: int | None = None, workers: int = 1,
     env: dict[str, str] | None = None, log_path: str | Path | None = None, ready_timeout: float = 60.0,
+    create: bool = True,
 ) -> ServerProcess:
-    """Start ``jepa-monitor serve`` on 127.0.0.1 and return once /readyz answers 200.
+    """Start ``jepa-monitor serve`` on 127.0.0.1 and return once /readyz answers 200 (``create``: make a missing
+    SQLite database, as tests, the bench and the main job start on a fresh one).
 
     Settings travel as JEPA_MONITOR_* environment variables (``env`` adds more, e.g. webhook URLs).
     Raises RuntimeError with the server's log tail when it does not become ready.
@@ -72,7 +74,7 @@ def start_server(
     log_path = Path(log_path) if log_path else Path(os.environ.get("TMPDIR", "/tmp")) / f"jepa-monitor-{port}.log"
     log = open(log_path, "ab")
     cmd = [sys.executable, "-m", "monitor_service.cli", "serve", "--host", "127.0.0.1", "--port", str(port),
-           "--workers", str(workers), "--log-level", "warning"]
+           "--workers", str(workers), "--log-level", "warning"] + (["--create"] if create else [])
     # its own process group, so that ``kill`` reaches uvicorn's worker processes too
     proc = subprocess.Popen(cmd, env=full_env, stdout=log, stderr=subprocess.STDOUT, start_new_session=True)
     log.close()

@@ -1,6 +1,8 @@
 """Service configuration, read from the environment with the ``JEPA_MONITOR_`` prefix."""
 from __future__ import annotations
 
+import difflib
+import os
 from typing import Literal
 
 from pydantic import Field, field_validator
@@ -41,12 +43,49 @@ class MonitorSettings(BaseSettings):
     live_episode_s: float = Field(300.0, gt=0.0, description="an episode without outcome is live this long")
     sse_poll_s: float = Field(0.5, gt=0.0)
     run_migrations: bool = True
+    create_database: bool = Field(False, description="create a missing SQLite file (`jepa-monitor serve --create`); "
+                                  "otherwise a database that `jepa-monitor db upgrade` did not make is refused")
 
     @field_validator("database_url")
     @classmethod
     def _known_backend(cls, url: str) -> str:
         if not (url.startswith("sqlite") or url.startswith("postgresql")):
             raise ValueError(
-                f"database_url {url!r} is neither SQLite nor PostgreSQL; use sqlite:///path.db or postgresql://user@host/db"
+                f"database_url {url!r} is neither SQLite nor PostgreSQL; use sqlite:///path.db or "
+                "postgresql+psycopg2://user@host/db"
             )
         return url
+
+
+PREFIX = "JEPA_MONITOR_"
+# read by other parts than the settings: the supervisor of `serve --workers N`, the bench's floor app
+OTHER_VARIABLES = {"JEPA_MONITOR_SUPERVISOR_PID", "JEPA_MONITOR_FLOOR_DB"}
+
+
+def unknown_variables(environ=None) -> list[str]:
+    """One warning per JEPA_MONITOR_* environment variable that no setting reads (a mistyped name is otherwise
+    ignored silently), naming the closest setting."""
+    environ = os.environ if environ is None else environ
+    settings = sorted(name.upper() for name in MonitorSettings.model_fields)
+    out = []
+    for name in sorted(n for n in environ if n.upper().startswith(PREFIX)):
+        if name.upper() in OTHER_VARIABLES or name.upper()[len(PREFIX):] in settings:
+            continue
+        close = _closest(name.upper()[len(PREFIX):], settings)
+        out.append(f"{name} is not a setting of the monitor and is ignored; "
+                   + (f"did you mean {PREFIX}{close}?" if close else
+                      f"the settings are {', '.join(PREFIX + s for s in settings)}"))
+    return out
+
+
+def _closest(typed: str, names: list[str]) -> str | None:
+    """The setting a mistyped name most likely meant: one whose letters it abbreviates in order with the same
+    first letter (DB -> DATABASE_URL), else the closest spelling."""
+    def abbreviates(name: str) -> bool:
+        rest = iter(name)
+        return bool(typed) and name[0] == typed[0] and all(c in rest for c in typed.replace("_", ""))
+    short = sorted((n for n in names if abbreviates(n)), key=len)
+    if short:
+        return short[0]
+    close = difflib.get_close_matches(typed, names, n=1, cutoff=0.5)
+    return close[0] if close else None

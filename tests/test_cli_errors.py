@@ -44,6 +44,7 @@ def files(tmp_path_factory):
     (root / "bad.toml").write_text("this is = not [toml")
     (root / "safety.toml").write_text("[safety]\n")
     (root / "notjson.json").write_text("{")
+    assert monitor_main(["--database-url", f"sqlite:///{root / 'm.db'}", "db", "upgrade"]) == 0   # an existing DB
     return root
 
 

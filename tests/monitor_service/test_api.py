@@ -348,6 +348,9 @@ def test_alert_hysteresis_clears_and_does_not_flap(client, robot, operator, admi
     hyst = [a for a in alerts if a["episode_id"] == "hyst"]
     assert len(hyst) == 1 and hyst[0]["state"] == "cleared", hyst
     assert client.get("/v1/episodes/hyst", headers=operator).json()["open_alert_id"] is None
+    # a cleared alert needs nobody: acknowledging it is refused and names why
+    r = client.post(f"/v1/alerts/{hyst[0]['id']}/ack", headers=operator)
+    assert r.status_code == 409 and "cleared" in r.json()["detail"] and "nothing to acknowledge" in r.json()["detail"]
 
 
 def test_too_few_successes_for_alpha_says_how_many(client, robot, operator, admin):

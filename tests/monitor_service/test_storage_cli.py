@@ -84,3 +84,52 @@ def test_admin_key_bootstrap_refuses_a_revoked_secret(tmp_path):
         assert c.delete(f"/v1/keys/{admin_id}", headers={"X-API-Key": ADMIN}).status_code == 200
     with pytest.raises(ValueError, match="revoked or non-admin"):
         create_app(settings)
+
+
+# (argv, a piece of the one-line answer naming the fix); {d} is an empty folder that must stay empty
+BAD_DATABASES = [
+    (["--database-url", "sqlite:///{d}/mistyped.db", "keys", "list"], "db upgrade"),
+    (["--database-url", "sqlite:///{d}/mistyped.db", "db", "current"], "db upgrade"),
+    (["--database-url", "sqlite:///{d}/mistyped.db", "serve", "--port", "9"], "serve --create"),
+    (["--database-url", "sqlite:///{d}/no/such/folder/m.db", "db", "upgrade"], "mkdir -p {d}/no/such/folder"),
+    (["--database-url", "sqlite:///{d}/no/such/folder/m.db", "serve", "--create"], "mkdir -p"),
+    (["--database-url", "postgresql://monitor@127.0.0.1:9/monitor", "db", "upgrade"], "postgresql+psycopg2://"),
+    (["--database-url", "postgresql+psycopg2://monitor@127.0.0.1:9/monitor", "db", "upgrade"],
+     "that the database server runs"),
+    (["--database-url", "sqlite:/m.db", "db", "upgrade"], "not a valid URL"),
+    (["--database-url", "sqlite:/m.db", "tasks", "list"], "sqlite:////absolute/path.db"),
+]
+
+
+@pytest.mark.parametrize("argv, fix", BAD_DATABASES, ids=[" ".join(a)[:70] for a, _ in BAD_DATABASES])
+def test_a_bad_database_is_refused_in_one_line_and_nothing_is_created(tmp_path, monkeypatch, capsys, argv, fix):
+    folder = tmp_path / "d"
+    folder.mkdir()
+    monkeypatch.chdir(folder)   # a relative default would land here
+    monkeypatch.setenv("JEPA_MONITOR_DATABASE_URL", "")   # restored afterwards (serve exports its URL)
+    monkeypatch.delenv("JEPA_MONITOR_DATABASE_URL")
+    code = main([a.format(d=folder) for a in argv])
+    err = capsys.readouterr().err
+    assert code == 2 and fix.format(d=folder) in err, err
+    assert len(err.strip().splitlines()) == 1 and "Traceback" not in err
+    assert list(folder.iterdir()) == [], "a refused database must leave nothing behind"
+
+
+def test_db_upgrade_or_serve_create_make_the_database(tmp_path, capsys):
+    url = f"sqlite:///{tmp_path / 'new.db'}"
+    assert main(["--database-url", url, "db", "upgrade"]) == 0 and (tmp_path / "new.db").is_file()
+    assert main(["--database-url", url, "keys", "list"]) == 0
+
+
+def test_an_unknown_setting_variable_is_a_warning_naming_the_setting(tmp_path, monkeypatch, capsys):
+    monkeypatch.setenv("JEPA_MONITOR_DB", f"sqlite:///{tmp_path / 'meant.db'}")
+    monkeypatch.setenv("JEPA_MONITOR_DATABASE_URL", "")
+    monkeypatch.delenv("JEPA_MONITOR_DATABASE_URL")
+    monkeypatch.chdir(tmp_path)
+    assert main(["db", "upgrade"]) == 0
+    err = capsys.readouterr().err
+    assert "JEPA_MONITOR_DB is not a setting of the monitor and is ignored; did you mean " \
+           "JEPA_MONITOR_DATABASE_URL?" in err
+    monkeypatch.setenv("JEPA_MONITOR_ALHPA", "0.2")
+    assert main(["--database-url", f"sqlite:///{tmp_path / 'jepa_monitor.db'}", "tasks", "list"]) == 0
+    assert "did you mean JEPA_MONITOR_ALPHA?" in capsys.readouterr().err
