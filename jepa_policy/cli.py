@@ -213,14 +213,19 @@ def cmd_robot(args) -> int:
 
 
 def cmd_serve(args) -> int:
-    from jepa_policy.serve import ServeConfig, serve_checkpoint
+    from jepa_policy.serve import ServeConfig, read_secret, serve_checkpoint
+    from jepa_policy.serve.config import API_KEY_ENV, MONITOR_KEY_ENV
 
     if not Path(args.checkpoint).is_file():
         raise FileNotFoundError(f"checkpoint {args.checkpoint} does not exist; train one with `jepa-policy train`")
-    config = ServeConfig(host=args.host, port=args.port, api_key=args.api_key, tls_cert=args.tls_cert,
-                         tls_key=args.tls_key, max_batch=args.max_batch, max_queue=args.max_queue,
-                         monitor_url=args.monitor_url, monitor_key=args.monitor_key, task_id=args.task_id,
-                         robot=args.robot)
+    config = ServeConfig(host=args.host, port=args.port,
+                         api_key=read_secret("--api-key", args.api_key, args.api_key_file, API_KEY_ENV),
+                         tls_cert=args.tls_cert, tls_key=args.tls_key, tls_client_ca=args.tls_client_ca,
+                         max_batch=args.max_batch, max_queue=args.max_queue, max_connections=args.max_connections,
+                         monitor_url=args.monitor_url,
+                         monitor_key=read_secret("--monitor-key", args.monitor_key, args.monitor_key_file,
+                                                 MONITOR_KEY_ENV),
+                         task_id=args.task_id, robot=args.robot)
     serve_checkpoint(args.checkpoint, config, device=args.device, threads=args.threads)
     return 0
 
@@ -351,17 +356,25 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("serve", help="serve a checkpoint over openpi's websocket protocol (openpi-client), with the "
                                      "monitor inside")
     p.add_argument("--checkpoint", required=True, help="a `jepa-policy train` checkpoint")
-    p.add_argument("--host", default="127.0.0.1", help="bind address (another than loopback needs --api-key or TLS)")
+    p.add_argument("--host", default="127.0.0.1",
+                   help="bind address (another than loopback needs an API key or mutual TLS)")
     p.add_argument("--port", type=int, default=8000, help="TCP port (0: a free one)")
-    p.add_argument("--api-key", help="clients must send 'Authorization: Api-Key KEY' (openpi-client's api_key)")
+    p.add_argument("--api-key", help="clients must send 'Authorization: Api-Key KEY' (openpi-client's api_key); "
+                                     "visible in ps: prefer JEPA_POLICY_API_KEY or --api-key-file")
+    p.add_argument("--api-key-file", help="read the API key from this file's first line (chmod 600)")
     p.add_argument("--tls-cert", help="serve wss:// with this certificate (PEM)")
     p.add_argument("--tls-key", help="the certificate's private key (PEM)")
+    p.add_argument("--tls-client-ca", help="mutual TLS: clients must show a certificate this CA (PEM) signed")
     p.add_argument("--device", default="cpu", help="torch device of the policy")
     p.add_argument("--threads", type=int, help="torch intra-op threads")
     p.add_argument("--max-batch", type=int, default=16, help="requests of several robots batched into one pass")
     p.add_argument("--max-queue", type=int, default=64, help="waiting requests beyond which one is refused")
+    p.add_argument("--max-connections", type=int, default=32,
+                   help="open connections beyond which a new one is refused (HTTP 503)")
     p.add_argument("--monitor-url", help="the monitor service (jepa-monitor serve), e.g. http://127.0.0.1:8765")
-    p.add_argument("--monitor-key", help="a robot key of the monitor service")
+    p.add_argument("--monitor-key", help="a robot key of the monitor service; visible in ps: prefer "
+                                         "JEPA_POLICY_MONITOR_KEY or --monitor-key-file")
+    p.add_argument("--monitor-key-file", help="read the monitor key from this file's first line (chmod 600)")
     p.add_argument("--task-id", help="the monitor's task name (default: the checkpoint's task)")
     p.add_argument("--robot", help="the monitor key's robot name")
     p.set_defaults(func=cmd_serve)

@@ -6,48 +6,22 @@ from __future__ import annotations
 
 import threading
 import time
+from collections import deque
 
 import gymnasium as gym
 import httpx
+import msgpack
 import numpy as np
 import pytest
 import websockets
-from websockets.sync.client import connect
+from _serve_helpers import GOOD, checkpoint, client, events, serve  # noqa: F401 (fixtures)
 
 import jepa_envs  # noqa: F401
-from jepa_policy.cli import main as policy_main
 from jepa_policy.policy import Policy
 from jepa_policy.serve import PolicyServer, ServeConfig, pack, unpack
 
 pytestmark = pytest.mark.timeout(300)
-
-
-@pytest.fixture(scope="module")
-def checkpoint(tmp_path_factory, pusht_demo_file):
-    out = tmp_path_factory.mktemp("serve") / "run"
-    assert policy_main(["train", "--task", "PushT", "--preset", "quick", "--dataset", str(pusht_demo_file),
-                        "--steps", "4", "--warmup-steps", "1", "--eval-every", "0", "--out-dir", str(out),
-                        "--no-progress"]) == 0
-    return out / "checkpoints" / "latest.pt"
-
-
-@pytest.fixture
-def serve(checkpoint):
-    servers = []
-
-    def start(**config) -> PolicyServer:
-        policy = Policy.from_checkpoint(checkpoint)
-        server = PolicyServer(policy, ServeConfig(port=0, **config), str(checkpoint)).start_in_thread()
-        servers.append(server)
-        return server
-    yield start
-    for server in servers:
-        server.stop()
-
-
-def _client(server, headers=None):
-    ws = connect(f"ws://127.0.0.1:{server.port}", compression=None, max_size=None, additional_headers=headers)
-    return ws, unpack(ws.recv())
+_client = client
 
 
 def _frame(env_obs) -> dict:
@@ -68,6 +42,7 @@ def test_metadata_and_a_served_episode_equal_in_process_act(serve, checkpoint):
         ws.send(pack(_frame(obs)))   # a loop that calls every step: the server keeps the history
         reply = unpack(ws.recv())
         assert reply["step"] == t and reply["actions"].shape == (8, 2) and reply["actions"].dtype == np.float32
+        assert reply["history_padded"] is (t == 0)   # only the first frame's history repeats it, as in-process
         assert {"infer_ms", "queue_ms", "prev_total_ms"} <= set(reply["server_timing"])
         if t % 8 == 0:
             chunk = reply["actions"]
@@ -91,8 +66,36 @@ def test_client_side_history_and_full_chunk(serve, checkpoint):
     local = Policy.from_checkpoint(checkpoint)
     chunk, _ = local.decide_from([obs0, obs1]).actions, None
     assert reply["actions"].shape == (16, 2) and np.allclose(reply["actions"], chunk, atol=1e-5)
+    assert reply["history_padded"] is False   # two real frames: nothing padded
     ws.send(pack({**_frame(obs1), "step": 9}))   # a gap in the steps: the history restarts, as at an episode start
     assert unpack(ws.recv())["history_padded"] is True
+    ws.send(pack({**_frame(obs0), "step": 10}))  # the next step: two real frames again
+    assert unpack(ws.recv())["history_padded"] is False
+    env.close()
+
+
+def test_the_documented_chunk_loop_equals_in_process_act(serve, checkpoint):
+    """docs/serving.md's loop (ActionChunkBroker: one request per chunk, the newest obs_steps frames stacked with
+    their step) drives an episode bit-equal to in-process act, and only its first reply says history_padded (one
+    frame at step 0); a loop sending the newest frame alone, without its step, would decide from frames 0 and 8."""
+    server = serve()
+    ws, meta = _client(server)
+    local = Policy.from_checkpoint(checkpoint)
+    env = gym.make("JEPA/PushT-v0", image_size=32)
+    obs, _ = env.reset(seed=3)
+    frames, chunk, padded = deque(maxlen=meta["obs_steps"]), None, []
+    for step in range(40):
+        frames.append(obs)
+        if step % meta["action"]["chunk"][0] == 0:   # what the broker does: a request when its chunk runs out
+            ws.send(pack({**{k: np.stack([f[k] for f in frames]) for k in obs}, "episode": "e1", "step": step}))
+            reply = unpack(ws.recv())
+            chunk = reply["actions"]
+            padded.append(reply["history_padded"])
+        action = chunk[step % 8]
+        assert np.array_equal(action, local.act(obs)), step   # bit-equal: same weights, threads and batch size
+        obs, *_ = env.step(action)
+    assert padded == [True, False, False, False, False]
+    ws.close()
     env.close()
 
 
@@ -111,24 +114,40 @@ BAD = [
     (pack({"top_image": np.zeros((32, 32, 3), np.uint8), "agent_pos": np.zeros(2, np.float32), "step": "x"}),
      "'step' must be int"),
     (pack([1, 2, 3]), "a request is a map of observation keys"),
-    (b"\x00" * (9 * 2**20), "above the limit"),
+    (pack({b"\xff\xfe": 1, **GOOD}), "the map key b'\\xff\\xfe' is not UTF-8 text"),
+    (msgpack.packb({b"\xff": 1}, use_bin_type=False), "is not msgpack as openpi-client packs it"),   # str, not UTF-8
+    (pack({**GOOD, "agent_pos": [[1.0, 2.0], [3.0]]}), "agent_pos is not an array (a ragged or mixed list?)"),
+    (pack({**GOOD, "agent_pos": [1.0, "x"]}), "agent_pos has dtype <U32; send float32"),
+    (pack({**GOOD, "step": {b"__npgeneric__": True, b"data": 4_000_000, b"dtype": "|V8"}}),
+     "arrays of dtype '|V8' are refused"),
+    (pack({**GOOD, "top_image": {b"__ndarray__": True, b"data": b"", b"dtype": "|O", b"shape": [0]}}),
+     "arrays of dtype '|O' are refused"),
+    (pack({**GOOD, "top_image": {b"__ndarray__": True, b"data": b"x", b"dtype": "|u1", b"shape": [10**12]}}),
+     "shape must be a list of at most 8 sizes"),
+    (pack({**GOOD, "top_image": {b"__ndarray__": True, b"data": b"x", b"dtype": "|u1", b"shape": [2, 3]}}),
+     "an array's data has 1 bytes, its shape [2, 3] of uint8 needs 6"),
+    (msgpack.packb({**{k: v.tolist() for k, v in GOOD.items()}, "x": msgpack.ExtType(5, b"1")}),
+     "msgpack extension type 5 is refused"),
 ]
 
 
-def test_every_bad_request_gets_a_message_and_the_connection_survives(serve):
+def test_every_bad_request_gets_a_message_and_the_connection_survives(serve, events):
     server = serve()
     ws, _ = _client(server)
-    good = {"top_image": np.zeros((32, 32, 3), np.uint8), "agent_pos": np.zeros(2, np.float32)}
     for frame, message in BAD:
         ws.send(frame)
         reply = ws.recv()
         assert isinstance(reply, str) and message in reply, (message, reply[:300])
-        ws.send(pack(good))   # and the same connection still serves
+        ws.send(pack(GOOD))   # and the same connection still serves
         assert unpack(ws.recv())["actions"].shape == (8, 2)
     ws.close()
+    rejected = [e for e in events() if e["event"] == "rejected"]
+    assert len(rejected) == len(BAD) and len({e["session"] for e in rejected}) == 1
+    assert all(e["peer"].startswith("127.0.0.1:") and e["ts"].endswith("Z") for e in rejected)
+    assert [message in e["problem"] for e, (_, message) in zip(rejected, BAD)] == [True] * len(BAD)
 
 
-def test_a_client_leaving_mid_request_and_a_full_queue(serve):
+def test_a_client_leaving_mid_request_and_a_full_queue(serve, events):
     server = serve(max_queue=1)
     good = pack({"top_image": np.zeros((32, 32, 3), np.uint8), "agent_pos": np.zeros(2, np.float32)})
     ws, _ = _client(server)
@@ -151,6 +170,8 @@ def test_a_client_leaving_mid_request_and_a_full_queue(serve):
             reply = ws.recv()
         assert unpack(reply)["actions"].shape == (8, 2)
         ws.close()
+    busy = [e for e in events() if e["event"] == "busy"]
+    assert len(busy) >= 4 and all({"ts", "peer", "session", "queue"} <= set(e) for e in busy)
 
 
 def test_robots_at_once_keep_their_own_episodes_and_share_batches(serve, checkpoint):
@@ -183,12 +204,19 @@ def test_robots_at_once_keep_their_own_episodes_and_share_batches(serve, checkpo
     assert server.batcher.items == 8 and server.batcher.batches < 8
 
 
-def test_auth_and_a_network_bind(serve, checkpoint):
+def test_auth_and_a_network_bind(serve, checkpoint, events, caplog):
     server = serve(api_key="s3cret")
     with pytest.raises(websockets.InvalidStatus, match="401"):
         _client(server)
     with pytest.raises(websockets.InvalidStatus, match="401"):
         _client(server, headers={"Authorization": "Api-Key wrong"})
+    # two headers, even both right, were an HTTP 500 with a traceback in the log (Headers.get raised)
+    for pair in (["Api-Key s3cret", "Api-Key s3cret"], ["Api-Key wrong", "Api-Key s3cret"]):
+        with pytest.raises(websockets.InvalidStatus, match="401"):
+            _client(server, headers=[("Authorization", value) for value in pair])
+    assert [e.get("problem") for e in events() if e["event"] == "unauthorized"] == [
+        "no Authorization header", "a wrong key", "2 Authorization headers", "2 Authorization headers"]
+    assert not [r for r in caplog.records if r.levelname == "ERROR"], "a rejected handshake logged an error"
     ws, meta = _client(server, headers={"Authorization": "Api-Key s3cret"})
     assert meta["task"] == "PushT"
     ws.close()
@@ -237,14 +265,19 @@ def test_the_monitor_inside_scores_decisions_and_never_blocks(serve, tmp_path):
 
 
 def test_a_down_monitor_costs_the_replies_nothing(serve):
-    """The monitor is unreachable: replies come at the same pace and the records wait in the bounded buffer."""
+    """The monitor is unreachable: replies come at the same pace and the records wait in the bounded buffer. The
+    reply to an outcome names the episode it ended everywhere (its monitor state named the next one)."""
     server = serve(monitor_url="http://127.0.0.1:9", monitor_key="k")
     ws, _ = _client(server)
     env = gym.make("JEPA/PushT-v0", image_size=32)
     start = time.perf_counter()
-    replies = _episode(ws, env, 16, "ep-down")
-    per_request = (time.perf_counter() - start) / 16
+    replies = _episode(ws, env, 16, "ep-down", outcome=False)
+    per_request = (time.perf_counter() - start) / 17
     assert per_request < 0.5, f"{per_request * 1e3:.0f} ms per request with the monitor down"
-    assert replies[-1]["monitor"]["pending_records"] > 0 and replies[-1]["monitor"]["dropped_records"] == 0
+    assert replies[-2]["monitor"]["pending_records"] > 0 and replies[-2]["monitor"]["dropped_records"] == 0
+    ended = replies[-1]
+    assert ended["episode"] == ended["ended"]["episode"] == ended["monitor"]["episode"] == "ep-down"
+    ws.send(pack(GOOD))   # no id: the next episode gets a new one
+    assert unpack(ws.recv())["episode"] not in ("ep-down", "")
     ws.close()
     env.close()

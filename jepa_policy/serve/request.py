@@ -1,0 +1,125 @@
+"""A request checked against the task: the observation keys with their shapes and dtypes, finite values, and the
+control fields (``episode``, ``reset``, ``step``, ``outcome``, ``observe``, ``full_chunk``).
+
+``decode_request`` is everything the server does with a frame's bytes before the model: it runs on a worker
+thread, so a slow or hostile frame never holds up the event loop that serves the other robots.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from jepa_policy.policy import Policy
+from jepa_policy.serve.codec import MAX_REQUEST_BYTES, RequestError, unpack
+
+CONTROL_FIELDS = (("episode", (str, int)), ("reset", bool), ("step", int), ("outcome", bool), ("observe", bool),
+                  ("full_chunk", bool))
+
+
+@dataclass(frozen=True)
+class RequestSchema:
+    """What a request must hold: each observation key's shape and dtype, and how many frames a decision uses."""
+
+    task: str
+    shapes: dict[str, tuple[tuple[int, ...], str]]
+    obs_steps: int
+
+    @classmethod
+    def of(cls, policy: Policy) -> "RequestSchema":
+        spec = policy.spec
+        shapes = {k: ((spec.image_size, spec.image_size, 3), "uint8") for k in spec.image_keys}
+        shapes.update({k: ((d,), "float32") for k, d in spec.lowdim})
+        return cls(spec.name, shapes, policy.obs_steps)
+
+    def describe(self) -> str:
+        return ", ".join(f"{k} {dt}{list(sh)}" for k, (sh, dt) in self.shapes.items())
+
+
+@dataclass
+class Parsed:
+    frames: list[dict]            # newest last, unbatched arrays
+    episode: str | None
+    reset: bool
+    step: int | None
+    outcome: bool | None
+    observe: bool
+    full_chunk: bool
+
+
+def decode_request(message: bytes | str, schema: RequestSchema) -> Parsed:
+    """A websocket message -> a checked request; any problem is a RequestError naming it and the fix."""
+    if isinstance(message, str):
+        raise RequestError("send binary frames packed with msgpack (openpi-client's packer), not text")
+    if len(message) > MAX_REQUEST_BYTES:   # websockets refuses these before reading them; a second line of defence
+        raise RequestError(f"the request has {len(message)} bytes, above the limit {MAX_REQUEST_BYTES}; send the "
+                           "task's observation keys only, at the metadata's shapes")
+    return parse_request(unpack(message), schema)
+
+
+def _text_key(key):
+    if not isinstance(key, bytes):
+        return key
+    try:
+        return key.decode()
+    except UnicodeDecodeError:
+        raise RequestError(f"the map key {key[:32]!r} is not UTF-8 text; keys are the observation names of the "
+                           "metadata and the control fields") from None
+
+
+def parse_request(msg, schema: RequestSchema) -> Parsed:
+    """Check a decoded request against the task: keys, shapes, dtypes, finite values, control fields."""
+    if not isinstance(msg, dict):
+        raise RequestError(f"a request is a map of observation keys, got {type(msg).__name__}")
+    msg = {_text_key(k): v for k, v in msg.items()}
+    control = {}
+    for name, kind in CONTROL_FIELDS:
+        value = msg.get(name)
+        if isinstance(value, np.generic):
+            value = value.item()
+        if value is not None and (not isinstance(value, kind) or (kind is int and isinstance(value, bool))):
+            raise RequestError(f"'{name}' must be {kind.__name__ if isinstance(kind, type) else 'str or int'}, "
+                               f"got {type(value).__name__}")
+        control[name] = value
+    if control["step"] is not None and not 0 <= control["step"] < 2**31:
+        raise RequestError(f"'step' must be an episode step >= 0, got {control['step']}")
+    only_control = control["outcome"] is not None or control["reset"]
+    present = [k for k in schema.shapes if k in msg]
+    if not present and only_control:
+        frames: list[dict] = []
+    else:
+        missing = [k for k in schema.shapes if k not in msg]
+        if missing:
+            raise RequestError(f"the observation lacks {missing}; task {schema.task} needs {schema.describe()} "
+                               "(see the metadata's 'observation')")
+        arrays = {key: _observation(key, msg[key], shape, dtype, schema.obs_steps)
+                  for key, (shape, dtype) in schema.shapes.items()}
+        stacked = {k: len(a) for k, a in arrays.items()}
+        if len(set(stacked.values())) > 1:
+            raise RequestError(f"the keys stack different numbers of frames ({stacked}); send the same number for "
+                               "every key")
+        frames = [{k: v[i] for k, v in arrays.items()} for i in range(len(arrays[next(iter(arrays))]))]
+    episode = control["episode"]
+    return Parsed(frames, None if episode is None else str(episode)[:128], bool(control["reset"]), control["step"],
+                  control["outcome"], bool(control["observe"]), bool(control["full_chunk"]))
+
+
+def _observation(key: str, value, shape: tuple[int, ...], dtype: str, obs_steps: int) -> np.ndarray:
+    """One observation key as (n, *shape) of its dtype: the newest frame, or the newest n <= obs_steps stacked."""
+    try:
+        arr = np.asarray(value)
+    except (ValueError, TypeError, OverflowError):   # a ragged or mixed list
+        raise RequestError(f"{key} is not an array (a ragged or mixed list?); send a numpy array of shape "
+                           f"{list(shape)} {dtype}") from None
+    if arr.shape == shape:
+        arr = arr[None]
+    elif not (arr.ndim == len(shape) + 1 and arr.shape[1:] == shape and 1 <= arr.shape[0] <= obs_steps):
+        raise RequestError(f"{key} has shape {list(arr.shape)}; send {list(shape)} (the newest frame) or "
+                           f"[n, {', '.join(map(str, shape))}] with n <= {obs_steps} (the newest frames)")
+    if arr.dtype != np.dtype(dtype):
+        if dtype == "uint8" or arr.dtype.kind not in "fiu":
+            raise RequestError(f"{key} has dtype {arr.dtype}; send {dtype}")
+        arr = arr.astype(dtype)
+    if arr.dtype.kind == "f" and not np.all(np.isfinite(arr)):
+        raise RequestError(f"{key} has NaN or infinite values; send finite values")
+    return arr

@@ -1,0 +1,277 @@
+"""The policy server: websocket connections (auth, the connection cap, TLS), one session per robot, requests
+decoded off the event loop, decisions through the batcher, the monitor inside, and the event log.
+
+Memory is bounded before anything is read: websockets refuses a frame above ``MAX_REQUEST_BYTES`` from its header
+(close code 1009), reads a connection's next frame only once the previous one is taken (``max_queue=0``), and a
+connection beyond ``--max-connections`` is refused at the handshake (HTTP 503), so buffered requests stay under
+about 2 x ``max_connections`` x ``MAX_REQUEST_BYTES``.
+"""
+from __future__ import annotations
+
+import asyncio
+import hmac
+import http
+import socket
+import ssl
+import threading
+import time
+import uuid
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+
+import numpy as np
+import torch
+import websockets
+from websockets.asyncio.server import ServerConnection, serve
+from websockets.http11 import Request, Response
+
+from jepa_policy.evaluate import nmse
+from jepa_policy.policy import Policy
+from jepa_policy.serve.batcher import Batcher, ServerBusy, Work
+from jepa_policy.serve.codec import MAX_ARRAYS, MAX_MAPS, MAX_REQUEST_BYTES, RequestError, pack
+from jepa_policy.serve.config import ServeConfig, check_config
+from jepa_policy.serve.events import EventLog, log_to_stderr
+from jepa_policy.serve.request import RequestSchema, decode_request
+from jepa_policy.serve.sessions import Session
+from monitor_service.client import MonitorClient
+
+
+def _peer(connection: ServerConnection) -> str:
+    address = connection.remote_address
+    return f"{address[0]}:{address[1]}" if address else "?"
+
+
+class PolicyServer:
+    """Serves one checkpoint's policy to any number of robots over openpi's websocket protocol."""
+
+    def __init__(self, policy: Policy, config: ServeConfig, checkpoint: str = "", events: EventLog | None = None):
+        check_config(config)
+        self.policy, self.config, self.checkpoint = policy, config, checkpoint
+        self.schema = RequestSchema.of(policy)
+        self.metadata = server_metadata(policy, checkpoint, config)
+        self.events = events or EventLog()
+        self.monitor: MonitorClient | None = None
+        self.alerts: dict[str, int | None] = {}
+        self._alerts_lock = threading.Lock()
+        self.batcher: Batcher | None = None
+        self.decoder = ThreadPoolExecutor(max_workers=2, thread_name_prefix="jepa-serve-decode")
+        self.connections = 0
+        self._admitted: set[ServerConnection] = set()
+        self.port: int | None = None
+        self.ready = threading.Event()
+        self._stop: asyncio.Event | None = None
+        self._loop: asyncio.AbstractEventLoop | None = None
+
+    # ------------------------------------------------------------ monitor
+    def _on_monitor_result(self, records: list[dict], result: dict) -> None:
+        with self._alerts_lock:
+            self.alerts.update(result.get("alert_state") or {})
+
+    def _monitor_state(self, session: Session, scored: list[dict]) -> dict:
+        with self._alerts_lock:
+            alert_id = self.alerts.get(session.episode)
+        state = {"episode": session.episode, "alert": alert_id is not None, "alert_id": alert_id,
+                 "scored": scored, "nmse": scored[-1]["nmse"] if scored else None}
+        if self.monitor is not None:
+            state.update(pending_records=self.monitor.pending, dropped_records=self.monitor.stats.dropped)
+        return state
+
+    # ------------------------------------------------------------ websocket
+    def _process_request(self, connection: ServerConnection, request: Request) -> Response | None:
+        if request.path == "/healthz":
+            return connection.respond(http.HTTPStatus.OK, "OK\n")
+        peer = _peer(connection)
+        if self.config.api_key is not None:
+            given = request.headers.get_all("Authorization")
+            expected = f"Api-Key {self.config.api_key}".encode()
+            if len(given) != 1 or not hmac.compare_digest(given[0].encode(), expected):
+                problem = ("no Authorization header" if not given else f"{len(given)} Authorization headers"
+                           if len(given) > 1 else "a wrong key")
+                self.events.emit("unauthorized", peer=peer, status=401, problem=problem)
+                return connection.respond(http.HTTPStatus.UNAUTHORIZED, "send one 'Authorization: Api-Key <key>' "
+                                          "header with the server's key (openpi-client's api_key)\n")
+        self._admitted = {c for c in self._admitted if not c.transport.is_closing()}
+        if len(self._admitted) >= self.config.max_connections:
+            self.events.emit("refused", peer=peer, status=503, connections=len(self._admitted),
+                             limit=self.config.max_connections)
+            return connection.respond(http.HTTPStatus.SERVICE_UNAVAILABLE,
+                                      f"the server has {len(self._admitted)} connections, its limit "
+                                      "(--max-connections); retry later, or raise the limit\n")
+        self._admitted.add(connection)
+        return None
+
+    async def _handler(self, ws: ServerConnection) -> None:
+        self.connections += 1
+        session = Session(uuid.uuid4().hex[:8], self.policy.obs_steps, peer=_peer(ws))
+        session.new_episode(None)
+        opened = time.monotonic()
+        self.events.emit("connect", peer=session.peer, session=session.id,
+                         client=", ".join(ws.request.headers.get_all("User-Agent")) or None)
+        try:
+            await ws.send(pack(self.metadata))
+            async for message in ws:
+                start = time.monotonic()
+                session.requests += 1
+                try:
+                    reply = await self._answer(session, message)
+                except ServerBusy as exc:
+                    self.events.emit("busy", peer=session.peer, session=session.id, queue=self.batcher.queue.qsize())
+                    await ws.send(f"jepa-policy serve: {exc}")
+                    continue
+                except RequestError as exc:
+                    self.events.emit("rejected", peer=session.peer, session=session.id, problem=str(exc)[:300])
+                    await ws.send(f"jepa-policy serve: {exc}")
+                    continue
+                except Exception as exc:   # a bug of ours: the robot hears of it, the log keeps the traceback
+                    self.events.emit("error", peer=session.peer, session=session.id, exc_info=exc,
+                                     problem=f"{type(exc).__name__}: {exc}"[:300])
+                    await ws.send(f"jepa-policy serve: the server failed on this request ({type(exc).__name__}); "
+                                  "a bug of the server: report it with the server's log")
+                    continue
+                reply["server_timing"]["prev_total_ms"] = session.prev_total_ms
+                await ws.send(pack(reply))
+                session.prev_total_ms = (time.monotonic() - start) * 1e3
+        except websockets.ConnectionClosed:
+            pass   # a client that leaves mid-request: its result is dropped, nothing else changes
+        finally:
+            self.connections -= 1
+            sent, received = ws.protocol.close_sent, ws.protocol.close_rcvd   # either may be missing (a dropped TCP)
+            self.events.emit("disconnect", peer=session.peer, session=session.id, requests=session.requests,
+                             seconds=round(time.monotonic() - opened, 3),
+                             close_sent=sent.code if sent else None, close_received=received.code if received else None,
+                             reason=(sent and sent.reason) or (received and received.reason) or None)
+
+    async def _answer(self, session: Session, message) -> dict:
+        parsed = await asyncio.get_running_loop().run_in_executor(self.decoder, decode_request, message, self.schema)
+        if parsed.reset or (parsed.episode is not None and parsed.episode != session.episode):
+            session.new_episode(parsed.episode)
+        reply: dict = {"episode": session.episode, "server_timing": {}}
+        fed = []
+        if parsed.frames:
+            fed, reply["history_padded"] = session.feed(parsed.frames, parsed.step)
+        reply["step"] = session.step
+        # realized latents only for the monitor: without it a reply costs one decision, as in-process act
+        targets = [(s, f) for s, f in fed if s in session.pending] if self.monitor is not None else []
+        want_actions = bool(parsed.frames) and not parsed.observe and parsed.outcome is None
+        if want_actions or targets:
+            actions, z_hat, latents, timing = await self.batcher.submit(Work(
+                list(session.history) if want_actions else None, [f for _, f in targets],
+                asyncio.get_running_loop().create_future()))
+            reply["server_timing"].update(timing)
+        else:
+            actions, z_hat, latents = None, None, []
+        scored = []
+        for (s, _), z_real in zip(targets, latents):
+            t, predicted = session.pending.pop(s)
+            value = float(nmse(predicted, z_real))
+            scored.append({"decision_step": t, "target_step": s, "nmse": value})
+            if self.monitor is not None:
+                self.monitor.target(session.episode, s, z_real)
+        if actions is not None:
+            chunk = actions if parsed.full_chunk else actions[: self.policy.n_action_steps]
+            reply["actions"] = np.ascontiguousarray(chunk, dtype=np.float32)
+            if z_hat is not None and self.monitor is not None:
+                session.pending[session.step + self.policy.k] = (session.step, z_hat)
+                self.monitor.decision(self.config.task_id or self.policy.spec.name, session.episode, session.step,
+                                      self.policy.k, z_hat, checkpoint=self.checkpoint or None)
+        if self.monitor is not None or scored:
+            reply["monitor"] = self._monitor_state(session, scored)
+        if parsed.outcome is not None:   # the reply names the episode that ended; the next request starts another
+            if self.monitor is not None:
+                self.monitor.outcome(session.episode, parsed.outcome, length=session.step + 1)
+            reply["ended"] = {"episode": session.episode, "success": parsed.outcome}
+            session.new_episode(None)
+        return reply
+
+    # ------------------------------------------------------------ lifecycle
+    def _tls_context(self) -> ssl.SSLContext | None:
+        if not self.config.tls_cert:
+            return None
+        ctx = ssl.SSLContext(ssl.PROTOCOL_TLS_SERVER)
+        ctx.load_cert_chain(self.config.tls_cert, self.config.tls_key)
+        if self.config.tls_client_ca:
+            ctx.load_verify_locations(cafile=self.config.tls_client_ca)
+            ctx.verify_mode = ssl.CERT_REQUIRED
+        return ctx
+
+    async def serve(self) -> None:
+        ctx = self._tls_context()
+        if self.config.monitor_url:
+            self.monitor = MonitorClient(self.config.monitor_url, self.config.monitor_key, robot=self.config.robot,
+                                         max_buffer=self.config.monitor_buffer, on_result=self._on_monitor_result)
+        self._loop = asyncio.get_running_loop()
+        self._stop = asyncio.Event()
+        self.batcher = Batcher(self.policy, self.config.max_batch, self.config.max_queue)
+        self.batcher.start()
+        try:
+            async with serve(self._handler, self.config.host, self.config.port, ssl=ctx, compression=None,
+                             max_size=MAX_REQUEST_BYTES, max_queue=0,
+                             process_request=self._process_request) as server:
+                self.port = next(s.getsockname()[1] for s in server.sockets if s.family in (socket.AF_INET,
+                                                                                              socket.AF_INET6))
+                self.ready.set()
+                await self._stop.wait()
+        finally:
+            self.batcher.task.cancel()
+            self.batcher.executor.shutdown(wait=False)
+            self.decoder.shutdown(wait=False)
+            if self.monitor is not None:
+                self.monitor.close(timeout=10)
+
+    def run(self) -> None:
+        asyncio.run(self.serve())
+
+    def start_in_thread(self) -> "PolicyServer":
+        """Serve from a background thread (tests, benchmarks); returns once the port is bound."""
+        self._thread = threading.Thread(target=self.run, name="jepa-policy-serve", daemon=True)
+        self._thread.start()
+        if not self.ready.wait(60):
+            raise RuntimeError("the policy server did not start")
+        return self
+
+    def stop(self) -> None:
+        if self._loop is not None and self._stop is not None:
+            self._loop.call_soon_threadsafe(self._stop.set)
+        if getattr(self, "_thread", None) is not None:
+            self._thread.join(timeout=30)
+
+
+def server_metadata(policy: Policy, checkpoint: str, config: ServeConfig) -> dict:
+    """What a client learns on connect: the task, every observation key with its shape and dtype, the chunk."""
+    spec = policy.spec
+    return {
+        "server": "jepa-policy", "protocol": "openpi websocket (msgpack-numpy)", "task": spec.name,
+        "env_id": spec.env_id, "checkpoint": Path(checkpoint).name if checkpoint else None,
+        "checkpoint_step": policy.checkpoint_step, "arm": policy.model.cfg.arm,
+        "observation": {k: {"shape": list(sh), "dtype": dt} for k, (sh, dt) in RequestSchema.of(policy).shapes.items()},
+        "obs_steps": policy.obs_steps,
+        "action": {"dim": spec.action_dim, "chunk": [policy.n_action_steps, spec.action_dim], "horizon": spec.horizon,
+                   "convention": "absolute" if spec.suite != "embedded" else "absolute agent target (pixels)"},
+        "control_hz": spec.control_hz, "future_k": policy.k,
+        "request_fields": {"episode": "str or int: a new id starts an episode", "reset": "bool: new episode",
+                           "step": "int: the newest frame's episode step", "outcome": "bool: the episode's result",
+                           "observe": "bool: feed frames only", "full_chunk": "bool: all H actions"},
+        "monitor": None if not config.monitor_url else {"task_id": config.task_id or spec.name},
+        "limits": {"max_request_bytes": MAX_REQUEST_BYTES, "max_arrays": MAX_ARRAYS, "max_maps": MAX_MAPS,
+                   "max_batch": config.max_batch, "max_queue": config.max_queue,
+                   "max_connections": config.max_connections},
+    }
+
+
+def serve_checkpoint(checkpoint: str, config: ServeConfig, device: str = "cpu", threads: int | None = None) -> None:
+    """Load a checkpoint (refused unread if it is not plain data) and serve it until interrupted; the event log
+    goes to stderr as JSON lines."""
+    check_config(config)
+    if threads:
+        torch.set_num_threads(threads)
+    policy = Policy.from_checkpoint(checkpoint, device=device)
+    log_to_stderr()
+    server = PolicyServer(policy, config, checkpoint)
+    print(f"jepa-policy serve: {policy.spec.name} ({policy.model.cfg.arm}, step {policy.checkpoint_step}) on "
+          f"{'wss' if config.tls_cert else 'ws'}://{config.host}:{config.port}"
+          + (" (clients need a certificate of --tls-client-ca)" if config.tls_client_ca else "")
+          + (f", monitor {config.monitor_url}" if config.monitor_url else ""), flush=True)
+    try:
+        server.run()
+    except KeyboardInterrupt:
+        pass

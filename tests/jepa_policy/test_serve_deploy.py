@@ -1,0 +1,169 @@
+"""Deploying jepa-policy serve off loopback (issue 36, item 1): a network bind needs an API key or mutual TLS (TLS
+alone let a client with neither key nor certificate drive the robot), and the keys come from the environment or
+a file so that no local user reads them in ``ps``. Real certificates (openssl), real `jepa-policy serve` processes,
+the real monitor service."""
+from __future__ import annotations
+
+import os
+import shutil
+import socket
+import ssl
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import httpx
+import pytest
+import websockets
+from _serve_helpers import GOOD, checkpoint, serve  # noqa: F401 (fixtures)
+from websockets.sync.client import connect
+
+from jepa_policy.cli import main as policy_main
+from jepa_policy.policy import Policy
+from jepa_policy.serve import PolicyServer, ServeConfig, pack, read_secret, unpack
+
+pytestmark = pytest.mark.timeout(300)
+
+
+def _openssl(*args: str, cwd: Path) -> None:
+    subprocess.run(["openssl", *args], cwd=cwd, check=True, capture_output=True)
+
+
+def _signed(name: str, ca: str, cwd: Path, san: str = "") -> None:
+    _openssl("req", "-newkey", "ec", "-pkeyopt", "ec_paramgen_curve:prime256v1", "-nodes", "-keyout", f"{name}.key",
+             "-out", f"{name}.csr", "-subj", f"/CN={name}", cwd=cwd)
+    ext = cwd / f"{name}.ext"
+    ext.write_text(f"subjectAltName={san}\n" if san else "basicConstraints=CA:FALSE\n")
+    _openssl("x509", "-req", "-in", f"{name}.csr", "-CA", f"{ca}.pem", "-CAkey", f"{ca}.key", "-CAcreateserial",
+             "-out", f"{name}.pem", "-days", "1", "-extfile", str(ext), cwd=cwd)
+
+
+@pytest.fixture(scope="module")
+def pki(tmp_path_factory):
+    """A CA that signs the server's and one robot's certificate, and a stranger's CA with its own robot."""
+    if shutil.which("openssl") is None:
+        pytest.skip("needs the openssl command to make certificates")
+    d = tmp_path_factory.mktemp("pki")
+    for ca in ("ca", "other-ca"):
+        _openssl("req", "-x509", "-newkey", "ec", "-pkeyopt", "ec_paramgen_curve:prime256v1", "-nodes", "-keyout",
+                 f"{ca}.key", "-out", f"{ca}.pem", "-days", "1", "-subj", f"/CN={ca}", cwd=d)
+    _signed("server", "ca", d, san="IP:127.0.0.1,DNS:localhost")
+    _signed("robot", "ca", d)
+    _signed("stranger", "other-ca", d)
+    return d
+
+
+def _tls_client(port: int, pki: Path, cert: str | None):
+    ctx = ssl.create_default_context(cafile=str(pki / "ca.pem"))
+    if cert:
+        ctx.load_cert_chain(str(pki / f"{cert}.pem"), str(pki / f"{cert}.key"))
+    ws = connect(f"wss://127.0.0.1:{port}", ssl=ctx, compression=None, max_size=None, open_timeout=10)
+    return ws, unpack(ws.recv(timeout=10))
+
+
+def test_a_network_bind_needs_a_key_or_mutual_tls(serve, checkpoint, pki):
+    tls = {"tls_cert": str(pki / "server.pem"), "tls_key": str(pki / "server.key")}
+    with pytest.raises(ValueError, match="mutual TLS .*--tls-client-ca"):   # TLS alone was accepted
+        PolicyServer(Policy.from_checkpoint(checkpoint), ServeConfig(host="0.0.0.0", port=0, **tls))
+    server = serve(host="0.0.0.0", tls_client_ca=str(pki / "ca.pem"), **tls)
+    ws, meta = _tls_client(server.port, pki, "robot")
+    assert meta["task"] == "PushT"
+    ws.send(pack(GOOD))
+    assert unpack(ws.recv())["actions"].shape == (8, 2)
+    ws.close()
+    for cert in (None, "stranger"):   # no certificate, or one our CA did not sign: no metadata, no actions
+        with pytest.raises((ssl.SSLError, ConnectionError, websockets.InvalidHandshake, websockets.ConnectionClosed)):
+            _tls_client(server.port, pki, cert)
+
+
+def test_secrets_from_a_file_or_the_environment(tmp_path, monkeypatch):
+    key = tmp_path / "api.key"
+    key.write_text("from-file\n")
+    key.chmod(0o600)
+    monkeypatch.setenv("JEPA_TEST_KEY", "from-env")
+    assert read_secret("--api-key", None, str(key), "JEPA_TEST_KEY") == "from-file"
+    assert read_secret("--api-key", None, None, "JEPA_TEST_KEY") == "from-env"
+    assert read_secret("--api-key", "argv", None, "JEPA_TEST_KEY") == "argv"
+    monkeypatch.delenv("JEPA_TEST_KEY")
+    assert read_secret("--api-key", None, None, "JEPA_TEST_KEY") is None
+    with pytest.raises(ValueError, match="not both"):
+        read_secret("--api-key", "argv", str(key), "JEPA_TEST_KEY")
+    key.chmod(0o644)
+    with pytest.raises(ValueError, match="readable by other users; chmod 600"):
+        read_secret("--api-key", None, str(key), "JEPA_TEST_KEY")
+    (tmp_path / "empty.key").write_text("")
+    (tmp_path / "empty.key").chmod(0o600)
+    with pytest.raises(ValueError, match="is empty"):
+        read_secret("--monitor-key", None, str(tmp_path / "empty.key"), "JEPA_TEST_KEY")
+
+
+def test_bad_key_files_are_one_line_errors(checkpoint, tmp_path, capsys):
+    key = tmp_path / "open.key"
+    key.write_text("k\n")
+    key.chmod(0o644)
+    for flags, message in ((["--api-key-file", str(key)], "chmod 600"),
+                           (["--api-key-file", str(tmp_path / "none")], "does not exist"),
+                           (["--api-key", "a", "--api-key-file", str(key)], "not both"),
+                           (["--monitor-url", "http://127.0.0.1:9"], "--monitor-url needs --monitor-key")):
+        assert policy_main(["serve", "--checkpoint", str(checkpoint), *flags]) == 2
+        assert message in capsys.readouterr().err
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def test_the_served_keys_never_appear_on_the_command_line(checkpoint, tmp_path):
+    """`jepa-policy serve` reads its API key from a file and its monitor key from JEPA_POLICY_MONITOR_KEY: clients
+    need the key, the monitor receives the decisions, and neither key is in the process's argv."""
+    from monitor_service.server import start_server
+
+    admin = "deploy-test-admin"
+    with start_server(f"sqlite:///{tmp_path / 'monitor.db'}", admin_key=admin) as monitor:
+        with httpx.Client(base_url=monitor.url, headers={"X-API-Key": admin}) as http:
+            assert http.put("/v1/tasks/PushT", json={}).status_code == 200
+            robot_key = http.post("/v1/keys", json={"name": "arm", "role": "robot", "robot": "arm"}).json()["key"]
+            api_key = "api-" + os.urandom(8).hex()
+            key_file = tmp_path / "api.key"
+            key_file.write_text(api_key + "\n")
+            key_file.chmod(0o600)
+            port = _free_port()
+            proc = subprocess.Popen(
+                [sys.executable, "-m", "jepa_policy.cli", "serve", "--checkpoint", str(checkpoint), "--port",
+                 str(port), "--threads", "1", "--api-key-file", str(key_file), "--monitor-url", monitor.url,
+                 "--robot", "arm"], env={**os.environ, "JEPA_POLICY_MONITOR_KEY": robot_key},
+                stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+            try:
+                deadline = time.monotonic() + 120
+                while True:
+                    try:
+                        if httpx.get(f"http://127.0.0.1:{port}/healthz").text == "OK\n":
+                            break
+                    except httpx.HTTPError:
+                        pass
+                    assert proc.poll() is None and time.monotonic() < deadline, proc.stderr.read().decode()[-2000:]
+                    time.sleep(0.2)
+                argv = Path(f"/proc/{proc.pid}/cmdline").read_bytes().decode()
+                assert api_key not in argv and robot_key not in argv
+                with pytest.raises(websockets.InvalidStatus, match="401"):
+                    connect(f"ws://127.0.0.1:{port}")
+                with connect(f"ws://127.0.0.1:{port}", additional_headers={"Authorization": f"Api-Key {api_key}"},
+                             compression=None, max_size=None) as ws:
+                    assert unpack(ws.recv())["monitor"] == {"task_id": "PushT"}
+                    for step in range(3):
+                        ws.send(pack({**GOOD, "episode": "deploy-ep", "step": step}))
+                        assert unpack(ws.recv())["actions"].shape == (8, 2)
+                deadline = time.monotonic() + 30
+                while http.get("/v1/episodes/deploy-ep").status_code != 200 or \
+                        http.get("/v1/episodes/deploy-ep").json()["n_decisions"] < 3:
+                    assert time.monotonic() < deadline, "the monitor never received the decisions"
+                    time.sleep(0.2)
+            finally:
+                proc.terminate()
+                _, err = proc.communicate(timeout=30)
+    lines = err.decode().splitlines()
+    assert any('"event": "unauthorized"' in line for line in lines), lines[-20:]
+    assert not any(api_key in line or robot_key in line for line in lines)

@@ -1,0 +1,212 @@
+"""jepa-policy serve against a hostile peer (issue 36, item 1): every numpy path of the wire checked before
+anything is built, bounded frames refused from their header, a connection cap, and an event log that a flood
+cannot flood. Real servers on real sockets; the codec's pure checks at the end."""
+from __future__ import annotations
+
+import struct
+import threading
+import time
+import tracemalloc
+
+import msgpack
+import numpy as np
+import pytest
+import websockets
+from _serve_helpers import GOOD, checkpoint, client, events, serve  # noqa: F401 (fixtures)
+
+from jepa_policy.serve import RequestError, pack, unpack
+from jepa_policy.serve.codec import MAX_ARRAYS, MAX_REQUEST_BYTES, NUMERIC_DTYPES
+from jepa_policy.serve.events import EventLog
+
+pytestmark = pytest.mark.timeout(300)
+
+
+def _array(dtype: str, shape, data: bytes) -> dict:
+    return {b"__ndarray__": True, b"data": data, b"dtype": dtype, b"shape": shape}
+
+
+def _scalar(dtype: str, data) -> dict:
+    return {b"__npgeneric__": True, b"data": data, b"dtype": dtype}
+
+
+HOSTILE = [   # (the request, a piece of the answer); each would make numpy build something large or strange
+    ({**GOOD, "step": _scalar("|V8", 400_000_000)}, "arrays of dtype '|V8' are refused"),
+    ({**GOOD, "step": _scalar("<c16", 1.0)}, "arrays of dtype '<c16' are refused"),
+    ({**GOOD, "step": _scalar("|u1", 300)}, "does not fit dtype uint8"),
+    ({**GOOD, "step": _scalar("<f8", b"x" * 64)}, "must carry int or float, got bytes"),
+    ({**GOOD, "top_image": _array("(100000000,)f8", [1], b"")}, "dtype '(100000000,)f8' are refused"),
+    ({**GOOD, "top_image": _array(",".join(["f8"] * 4000), [1], b"")}, "are refused"),
+    ({**GOOD, "top_image": _array("|u1", [2**40, 0], b"")}, "shape must be a list of at most 8 sizes"),
+    ({**GOOD, "top_image": _array("|u1", [1] * 9, b"x")}, "shape must be a list of at most 8 sizes"),
+    ({**GOOD, "top_image": _array("|u1", [-1], b"")}, "shape must be a list of at most 8 sizes"),
+    ({**GOOD, "top_image": _array("|u1", [3], "abc")}, "an array's data must be bytes, got str"),
+    ({**GOOD, "top_image": _array("<f8", [2**28], b"\0" * 16)}, "its shape [268435456] of float64 needs"),
+]
+
+
+def test_hostile_scalars_and_arrays_are_refused_before_anything_is_allocated(serve):
+    """The 7 KB frame whose numpy scalar made the server build 400 MB (3 s) is refused, as is every other dtype,
+    shape or size trick, while the process allocates next to nothing."""
+    server = serve()
+    ws, _ = client(server)
+    frames = [pack(request) for request, _ in HOSTILE]
+    tracemalloc.start()
+    try:
+        replies = []
+        for frame in frames:
+            ws.send(frame)
+            replies.append(ws.recv(timeout=30))
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    for reply, (_, message) in zip(replies, HOSTILE):
+        assert isinstance(reply, str) and message in reply, (message, str(reply)[:300])
+    assert peak < 16 * 2**20, f"the hostile frames allocated {peak / 2**20:.0f} MiB"
+    ws.send(pack(GOOD))
+    assert unpack(ws.recv())["actions"].shape == (8, 2)
+    ws.close()
+
+
+def _tiny_arrays(n: int, layout: str) -> bytes:
+    tiny = _array("|u1", [1], b"x")
+    if layout == "list":
+        return pack({**GOOD, "agent_pos": [tiny] * n})
+    if layout == "map":
+        return pack({**GOOD, **{i: tiny for i in range(n)}})
+    return pack({**GOOD, "agent_pos": [[tiny] * 60] * (n // 60)})   # lists each under any per-list limit
+
+
+@pytest.mark.parametrize("layout, n, message", [
+    ("list", 190_000, "above what a request of this server can hold"),
+    ("map", 170_000, "above what a request of this server can hold"),   # its keys take room too
+    ("nested", 190_000, f"the request holds more than {MAX_ARRAYS} arrays")])
+def test_a_frame_of_190000_tiny_arrays_is_refused_and_other_robots_are_served(serve, layout, n, message):
+    """One client's 8 MiB frame of 190,000 tiny arrays stalled every robot for 1.5-1.9 s while it was decoded on
+    the event loop; now it is refused at a bound (and decoded off the loop), and another robot keeps deciding."""
+    server = serve()
+    frame = _tiny_arrays(n, layout)
+    assert 6 * 2**20 < len(frame) <= MAX_REQUEST_BYTES
+    hostile, _ = client(server)
+    robot, _ = client(server)
+    answers, stop = [], threading.Event()
+
+    def attack():
+        while not stop.is_set():
+            hostile.send(frame)
+            answers.append(hostile.recv(timeout=60))
+    attacker = threading.Thread(target=attack)
+    attacker.start()
+    try:
+        for _ in range(10):
+            robot.send(pack(GOOD))
+            assert unpack(robot.recv(timeout=60))["actions"].shape == (8, 2)
+    finally:
+        stop.set()
+        attacker.join()
+    assert answers and all(isinstance(a, str) and message in a for a in answers), str(answers[:1])[:300]
+    hostile.close()
+    robot.close()
+
+
+def test_an_oversized_frame_is_refused_from_its_header(serve, events):
+    """A frame above MAX_REQUEST_BYTES closes its connection (1009) as soon as its header arrives: the server never
+    buffers it (it used to wait for up to 64 MiB per connection, with no cap on connections)."""
+    server = serve()
+    ws, _ = client(server)
+    length = 60 * 2**20   # announced; only 1 KiB follows
+    ws.socket.sendall(bytes([0x82, 0x80 | 127]) + struct.pack("!Q", length) + b"\0\0\0\0" + b"\0" * 1024)
+    with pytest.raises(websockets.ConnectionClosedError) as closed:
+        ws.recv(timeout=10)
+    assert closed.value.rcvd.code == 1009 and f"limit of {MAX_REQUEST_BYTES} bytes" in closed.value.rcvd.reason
+    other, _ = client(server)   # the server goes on
+    other.send(pack(GOOD))
+    assert unpack(other.recv())["actions"].shape == (8, 2)
+    other.close()
+    deadline = time.monotonic() + 5
+    while not [e for e in events() if e["event"] == "disconnect" and e.get("close_sent") == 1009]:
+        assert time.monotonic() < deadline, events()
+        time.sleep(0.05)
+
+
+def test_connections_beyond_the_cap_are_refused_with_503(serve, events):
+    server = serve(max_connections=2)
+    first, _ = client(server)
+    second, _ = client(server)
+    with pytest.raises(websockets.InvalidStatus, match="503"):
+        client(server)
+    first.close()
+    deadline = time.monotonic() + 5
+    while True:   # the closed connection's slot frees once its socket is closed
+        try:
+            third, _ = client(server)
+            break
+        except websockets.InvalidStatus:
+            assert time.monotonic() < deadline
+            time.sleep(0.05)
+    third.send(pack(GOOD))
+    assert unpack(third.recv())["actions"].shape == (8, 2)
+    third.close()
+    second.close()
+    refused = [e for e in events() if e["event"] == "refused"]
+    assert refused and refused[0]["status"] == 503 and refused[0]["limit"] == 2 and refused[0]["peer"]
+
+
+def test_the_event_log_survives_a_flood_of_unauthorized_handshakes(serve, events):
+    """200 handshakes with two Authorization headers (each was an HTTP 500 and a 12-line traceback: 2,400 lines
+    in 0.3 s) are each a 401, logged as at most the burst plus the refill, and the next line counts the rest."""
+    server = serve(api_key="k")
+    headers = [("Authorization", "Api-Key k"), ("Authorization", "Api-Key x")]
+    start = time.monotonic()
+    for _ in range(200):
+        with pytest.raises(websockets.InvalidStatus, match="401"):
+            client(server, headers=headers)
+    elapsed = time.monotonic() - start
+    lines = [e for e in events() if e["event"] == "unauthorized"]
+    log = server.events
+    assert len(lines) <= log.burst + log.rate * elapsed + 1, (len(lines), elapsed)
+    time.sleep(1.0 / log.rate + 0.05)
+    with pytest.raises(websockets.InvalidStatus, match="401"):
+        client(server, headers=headers)
+    lines = [e for e in events() if e["event"] == "unauthorized"]
+    assert len(lines) + sum(e.get("suppressed", 0) for e in lines) == 201
+    ws, _ = client(server, headers={"Authorization": "Api-Key k"})
+    ws.close()
+    deadline = time.monotonic() + 5
+    while len([e for e in events() if e["event"] in ("connect", "disconnect")]) < 2:
+        assert time.monotonic() < deadline
+        time.sleep(0.05)
+    connect, disconnect = [e for e in events() if e["event"] in ("connect", "disconnect")]
+    assert connect["session"] == disconnect["session"] and connect["peer"] == disconnect["peer"]
+    assert disconnect["requests"] == 0 and disconnect["close_received"] == 1000
+
+
+# ----------------------------------------------------------------------------- the codec alone
+
+
+def test_every_allowed_dtype_round_trips_as_openpi_packs_it():
+    for dtype in NUMERIC_DTYPES.values():
+        arr = (np.arange(6) % 2).astype(dtype).reshape(2, 3)
+        back = unpack(pack({"a": arr, "s": arr[0, 1]}))
+        assert back["a"].dtype == dtype and np.array_equal(back["a"], arr)
+        # msgpack packs a float64 scalar (a Python float subclass) as a plain float, openpi too
+        assert back["s"] == arr[0, 1] and (dtype == np.float64 or back["s"].dtype == dtype)
+
+
+def test_the_codec_refuses_what_openpi_never_sends():
+    with pytest.raises(RequestError, match="extension type 7"):
+        unpack(msgpack.packb({"x": msgpack.ExtType(7, b"")}))
+    with pytest.raises(RequestError, match="more than 256 maps"):
+        unpack(pack([{"a": 1}] * 300))
+    with pytest.raises(RequestError, match="lists hold more than 65536 items"):
+        unpack(pack([[0] * 60_000, [0] * 10_000]))
+    with pytest.raises(RequestError, match="above what a request of this server can hold"):
+        unpack(pack({f"k{i}": 0 for i in range(300)}))
+
+
+def test_the_event_log_rate_limits_each_kind_on_its_own():
+    now = [0.0]
+    log = EventLog(rate=2.0, burst=3, clock=lambda: now[0])
+    assert [log.emit("rejected") for _ in range(5)] == [True, True, True, False, False]
+    assert log.emit("connect")   # another kind has its own bucket
+    now[0] = 0.5   # one token back
+    assert log.emit("rejected") and not log.emit("rejected")
