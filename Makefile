@@ -1,7 +1,7 @@
 # The README's two commands: `make demo` (the main job on the embedded PushT task) and `make test`.
 # Each does all set-up itself (scripts/setup.sh is idempotent).
 # The tests render with OSMesa (deterministic, no renderer probe); elsewhere jepa_envs measures and picks the
-# fastest backend that renders identical frames (jepa_envs/render.py), unless MUJOCO_GL is set.
+# fastest backend that renders identical frames (jepa_envs/tasks/render.py), unless MUJOCO_GL is set.
 test: export MUJOCO_GL ?= osmesa
 test: export PYOPENGL_PLATFORM ?= osmesa
 PYTHON ?= python3

@@ -7,14 +7,18 @@ from __future__ import annotations
 
 import gymnasium as gym
 
-from jepa_envs.entry import creator
-from jepa_envs.spec import TaskSpec, all_task_specs, get_task_spec, register_task
+from jepa_envs import moved
+
+moved.install()
+
+from jepa_envs.tasks.entry import creator  # noqa: E402
+from jepa_envs.tasks.spec import TaskSpec, all_task_specs, get_task_spec, register_task  # noqa: E402
 
 _ENTRY_POINTS = {
-    "embedded": "jepa_envs.pusht:PushTEnv",
-    "robomimic": "jepa_envs.robomimic_env:RobomimicEnv",
-    "libero": "jepa_envs.libero_env:LiberoEnv",
-    "mimicgen": "jepa_envs.mimicgen_env:MimicGenEnv",
+    "embedded": "jepa_envs.tasks.pusht:PushTEnv",
+    "robomimic": "jepa_envs.tasks.robomimic_env:RobomimicEnv",
+    "libero": "jepa_envs.tasks.libero_env:LiberoEnv",
+    "mimicgen": "jepa_envs.tasks.mimicgen_env:MimicGenEnv",
 }
 
 

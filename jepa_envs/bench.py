@@ -18,9 +18,9 @@ from typing import Callable
 import gymnasium as gym
 import numpy as np
 import jepa_envs  # noqa: F401  (registers the ids)
-from jepa_envs.pusht import coverage
-from jepa_envs.spec import TaskSpec, all_task_specs, backend_available, get_task_spec
-from jepa_envs.wrappers import RenderOnDemand, render_schedule
+from jepa_envs.tasks.pusht import coverage
+from jepa_envs.tasks.spec import TaskSpec, all_task_specs, backend_available, get_task_spec
+from jepa_envs.tasks.wrappers import RenderOnDemand, render_schedule
 
 
 def interleaved_rates(arms: dict[str, Callable[[], None]], steps: int, budget_s: float, block: int) -> dict:

@@ -13,9 +13,9 @@ import time
 from dataclasses import asdict, dataclass
 from typing import Callable
 
-from jepa_envs import install_mimicgen
+from jepa_envs.tasks import install_mimicgen
 from jepa_envs.errors import USER_ERRORS, user_error
-from jepa_envs.spec import all_task_specs, backend_available, get_task_spec
+from jepa_envs.tasks.spec import all_task_specs, backend_available, get_task_spec
 
 @dataclass(frozen=True)
 class Subcommand:
@@ -74,8 +74,8 @@ def make_demos(args: argparse.Namespace) -> int:
         raise SystemExit(f"error: --episodes must be >= 1, got {args.episodes}")
     if args.workers < 1:
         raise SystemExit(f"error: --workers must be >= 1, got {args.workers}")
-    from jepa_envs.data import write_dataset
-    from jepa_envs.pusht_expert import generate_demos
+    from jepa_envs.datasets.hdf5 import write_dataset
+    from jepa_envs.tasks.pusht_expert import generate_demos
 
     t0 = time.perf_counter()
     try:
@@ -131,7 +131,7 @@ def _bench_args(p: argparse.ArgumentParser) -> None:
 @subcommand("bench", "steps/s raw backend vs our interface, and render-every-step vs render-on-demand", _bench_args)
 def bench(args: argparse.Namespace) -> int:
     if args.renderers:
-        from jepa_envs.render import bench_renderers
+        from jepa_envs.tasks.render import bench_renderers
 
         bench_renderers(frames=args.frames)
         return 0
@@ -150,7 +150,7 @@ def install_mimicgen_cmd(args: argparse.Namespace) -> int:
 
 def _convert_args(p: argparse.ArgumentParser) -> None:
     # the converter module imports robosuite-facing code; it loads only when this subcommand is built
-    from jepa_envs.convert_abs_actions import cli_add_arguments
+    from jepa_envs.datasets.convert_abs_actions import cli_add_arguments
 
     cli_add_arguments(p)
 
@@ -158,7 +158,7 @@ def _convert_args(p: argparse.ArgumentParser) -> None:
 @subcommand("convert-abs-actions", "delta -> absolute actions (position, 6-D rotation, gripper) by state replay",
             _convert_args)
 def convert_abs_actions(args: argparse.Namespace) -> int:
-    from jepa_envs.convert_abs_actions import cli_run
+    from jepa_envs.datasets.convert_abs_actions import cli_run
 
     return cli_run(args)
 
@@ -192,7 +192,7 @@ def _lerobot_args(p: argparse.ArgumentParser) -> None:
 
 @subcommand("lerobot", "LeRobotDataset v3.0: export our demos, import a LeRobot dataset", _lerobot_args)
 def lerobot(args: argparse.Namespace) -> int:
-    from jepa_envs import lerobot_format as lr
+    from jepa_envs.datasets import lerobot_format as lr
 
     if args.action == "bench":
         result = lr.bench_lerobot(args.src, args.codec)
@@ -230,7 +230,7 @@ def _render_args(p: argparse.ArgumentParser) -> None:
 @subcommand("render-dataset", "render a raw dataset's recorded states into image observations (robomimic's "
                               "dataset_states_to_obs), with each episode's replay drift", _render_args)
 def render_dataset_cmd(args: argparse.Namespace) -> int:
-    from jepa_envs.render_dataset import render_dataset, replay_in_env
+    from jepa_envs.datasets.render_dataset import render_dataset, replay_in_env
 
     t0 = time.perf_counter()
     report = render_dataset(args.src, args.out, task=args.task, cameras=tuple(args.cameras), size=args.size,

@@ -18,8 +18,8 @@ import numpy as np
 import torch
 from torch.optim.swa_utils import AveragedModel, get_ema_multi_avg_fn
 
-from jepa_envs.pool import available_cores
-from jepa_envs.spec import get_task_spec
+from jepa_envs.rollouts.pool import available_cores
+from jepa_envs.tasks.spec import get_task_spec
 from jepa_policy.checkpoint import build_model, save_eval_snapshot
 from jepa_policy.config import ModelConfig
 from jepa_policy.evaluate import evaluate, make_pool

@@ -10,7 +10,7 @@ import json
 from dataclasses import asdict, dataclass, field, fields, replace
 from typing import Any
 
-from jepa_envs.spec import ObservationLayout, get_task_spec
+from jepa_envs.tasks.spec import ObservationLayout, get_task_spec
 
 ARMS = (
     "jepa",              # JEPA Policy: action tokens + one future token in one shared stack (Sec. 3.2)

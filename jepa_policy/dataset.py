@@ -81,7 +81,7 @@ class WindowDataset(Dataset):
     @classmethod
     def from_demos(cls, demos, obs_steps: int | None = None, horizon: int | None = None,
                    future_k: int | None = None) -> "WindowDataset":
-        """Windows over a ``jepa_envs.data.DemoDataset``; unset sizes come from its task spec."""
+        """Windows over a ``jepa_envs.datasets.hdf5.DemoDataset``; unset sizes come from its task spec."""
         spec = demos.spec
         return cls(demos.obs, demos.actions, demos.episode_ends, spec.image_keys, spec.lowdim_keys,
                    obs_steps or spec.obs_steps, horizon or spec.horizon,

@@ -19,8 +19,8 @@ import numpy as np
 import torch.distributed as dist
 
 import jepa_envs  # noqa: F401  (registers the JEPA/* ids)
-from jepa_envs.data import DemoWriter
-from jepa_envs.pool import EnvPool, WorkerFailure
+from jepa_envs.datasets.hdf5 import DemoWriter
+from jepa_envs.rollouts.pool import EnvPool, WorkerFailure
 
 
 def nmse(z_hat: np.ndarray, z: np.ndarray) -> np.ndarray:

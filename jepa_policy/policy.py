@@ -17,8 +17,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from jepa_envs.spec import TaskSpec, get_task_spec
-from jepa_envs.wrappers import frames_to_render
+from jepa_envs.tasks.spec import TaskSpec, get_task_spec
+from jepa_envs.tasks.wrappers import frames_to_render
 from jepa_policy.checkpoint import load_checkpoint, load_model
 
 
@@ -74,7 +74,7 @@ class Policy:
         """Whether the frame of episode step ``step`` is used: the history of a decision or its future target.
 
         Decisions happen at multiples of ``n_action_steps``; a render-on-demand loop renders only these frames
-        (the schedule of ``jepa_envs.wrappers.RenderOnDemand``). Arms without a future head need no t+k frames.
+        (the schedule of ``jepa_envs.tasks.wrappers.RenderOnDemand``). Arms without a future head need no t+k frames.
         """
         future_k = self.k if self.model.cfg.has_future_token else 0
         return frames_to_render(step, self.n_action_steps, self.obs_steps, future_k)

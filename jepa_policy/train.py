@@ -28,10 +28,10 @@ from torch.optim.swa_utils import AveragedModel, get_ema_multi_avg_fn
 from torch.utils.tensorboard import SummaryWriter
 from tqdm import tqdm
 
-from jepa_envs.data import load_dataset
-from jepa_envs.lerobot_format import resolve_dataset
-from jepa_envs.pool import available_cores
-from jepa_envs.spec import get_task_spec
+from jepa_envs.datasets.hdf5 import load_dataset
+from jepa_envs.datasets.lerobot_format import resolve_dataset
+from jepa_envs.rollouts.pool import available_cores
+from jepa_envs.tasks.spec import get_task_spec
 from jepa_policy.audit import gradient_interaction
 from jepa_policy.checkpoint import (build_model, freeze_backbone, load_checkpoint, load_encoder_weights, save_checkpoint,
                                     save_eval_snapshot, set_rng_state)
@@ -49,8 +49,8 @@ class TrainConfig:
 
     task: str = "PushT"
     arm: str = "jepa"                 # jepa | mip | dual_independent | dual_cross | backcut | fwdcut | sigreg | lambda_a0 | diffusion
-    dataset: str = ""                 # demonstration file (jepa_envs.data.load_dataset) or LeRobot v3.0 root
-    dataset_map: dict = field(default_factory=dict)   # LeRobot feature -> our key (jepa_envs.lerobot_format)
+    dataset: str = ""                 # demonstration file (jepa_envs.datasets.hdf5.load_dataset) or LeRobot v3.0 root
+    dataset_map: dict = field(default_factory=dict)   # LeRobot feature -> our key (jepa_envs.datasets.lerobot_format)
     out_dir: str = "runs/jepa"
     resume: str = ""                  # checkpoint to continue from ("" = fresh run)
     steps: int = 300_000

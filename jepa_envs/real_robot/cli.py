@@ -223,7 +223,7 @@ def serve(args) -> int:
 def _known_task(name: str) -> str:
     """The task's name, or exit with the list of known tasks (no traceback)."""
     import jepa_envs  # noqa: F401  (registers the tasks)
-    from jepa_envs.spec import get_task_spec
+    from jepa_envs.tasks.spec import get_task_spec
     try:
         return get_task_spec(name).name
     except KeyError as exc:
@@ -255,7 +255,7 @@ def check(args) -> int:
     notes: list[str] = []
     if "arms" in raw or "cameras" in raw:
         from jepa_envs.real_robot.backends.arx5 import JOINTS_PER_ARM, ARX5Config
-        from jepa_envs.spec import get_task_spec
+        from jepa_envs.tasks.spec import get_task_spec
         try:
             setup = ARX5Config.model_validate(raw)
         except ValidationError as exc:

@@ -9,8 +9,8 @@ from __future__ import annotations
 
 import gymnasium as gym
 
-from jepa_envs.entry import creator
-from jepa_envs.spec import ABS_ACTION_DIM_PER_ARM, TaskSpec, arm_lowdim, register_task
+from jepa_envs.tasks.entry import creator
+from jepa_envs.tasks.spec import ABS_ACTION_DIM_PER_ARM, TaskSpec, arm_lowdim, register_task
 
 REAL_CAMERAS = ("base", "left_wrist", "right_wrist")
 REAL_IMAGE_SIZE = 128

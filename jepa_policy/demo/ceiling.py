@@ -19,12 +19,12 @@ import torch
 from torch import nn
 
 import jepa_envs  # noqa: F401  (registers the environments)
-from jepa_envs.data import demo_names, open_hdf5
-from jepa_envs.spec import get_task_spec
+from jepa_envs.datasets.hdf5 import demo_names, open_hdf5
+from jepa_envs.tasks.spec import get_task_spec
 from jepa_policy.dataset import window_indices
 
 TASK = "PushT"
-STATE_DIM = 5      # PushT state: agent x, y, block x, y, block angle (rad), as jepa_envs/pusht.py records it
+STATE_DIM = 5      # PushT state: agent x, y, block x, y, block angle (rad), as jepa_envs/tasks/pusht.py records it
 
 
 def state_features(states: np.ndarray) -> np.ndarray:

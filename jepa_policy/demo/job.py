@@ -32,9 +32,9 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from jepa_envs.data import load_dataset, write_dataset
+from jepa_envs.datasets.hdf5 import load_dataset, write_dataset
 from jepa_envs.errors import USER_ERRORS, user_error
-from jepa_envs.pusht_expert import generate_demos
+from jepa_envs.tasks.pusht_expert import generate_demos
 from jepa_policy.audit import audit_checkpoint, gradient_audit, retrieval_audit
 from jepa_policy.bench import count_passes, time_calls
 from jepa_policy.checkpoint import load_checkpoint

@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 from scipy import stats
 
-from jepa_envs.data import demo_names
+from jepa_envs.datasets.hdf5 import demo_names
 from jepa_policy.selection import wilson_ci
 from monitor_service.study import study_episode_records
 

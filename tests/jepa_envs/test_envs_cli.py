@@ -6,8 +6,8 @@ import json
 import pytest
 
 from jepa_envs.cli import main
-from jepa_envs.data import load_dataset
-from jepa_envs.spec import all_task_specs
+from jepa_envs.datasets.hdf5 import load_dataset
+from jepa_envs.tasks.spec import all_task_specs
 
 
 def test_make_demos_writes_a_loadable_file(tmp_path, capsys):

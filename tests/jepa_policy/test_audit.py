@@ -116,7 +116,7 @@ def test_gradient_interaction_leaves_grads_and_training_untouched():
 
 
 def test_collapse_audit_views_on_a_trained_checkpoint(pusht_demo_file, tmp_path):
-    from jepa_envs.data import load_dataset
+    from jepa_envs.datasets.hdf5 import load_dataset
     from jepa_policy.policy import Policy
     from jepa_policy.train import load_config, train
 

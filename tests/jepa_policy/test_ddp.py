@@ -11,7 +11,7 @@ import torch
 import torch.distributed as dist
 import torch.multiprocessing as mp
 
-from jepa_envs.data import load_dataset
+from jepa_envs.datasets.hdf5 import load_dataset
 from jepa_policy.checkpoint import load_checkpoint
 from jepa_policy.train import load_config, train
 

@@ -34,7 +34,7 @@ def test_reporting_protocols_of_table_6():
 def checkpoint(pusht_demo_file, tmp_path_factory):
     import torch
 
-    from jepa_envs.data import load_dataset
+    from jepa_envs.datasets.hdf5 import load_dataset
     from jepa_policy.train import load_config, train
 
     threads = torch.get_num_threads()
@@ -127,7 +127,7 @@ def test_realized_latents_match_a_fresh_encoding_of_the_env_frame(checkpoint):
 def test_arms_without_a_future_head_record_decisions_without_nmse(pusht_demo_file, tmp_path):
     import torch
 
-    from jepa_envs.data import load_dataset
+    from jepa_envs.datasets.hdf5 import load_dataset
     from jepa_policy.evaluate import evaluate
     from jepa_policy.policy import Policy
     from jepa_policy.train import load_config, train
@@ -225,7 +225,7 @@ def test_saved_rollouts_carry_frames_actions_and_outcomes_into_a_lerobot_dataset
     import h5py
     import pyarrow.parquet as pq
 
-    from jepa_envs.lerobot_format import export_lerobot, import_lerobot
+    from jepa_envs.datasets.lerobot_format import export_lerobot, import_lerobot
     from jepa_policy.evaluate import evaluate
     from jepa_policy.policy import Policy
 

@@ -3,8 +3,8 @@ import numpy as np
 import pytest
 import torch
 
-from jepa_envs.data import load_dataset
-from jepa_envs.spec import get_task_spec
+from jepa_envs.datasets.hdf5 import load_dataset
+from jepa_envs.tasks.spec import get_task_spec
 from jepa_policy.config import ModelConfig
 from jepa_policy.dataset import normalizer_stats
 from jepa_policy.checkpoint import build_model, load_checkpoint
@@ -107,7 +107,7 @@ def test_images_needed_covers_every_frame_a_decision_uses(model):
     assert needed == {t for t in range(60) if t % 8 in (0, 7, 4)}  # 3 of every 8 frames are rendered
 
     # the same schedule as the env-side wrapper
-    from jepa_envs.wrappers import render_schedule
+    from jepa_envs.tasks.wrappers import render_schedule
     assert sorted(needed) == render_schedule(60, 8, 2, 4)
 
 

@@ -4,7 +4,7 @@ import json
 import numpy as np
 import pytest
 
-from jepa_envs.data import load_dataset
+from jepa_envs.datasets.hdf5 import load_dataset
 from jepa_policy.selection import eval_snapshots, paired_bootstrap, select_checkpoint, wilson_ci
 from jepa_policy.train import load_config, train
 

@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 import torch
 
-from jepa_envs.data import load_dataset
-from jepa_envs.spec import all_task_specs
+from jepa_envs.datasets.hdf5 import load_dataset
+from jepa_envs.tasks.spec import all_task_specs
 from jepa_policy.checkpoint import load_checkpoint
 from jepa_policy.train import TrainConfig, cosine_with_warmup, load_config, train
 

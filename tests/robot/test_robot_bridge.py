@@ -14,7 +14,7 @@ from gymnasium.utils.env_checker import check_env
 
 from jepa_envs.real_robot import protocol as P
 from jepa_envs.real_robot.episodes import load_episode
-from jepa_envs.pusht_expert import PushTExpert, collect_episode
+from jepa_envs.tasks.pusht_expert import PushTExpert, collect_episode
 from jepa_envs.real_robot.proxy import ActionRefused, BridgeBusy, BridgeError
 
 

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from jepa_envs.real_robot.cli import main
-from jepa_envs.spec import get_task_spec
+from jepa_envs.tasks.spec import get_task_spec
 
 
 def test_real_task_specs_registered():

@@ -43,7 +43,7 @@ def test_run_episodes_counts_success_and_tags_manifests(robot):
 
 
 def test_cli_run_with_a_trained_checkpoint(robot, pusht_demo_file, tmp_path, capsys):
-    from jepa_envs.data import load_dataset
+    from jepa_envs.datasets.hdf5 import load_dataset
     from jepa_policy.train import load_config, train
 
     demos = load_dataset(pusht_demo_file, task="PushT", image_size=32)

@@ -25,8 +25,8 @@ from scipy.spatial.transform import Rotation
 
 from jepa_envs.real_robot.backends.base import BackendUnavailable, RobotBackend, StepResult
 from jepa_envs.real_robot.safety import SafetyConfig
-from jepa_envs.rotations import matrix_to_rot6d, rot6d_to_matrix
-from jepa_envs.spec import get_task_spec
+from jepa_envs.tasks.rotations import matrix_to_rot6d, rot6d_to_matrix
+from jepa_envs.tasks.spec import get_task_spec
 
 ARX5_INSTALL_HINT = (
     "the ARX-5 backend needs the arx5-sdk python bindings (module `arx5_interface`, built from "

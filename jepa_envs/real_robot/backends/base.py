@@ -10,7 +10,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from jepa_envs.spec import ABS_ACTION_DIM_PER_ARM, TaskSpec
+from jepa_envs.tasks.spec import ABS_ACTION_DIM_PER_ARM, TaskSpec
 
 
 class BackendUnavailable(ImportError):

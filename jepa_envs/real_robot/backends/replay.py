@@ -16,7 +16,7 @@ import numpy as np
 
 from jepa_envs.real_robot.backends.base import RobotBackend, StepResult
 from jepa_envs.real_robot.episodes import load_episode
-from jepa_envs.spec import get_task_spec
+from jepa_envs.tasks.spec import get_task_spec
 
 
 def recorded_bounds(manifest: dict, path: Path) -> tuple[np.ndarray, np.ndarray]:

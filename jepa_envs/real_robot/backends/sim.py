@@ -13,7 +13,7 @@ import numpy as np
 
 import jepa_envs  # noqa: F401  (registers the gym ids)
 from jepa_envs.real_robot.backends.base import RobotBackend, StepResult
-from jepa_envs.spec import get_task_spec
+from jepa_envs.tasks.spec import get_task_spec
 
 
 class SimBackend(RobotBackend):

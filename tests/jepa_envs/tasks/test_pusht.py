@@ -12,9 +12,9 @@ from gymnasium.utils.env_checker import check_env
 from PIL import Image, ImageDraw
 
 import jepa_envs  # noqa: F401  (registers the ids)
-from jepa_envs.pusht import (COLORS, GOAL_POSE, T_PARTS, PushTEnv, coverage, make_difficulty, point_t_distance,
+from jepa_envs.tasks.pusht import (COLORS, GOAL_POSE, T_PARTS, PushTEnv, coverage, make_difficulty, point_t_distance,
                              transform)
-from jepa_envs.pusht_expert import PushTExpert, collect_episode, generate_demos
+from jepa_envs.tasks.pusht_expert import PushTExpert, collect_episode, generate_demos
 
 
 def test_check_env_passes():

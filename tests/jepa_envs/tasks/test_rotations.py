@@ -2,7 +2,7 @@
 import numpy as np
 import pytest
 
-from jepa_envs import rotations as R
+from jepa_envs.tasks import rotations as R
 
 
 def _random_matrices(n, seed=0):

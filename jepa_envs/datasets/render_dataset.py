@@ -23,14 +23,14 @@ from pathlib import Path
 
 import numpy as np
 
-from jepa_envs.convert_abs_actions import delta_to_abs_by_replay
-from jepa_envs.data import DatasetError, DemoWriter, demo_names, load_dataset, open_hdf5, resolve_task
+from jepa_envs.datasets.convert_abs_actions import delta_to_abs_by_replay
+from jepa_envs.datasets.hdf5 import DatasetError, DemoWriter, demo_names, load_dataset, open_hdf5, resolve_task
 from jepa_envs.errors import first_line
-from jepa_envs.pusht import PushTEnv
-from jepa_envs.robomimic_env import (ROBOSUITE_ENV_TYPE, make_backend_from_env_args,
+from jepa_envs.tasks.pusht import PushTEnv
+from jepa_envs.tasks.robomimic_env import (ROBOSUITE_ENV_TYPE, make_backend_from_env_args,
                                      robomimic_env_args)
-from jepa_envs.robosuite_common import RobosuiteTaskEnv
-from jepa_envs.spec import TaskSpec
+from jepa_envs.tasks.robosuite_common import RobosuiteTaskEnv
+from jepa_envs.tasks.spec import TaskSpec
 
 NATIVE_DIM_PER_ARM = 7
 

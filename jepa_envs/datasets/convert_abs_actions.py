@@ -17,9 +17,9 @@ import h5py
 import numpy as np
 from tqdm import tqdm
 
-from jepa_envs import rotations
-from jepa_envs.abs_actions import ABS_DIM_PER_ARM, NATIVE_DIM_PER_ARM, split_arms
-from jepa_envs.robomimic_env import env_args_from_hdf5, make_backend_from_env_args
+from jepa_envs.tasks import rotations
+from jepa_envs.tasks.abs_actions import ABS_DIM_PER_ARM, NATIVE_DIM_PER_ARM, split_arms
+from jepa_envs.tasks.robomimic_env import env_args_from_hdf5, make_backend_from_env_args
 
 
 def delta_to_abs_by_replay(backend, states: np.ndarray, delta_actions: np.ndarray) -> np.ndarray:
@@ -103,7 +103,7 @@ def convert_abs_actions(in_path: str | Path, out_path: str | Path, progress: boo
 
 
 def cli_add_arguments(parser) -> None:
-    """Arguments of ``jepa-envs convert-abs-actions IN OUT`` (and ``python -m jepa_envs.convert_abs_actions``)."""
+    """Arguments of ``jepa-envs convert-abs-actions IN OUT`` (and ``python -m jepa_envs.datasets.convert_abs_actions``)."""
     parser.add_argument("input", help="robomimic / MimicGen HDF5 file with delta actions and states")
     parser.add_argument("output", help="where to write the copy with absolute actions")
 
@@ -120,7 +120,7 @@ def cli_run(args) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m jepa_envs.convert_abs_actions",
+    parser = argparse.ArgumentParser(prog="python -m jepa_envs.datasets.convert_abs_actions",
                                      description="Replace a dataset's delta actions by absolute ones.")
     cli_add_arguments(parser)
     return cli_run(parser.parse_args(argv))

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from jepa_envs import rotations
+from jepa_envs.tasks import rotations
 
 ABS_DIM_PER_ARM = 10
 NATIVE_DIM_PER_ARM = 7

@@ -21,7 +21,7 @@ from dataclasses import asdict, dataclass
 import numpy as np
 from tqdm import tqdm
 
-from jepa_envs.pusht import (AGENT_RADIUS, GOAL_POSE, T_OUTLINE, T_RADIUS, WORLD_SIZE, PushTEnv, PushTSim,
+from jepa_envs.tasks.pusht import (AGENT_RADIUS, GOAL_POSE, T_OUTLINE, T_RADIUS, WORLD_SIZE, PushTEnv, PushTSim,
                              coverage, point_t_distance, transform, wrap_angle)
 
 ANGLE_WEIGHT = 60.0  # world units per radian in the pose cost (about the T's radius of gyration)
@@ -251,7 +251,7 @@ def generate_demos(num_episodes: int, seed: int = 0, image_size: int | None = No
     imitated end state past it (docs/training.md, "Where the demonstrations end"). The file still records the
     task's own threshold, so evaluation is unchanged.
 
-    ``env_args`` is what ``jepa_envs.data.write_dataset`` stores.
+    ``env_args`` is what ``jepa_envs.datasets.hdf5.write_dataset`` stores.
     """
     if num_episodes < 1:
         raise ValueError(f"num_episodes must be >= 1, got {num_episodes}")

@@ -12,7 +12,7 @@ import pytest
 pytest.importorskip("robosuite", reason="robosuite is part of the [sim] extra")
 
 import jepa_envs  # noqa: E402,F401
-from jepa_envs.mimicgen_env import MimicGenEnv, MimicGenNotInstalled  # noqa: E402
+from jepa_envs.tasks.mimicgen_env import MimicGenEnv, MimicGenNotInstalled  # noqa: E402
 
 MIMICGEN_IMPORTABLE = importlib.util.find_spec("mimicgen") is not None and \
     importlib.util.find_spec("robosuite_task_zoo") is not None
@@ -48,7 +48,7 @@ def test_unrelated_mimicgen_package_is_detected():
     code = textwrap.dedent("""
         import sys, types
         sys.modules["mimicgen"] = types.ModuleType("mimicgen")  # importable, but not MimicGen
-        from jepa_envs.mimicgen_env import MimicGenEnv, MimicGenNotInstalled
+        from jepa_envs.tasks.mimicgen_env import MimicGenEnv, MimicGenNotInstalled
         try:
             MimicGenEnv("ThreePieceAssembly")
         except MimicGenNotInstalled as e:

@@ -9,7 +9,7 @@ import pytest
 from gymnasium.utils.env_checker import check_env
 
 pytest.importorskip("robosuite", reason="robosuite is part of the [sim] extra")
-from jepa_envs import libero_setup  # noqa: E402
+from jepa_envs.tasks import libero_setup  # noqa: E402
 
 try:
     libero_setup.libero_benchmark_root()
@@ -18,9 +18,9 @@ except libero_setup.LiberoSetupError as exc:  # pragma: no cover - depends on th
     pytest.skip(f"LIBERO not installed or not set up ({exc})", allow_module_level=True)
 
 import jepa_envs  # noqa: E402,F401
-from jepa_envs import abs_actions, rotations  # noqa: E402
-from jepa_envs.libero_env import LiberoEnv  # noqa: E402
-from jepa_envs.robosuite_common import upright  # noqa: E402
+from jepa_envs.tasks import abs_actions, rotations  # noqa: E402
+from jepa_envs.tasks.libero_env import LiberoEnv  # noqa: E402
+from jepa_envs.tasks.robosuite_common import upright  # noqa: E402
 
 SIZE = 64
 
@@ -150,7 +150,7 @@ def test_absolute_action_sets_the_controller_goal(moka):
 def test_libero_config_is_written_and_import_never_prompts(tmp_path):
     """With an empty config dir and no stdin, importing our LIBERO backend writes the config and does not ask."""
     env = {**os.environ, "LIBERO_CONFIG_PATH": str(tmp_path / "cfg"), "MUJOCO_GL": "osmesa"}
-    code = ("import jepa_envs.libero_env as m; from jepa_envs.libero_setup import ensure_libero_config; "
+    code = ("import jepa_envs.tasks.libero_env as m; from jepa_envs.tasks.libero_setup import ensure_libero_config; "
             "ensure_libero_config(); import libero.libero as l; print(l.get_libero_path('bddl_files'))")
     out = subprocess.run([sys.executable, "-c", code], env=env, stdin=subprocess.DEVNULL, capture_output=True,
                          text=True, timeout=120)

@@ -11,10 +11,10 @@ import numpy as np
 import pyarrow.parquet as pq
 import pytest
 
-from jepa_envs.data import demo_names, load_dataset
-from jepa_envs.lerobot_format import (CODEBASE_VERSION, KeyMap, LeRobotError, export_lerobot, import_lerobot,
+from jepa_envs.datasets.hdf5 import demo_names, load_dataset
+from jepa_envs.datasets.lerobot_format import (CODEBASE_VERSION, KeyMap, LeRobotError, export_lerobot, import_lerobot,
                                       open_lerobot, resolve_dataset)
-from jepa_envs.spec import get_task_spec
+from jepa_envs.tasks.spec import get_task_spec
 
 
 @pytest.fixture(scope="module")
@@ -139,7 +139,7 @@ def test_truncated_parquet_is_refused(exported, tmp_path):
 
 def test_video_shorter_than_its_episode_is_refused(exported, pusht_demo_file, tmp_path):
     """A video re-encoded without the last episode's final frames."""
-    from jepa_envs.lerobot_format import VideoWriter
+    from jepa_envs.datasets.lerobot_format import VideoWriter
 
     root = _copy(exported[0], tmp_path)
     with h5py.File(pusht_demo_file) as f:

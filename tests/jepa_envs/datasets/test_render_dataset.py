@@ -11,9 +11,9 @@ import numpy as np
 import pytest
 
 import jepa_envs  # noqa: F401  registers the ids
-from jepa_envs.data import DatasetError, load_dataset
-from jepa_envs.render_dataset import render_dataset, replay_in_env
-from jepa_envs.spec import get_task_spec
+from jepa_envs.datasets.hdf5 import DatasetError, load_dataset
+from jepa_envs.datasets.render_dataset import render_dataset, replay_in_env
+from jepa_envs.tasks.spec import get_task_spec
 
 
 def _raw_file(path, env_args, episodes):

@@ -85,10 +85,10 @@ def all_task_specs() -> list[TaskSpec]:
 
 # third-party package each suite needs, and our module that wraps it
 BACKENDS = {
-    "embedded": ("pymunk", "jepa_envs.pusht"),
-    "robomimic": ("robosuite", "jepa_envs.robomimic_env"),
-    "libero": ("libero", "jepa_envs.libero_env"),
-    "mimicgen": ("mimicgen", "jepa_envs.mimicgen_env"),
+    "embedded": ("pymunk", "jepa_envs.tasks.pusht"),
+    "robomimic": ("robosuite", "jepa_envs.tasks.robomimic_env"),
+    "libero": ("libero", "jepa_envs.tasks.libero_env"),
+    "mimicgen": ("mimicgen", "jepa_envs.tasks.mimicgen_env"),
     "real": ("zmq", "jepa_envs.real_robot.proxy"),
 }
 

@@ -11,7 +11,7 @@ Files:
 - LIBERO: ``data/demo_N/obs/{agentview_rgb, eye_in_hand_rgb, joint_states, gripper_states, ee_states}``, with
   ``bddl_file_name``, ``env_args`` and ``problem_info`` in ``data.attrs``. LIBERO stores the raw OpenGL frames
   of both cameras; their rows are flipped (``[::-1]``), exactly what our LIBERO env does to its renders
-  (``jepa_envs.robosuite_common.upright``: a 180-degree turn would also mirror left and right), ``ee_states`` (position 3 + axis-angle 3) becomes ``robot0_eef_pos`` and ``robot0_eef_quat`` (x, y, z, w)
+  (``jepa_envs.tasks.robosuite_common.upright``: a 180-degree turn would also mirror left and right), ``ee_states`` (position 3 + axis-angle 3) becomes ``robot0_eef_pos`` and ``robot0_eef_quat`` (x, y, z, w)
   and ``gripper_states`` becomes ``robot0_gripper_qpos``.
 
 Actions: files with the task's action dimension are used as they are. Absolute 7-D-per-arm actions
@@ -37,8 +37,8 @@ import h5py
 import numpy as np
 from PIL import Image
 
-from jepa_envs.rotations import axis_angle_to_quat, axis_angle_to_rot6d
-from jepa_envs.spec import TaskSpec, all_task_specs, get_task_spec
+from jepa_envs.tasks.rotations import axis_angle_to_quat, axis_angle_to_rot6d
+from jepa_envs.tasks.spec import TaskSpec, all_task_specs, get_task_spec
 
 CACHE_VERSION = 1
 LIBERO_IMAGE_KEYS = {"agentview_rgb": "agentview_image", "eye_in_hand_rgb": "robot0_eye_in_hand_image"}
@@ -279,7 +279,7 @@ class _Reader:
             if self.libero:
                 return {}
             raise DatasetError(f"{self.path}: data.attrs['env_args'] is missing; robomimic files store the env "
-                               "name and kwargs there (write files with jepa_envs.data.write_dataset)")
+                               "name and kwargs there (write files with jepa_envs.datasets.hdf5.write_dataset)")
         try:
             env_args = json.loads(raw)
         except (TypeError, ValueError) as exc:

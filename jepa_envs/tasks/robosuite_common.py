@@ -11,9 +11,9 @@ import copy
 from contextlib import contextmanager
 from typing import Any, Callable
 
-from jepa_envs.render import use_renderer
+from jepa_envs.tasks.render import use_renderer
 
-# The user's MUJOCO_GL, else the measured fastest backend with identical frames (jepa_envs/render.py); this must
+# The user's MUJOCO_GL, else the measured fastest backend with identical frames (jepa_envs/tasks/render.py); this must
 # precede the first mujoco/robosuite import.
 use_renderer()
 
@@ -21,9 +21,9 @@ import mujoco
 import numpy as np
 from gymnasium import spaces
 
-from jepa_envs import abs_actions
-from jepa_envs.base import JEPAEnv
-from jepa_envs.spec import TaskSpec
+from jepa_envs.tasks import abs_actions
+from jepa_envs.tasks.base import JEPAEnv
+from jepa_envs.tasks.spec import TaskSpec
 
 ACTION_MODES = ("abs", "delta")
 NATIVE_DIM_PER_ARM = abs_actions.NATIVE_DIM_PER_ARM
@@ -114,7 +114,7 @@ def upright(image: np.ndarray) -> np.ndarray:
     """The right-way-up view of a frame robosuite 1.4 rendered OpenGL-style (bottom row first).
 
     Only the rows are flipped, as robomimic does. Turning by 180 degrees (rows and columns, as some LIBERO
-    consumers do) would also mirror left and right; ``tests/jepa_envs/test_libero.py`` checks against the
+    consumers do) would also mirror left and right; ``tests/jepa_envs/tasks/test_libero.py`` checks against the
     camera geometry that this flip gives the camera's true view for LIBERO too. Works on (..., H, W, C) stacks.
     """
     return np.ascontiguousarray(image[..., ::-1, :, :])

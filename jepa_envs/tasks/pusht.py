@@ -29,8 +29,8 @@ import pymunk
 from gymnasium import spaces
 from PIL import Image, ImageDraw
 
-from jepa_envs.base import JEPAEnv
-from jepa_envs.spec import get_task_spec
+from jepa_envs.tasks.base import JEPAEnv
+from jepa_envs.tasks.spec import get_task_spec
 
 WORLD_SIZE = 512.0
 AGENT_RADIUS = 15.0

@@ -44,9 +44,9 @@ import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
 
-from jepa_envs.data import DemoWriter, default_cache_dir, demo_names, open_hdf5, resolve_task
+from jepa_envs.datasets.hdf5 import DemoWriter, default_cache_dir, demo_names, open_hdf5, resolve_task
 from jepa_envs.errors import first_line
-from jepa_envs.spec import TaskSpec, get_task_spec
+from jepa_envs.tasks.spec import TaskSpec, get_task_spec
 
 CODEBASE_VERSION = "v3.0"
 INFO_PATH = "meta/info.json"
@@ -776,13 +776,13 @@ def bench_lerobot(src: str | Path, codec: str = "lossless") -> dict:
     src = Path(src).resolve()
     work = Path(tempfile.mkdtemp(prefix="jepa-lerobot-bench-"))
     phases = {
-        "h5py read": f"import h5py\nfrom jepa_envs.data import demo_names\nf = h5py.File({str(src)!r})\n"
+        "h5py read": f"import h5py\nfrom jepa_envs.datasets.hdf5 import demo_names\nf = h5py.File({str(src)!r})\n"
                      "n = 0\nfor d in demo_names(f['data']):\n    for k in f['data'][d]['obs']:\n"
                      "        x = f['data'][d]['obs'][k][()]\n        n += len(x) if x.dtype.name == 'uint8' else 0\n"
                      "frames = n",
-        "export": f"from jepa_envs.lerobot_format import export_lerobot\n"
+        "export": f"from jepa_envs.datasets.lerobot_format import export_lerobot\n"
                   f"frames = export_lerobot({str(src)!r}, {str(work / 'ds')!r}, codec={codec!r})['frames']",
-        "import": f"from jepa_envs.lerobot_format import import_lerobot, open_lerobot\n"
+        "import": f"from jepa_envs.datasets.lerobot_format import import_lerobot, open_lerobot\n"
                   f"task = open_lerobot({str(work / 'ds')!r}).info['robot_type'].split('/')[-1]\n"
                   f"frames = import_lerobot({str(work / 'ds')!r}, {str(work / 'back.hdf5')!r}, task)['frames']",
     }

@@ -1,7 +1,7 @@
 """The renderer choice: MUJOCO_GL wins; otherwise the fastest backend whose frames equal OSMesa's, by a margin."""
 import json
 
-from jepa_envs import render
+from jepa_envs.tasks import render
 
 
 def _fake_probes(monkeypatch, rows):

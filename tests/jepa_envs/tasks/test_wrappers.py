@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 import jepa_envs  # noqa: F401  (registers the ids)
-from jepa_envs.wrappers import RecordEpisodeVideo, RenderOnDemand, render_schedule
+from jepa_envs.tasks.wrappers import RecordEpisodeVideo, RenderOnDemand, render_schedule
 
 ACTIONS = np.random.default_rng(0).uniform(100, 400, size=(24, 2)).astype(np.float32)
 

@@ -1,0 +1,1 @@
+"""Rollouts at scale: the persistent pool of env-only worker processes (``pool``)."""
