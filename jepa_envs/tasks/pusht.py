@@ -216,6 +216,7 @@ class PushTSim:
             self.space.add(shape)
         bodies = list(self.space.bodies)
         self._body_index = (bodies.index(self.agent), bodies.index(self.block))
+        self.kp, self.kv = KP, KV   # the agent's PD gains (a degraded actuator lowers them: jepa_envs.tasks.faults)
 
     # -- state -------------------------------------------------------------------------------------------
     def set_state(self, state) -> None:
@@ -252,6 +253,7 @@ class PushTSim:
         new = PushTSim.__new__(PushTSim)
         new.space = self.space.copy()
         new._body_index = self._body_index
+        new.kp, new.kv = self.kp, self.kv
         bodies = list(new.space.bodies)
         new.agent, new.block = bodies[self._body_index[0]], bodies[self._body_index[1]]
         return new
@@ -260,11 +262,11 @@ class PushTSim:
     def step(self, target) -> None:
         """One 10 Hz control step toward the absolute agent target (world units)."""
         tx, ty = float(target[0]), float(target[1])
-        agent, space = self.agent, self.space
+        agent, space, kp, kv = self.agent, self.space, self.kp, self.kv
         for _ in range(SUBSTEPS):
             (px, py), (vx, vy) = agent.position, agent.velocity
-            vx += (KP * (tx - px) - KV * vx) * SIM_DT
-            vy += (KP * (ty - py) - KV * vy) * SIM_DT
+            vx += (kp * (tx - px) - kv * vx) * SIM_DT
+            vy += (kp * (ty - py) - kv * vy) * SIM_DT
             agent.velocity = (vx, vy)
             space.step(SIM_DT)
 
