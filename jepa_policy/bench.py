@@ -11,12 +11,19 @@ import contextlib
 import os
 import resource
 import shutil
+import socket
+import subprocess
+import sys
+import tempfile
+import threading
 import time
 from pathlib import Path
 
 import numpy as np
 import torch
+import websockets
 from torch.optim.swa_utils import AveragedModel, get_ema_multi_avg_fn
+from websockets.sync.client import connect
 
 from jepa_envs.rollouts.pool import available_cores
 from jepa_envs.tasks.spec import get_task_spec
@@ -24,7 +31,7 @@ from jepa_policy.checkpoint import build_model, save_eval_snapshot
 from jepa_policy.config import ModelConfig
 from jepa_policy.evaluate import evaluate, make_pool
 from jepa_policy.policy import Policy
-from jepa_policy.serve import pack, unpack
+from jepa_policy.serve import MAX_REQUEST_BYTES, pack, unpack
 from jepa_policy.train import load_config, resolve_device
 
 
@@ -301,19 +308,32 @@ def _random_checkpoint(task: str, preset: str, path) -> str:
     return str(path)
 
 
+def _start_server(checkpoint: str, threads: int, *flags: str, cwd: str | None = None):
+    """A ``jepa-policy serve`` process on a free port (run from ``cwd``: another checkout's code, to compare);
+    returns once it accepts websockets."""
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    proc = subprocess.Popen([sys.executable, "-m", "jepa_policy.cli", "serve", "--checkpoint", checkpoint,
+                             "--port", str(port), "--threads", str(threads), *flags], cwd=cwd,
+                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    deadline = time.monotonic() + 60
+    while True:
+        try:
+            with connect(f"ws://127.0.0.1:{port}", compression=None, max_size=None):
+                return proc, port
+        except OSError:
+            if time.monotonic() > deadline or proc.poll() is not None:
+                raise RuntimeError(f"jepa-policy serve did not start: {proc.stderr.read().decode()[-1500:]}")
+            time.sleep(0.2)
+
+
 def bench_serve(task: str = "PushT", preset: str = "cpu", checkpoint: str | None = None, iters: int = 200,
-                seconds: float = 5.0, clients=(1, 4, 16), threads: int = 1) -> dict:
+                seconds: float = 5.0, clients=(1, 4, 16), threads: int = 1, hostile: bool = False) -> dict:
     """``jepa-policy serve`` beside in-process decisions, in one run: round-trip overhead at batch 1 (the same
     history decided in-process and over the websocket, alternately), then decisions/s with several clients,
-    cross-client batching on (``--max-batch 16``) and off (``--max-batch 1``)."""
-    import socket
-    import subprocess
-    import sys
-    import tempfile
-    import threading
-
-    from websockets.sync.client import connect
-
+    cross-client batching on (``--max-batch 16``) and off (``--max-batch 1``); with ``hostile``, also
+    ``bench_serve_hostile``."""
     torch.set_num_threads(threads)
     tmp = tempfile.mkdtemp(prefix="jepa-bench-serve-")
     checkpoint = checkpoint or _random_checkpoint(task, preset, Path(tmp) / "random.pt")
@@ -331,22 +351,7 @@ def bench_serve(task: str = "PushT", preset: str = "cpu", checkpoint: str | None
         return pack({k: np.stack([f[k] for f in frames]) for k in frames[0]})
 
     def start_server(max_batch: int):
-        with socket.socket() as s:
-            s.bind(("127.0.0.1", 0))
-            port = s.getsockname()[1]
-        proc = subprocess.Popen([sys.executable, "-m", "jepa_policy.cli", "serve", "--checkpoint", checkpoint,
-                                 "--port", str(port), "--threads", str(threads), "--max-batch", str(max_batch),
-                                 "--max-queue", "1024"], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
-        deadline = time.monotonic() + 60
-        while True:
-            try:
-                ws = connect(f"ws://127.0.0.1:{port}", compression=None, max_size=None)
-                ws.close()
-                return proc, port
-            except OSError:
-                if time.monotonic() > deadline or proc.poll() is not None:
-                    raise RuntimeError(f"jepa-policy serve did not start: {proc.stderr.read().decode()[-1500:]}")
-                time.sleep(0.2)
+        return _start_server(checkpoint, threads, "--max-batch", str(max_batch), "--max-queue", "1024")
 
     result = {"task": spec.name, "preset": preset, "torch_threads": threads, "cores": os.cpu_count(),
               "load_average_before": os.getloadavg()[0]}
@@ -413,11 +418,114 @@ def bench_serve(task: str = "PushT", preset: str = "cpu", checkpoint: str | None
                     "p99_ms": float(np.percentile(lat, 99))}
             proc.terminate()
             proc.wait(timeout=30)
+        if hostile:
+            result["hostile"] = bench_serve_hostile(checkpoint, request(history()), seconds=seconds, threads=threads)
     finally:
         if proc.poll() is None:
             proc.kill()
         shutil.rmtree(tmp, ignore_errors=True)
     result["load_average_after"] = os.getloadavg()[0]
+    return result
+
+
+def _memory_mib(pid: int) -> dict:
+    fields = dict(line.split(":", 1) for line in Path(f"/proc/{pid}/status").read_text().splitlines() if ":" in line)
+    return {k: int(fields[k].split()[0]) / 1024 for k in ("VmRSS", "VmHWM")}
+
+
+def _tiny_arrays_frame(body: bytes, n: int = 190_000, nested: bool = False) -> bytes:
+    """A request with ``n`` one-byte arrays (8 MiB for 190,000): in one list, or in lists of 60 (each list short)."""
+    tiny = {b"__ndarray__": True, b"data": b"x", b"dtype": "|u1", b"shape": [1]}
+    return pack({**unpack(body), "extra": [[tiny] * 60] * (n // 60) if nested else [tiny] * n})
+
+
+def bench_serve_hostile(checkpoint: str, body: bytes, seconds: float = 5.0, threads: int = 1, flooders: int = 8,
+                        cwd: str | None = None) -> dict:
+    """What a hostile peer costs the others, each phase on a fresh server: one robot's round trips (``body``, a
+    good request) alone and beside a client sending 8 MiB frames of 190,000 tiny arrays (one list; lists of 60);
+    then the server's peak memory when ``flooders`` clients each send one 63 MiB frame, and one just under the
+    8 MiB limit (a valid request whose array has the wrong shape)."""
+    result: dict = {"latency": {}, "memory": {}}
+    frames = {"alone": None, "tiny_arrays_list": _tiny_arrays_frame(body),
+              "tiny_arrays_nested": _tiny_arrays_frame(body, nested=True)}
+    for name, frame in frames.items():
+        proc, port = _start_server(checkpoint, threads, cwd=cwd)
+        try:
+            robot = connect(f"ws://127.0.0.1:{port}", compression=None, max_size=None)
+            unpack(robot.recv())
+            stop, answered = threading.Event(), []
+
+            def attack():
+                with connect(f"ws://127.0.0.1:{port}", compression=None, max_size=None) as ws:
+                    ws.recv()
+                    while not stop.is_set():
+                        t = time.perf_counter()
+                        ws.send(frame)
+                        ws.recv()
+                        answered.append((time.perf_counter() - t) * 1e3)
+            attacker = threading.Thread(target=attack) if frame is not None else None
+            if attacker is not None:
+                attacker.start()
+                time.sleep(0.5)
+            latencies, end = [], time.perf_counter() + seconds
+            while time.perf_counter() < end:
+                t = time.perf_counter()
+                robot.send(body)
+                if isinstance(robot.recv(), str):
+                    raise RuntimeError("the good request was refused")
+                latencies.append((time.perf_counter() - t) * 1e3)
+            stop.set()
+            if attacker is not None:
+                attacker.join()
+            robot.close()
+            lat = np.array(latencies)
+            result["latency"][name] = {
+                "robot_p50_ms": float(np.percentile(lat, 50)), "robot_p99_ms": float(np.percentile(lat, 99)),
+                "robot_max_ms": float(lat.max()), "robot_requests": len(lat), "frame_bytes": len(frame or body),
+                "hostile_answer_ms": float(np.median(answered)) if answered else None}
+        finally:
+            proc.kill()
+            proc.wait(timeout=30)
+    big = pack({"top_image": np.zeros(63 * 2**20, np.uint8)})
+    under = pack({**unpack(body), "extra": np.zeros(MAX_REQUEST_BYTES - 4096, np.uint8)})
+    for name, frame in (("63MiB", big), ("just_under_limit", under)):
+        proc, port = _start_server(checkpoint, threads, cwd=cwd)
+        try:
+            with connect(f"ws://127.0.0.1:{port}", compression=None, max_size=None) as ws:   # warm: one decision
+                ws.recv()
+                ws.send(body)
+                ws.recv()
+            before = _memory_mib(proc.pid)["VmRSS"]
+            barrier, done, peak = threading.Barrier(flooders), threading.Event(), [before]
+
+            def sample():   # VmHWM keeps the checkpoint load's peak: sample VmRSS instead
+                while not done.is_set():
+                    peak[0] = max(peak[0], _memory_mib(proc.pid)["VmRSS"])
+                    time.sleep(0.002)
+            sampler = threading.Thread(target=sample)
+            sampler.start()
+
+            def flood():
+                try:
+                    with connect(f"ws://127.0.0.1:{port}", compression=None, max_size=None, open_timeout=30) as ws:
+                        ws.recv()
+                        barrier.wait()
+                        ws.send(frame)
+                        ws.recv(timeout=60)
+                except (OSError, websockets.WebSocketException):
+                    pass   # refused or closed by the server: what this phase measures is its memory
+            workers = [threading.Thread(target=flood) for _ in range(flooders)]
+            for w in workers:
+                w.start()
+            for w in workers:
+                w.join()
+            done.set()
+            sampler.join()
+            result["memory"][name] = {"frame_bytes": len(frame), "clients": flooders, "rss_before_mib": before,
+                                      "peak_rss_mib": peak[0], "peak_growth_mib": peak[0] - before}
+        finally:
+            proc.kill()
+            proc.wait(timeout=30)
     return result
 
 
@@ -438,4 +546,20 @@ def format_serve(result: dict) -> str:
         lines.append(f"{n:<10}{b['decisions_per_s']:>15.1f}{b['p50_ms']:>8.1f}/{b['p99_ms']:<7.1f}"
                      f"{u['decisions_per_s']:>18.1f}{u['p50_ms']:>8.1f}/{u['p99_ms']:<7.1f}"
                      f"{b['decisions_per_s'] / u['decisions_per_s']:>7.2f}")
+    if "hostile" in result:
+        lines.append(format_serve_hostile(result["hostile"]))
+    return "\n".join(lines)
+
+
+def format_serve_hostile(result: dict) -> str:
+    lines = [f"{'another robot beside':<34}{'frame MiB':>10}{'p50 ms':>9}{'p99 ms':>9}{'max ms':>9}"
+             f"{'hostile answered ms':>21}"]
+    for name, r in result["latency"].items():
+        hostile = "-" if r["hostile_answer_ms"] is None else f"{r['hostile_answer_ms']:.1f}"
+        lines.append(f"{name:<34}{r['frame_bytes'] / 2**20:>10.2f}{r['robot_p50_ms']:>9.2f}{r['robot_p99_ms']:>9.2f}"
+                     f"{r['robot_max_ms']:>9.1f}{hostile:>21}")
+    lines.append(f"{'clients x frame':<34}{'RSS before MiB':>16}{'peak MiB':>10}{'peak growth MiB':>17}")
+    for name, r in result["memory"].items():
+        lines.append(f"{str(r['clients']) + ' x ' + name:<34}{r['rss_before_mib']:>16.0f}{r['peak_rss_mib']:>10.0f}"
+                     f"{r['peak_growth_mib']:>17.0f}")
     return "\n".join(lines)

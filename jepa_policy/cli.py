@@ -116,7 +116,8 @@ def cmd_bench_serve(args) -> int:
     from jepa_policy.bench import bench_serve, format_serve
 
     result = bench_serve(args.task, args.preset, args.checkpoint, iters=args.iters, seconds=args.seconds,
-                         clients=tuple(int(c) for c in args.clients.split(",")), threads=args.threads)
+                         clients=tuple(int(c) for c in args.clients.split(",")), threads=args.threads,
+                         hostile=args.hostile)
     print(json.dumps(result, indent=2) if args.json else format_serve(result))
     return 0
 
@@ -295,6 +296,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seconds", type=float, default=5.0, help="per concurrency level")
     p.add_argument("--clients", default="1,4,16", help="concurrent clients to measure")
     p.add_argument("--threads", type=int, default=1, help="torch threads of the server and the in-process policy")
+    p.add_argument("--hostile", action="store_true",
+                   help="also: one robot's latency beside a client sending 8 MiB frames of 190,000 tiny arrays, and "
+                        "the server's peak memory under 8 clients sending oversized frames")
     p.add_argument("--json", action="store_true", help="print JSON instead of a table")
     p.set_defaults(func=cmd_bench_serve)
 

@@ -1,10 +1,12 @@
-"""openpi part of `make interop`: a PushT episode driven through `jepa-policy serve` by the published
-openpi-client (its WebsocketClientPolicy and ActionChunkBroker, in their own venv), compared action by action
-with the same checkpoint's in-process ``Policy.act`` on the same observations."""
+"""openpi part of `make interop`: PushT episodes driven through `jepa-policy serve` by docs/serving.md's robot loop,
+run as written with the published openpi-client (its WebsocketClientPolicy and ActionChunkBroker, in their own
+venv), compared action by action with the same checkpoint's in-process ``Policy.act`` on the same observations.
+``drive_documented_loop`` is also what tests/jepa_policy/test_serve_openpi.py runs."""
 from __future__ import annotations
 
 import io
 import json
+import os
 import socket
 import struct
 import subprocess
@@ -16,6 +18,7 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 PEER = ROOT / "scripts" / "interop_openpi_peer.py"
+DOC = ROOT / "docs" / "serving.md"
 
 
 def _free_port() -> int:
@@ -54,17 +57,55 @@ def _checkpoint(work: Path) -> Path:
     return out / "checkpoints" / "latest.pt"
 
 
-def check_openpi(py: str, work: Path) -> dict:
+def drive_documented_loop(py: str, port: int, api_key: str, policy, episodes: int = 1, max_steps: int | None = None,
+                          seed: int = 11) -> dict:
+    """docs/serving.md's loop in the openpi-client venv ``py`` drives PushT episodes against the server on ``port``
+    while this process steps the environment and asks ``policy`` (the same checkpoint, in-process) for its action
+    on every observation: the largest |served - in-process| difference, steps, successes, the metadata read."""
     import gymnasium as gym
-    import torch
 
     import jepa_envs  # noqa: F401
+
+    peer = subprocess.Popen([py, str(PEER), str(DOC), "127.0.0.1", str(port), api_key, str(episodes)],
+                            stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    env = gym.make("JEPA/PushT-v0", image_size=policy.spec.image_size)   # the metadata's observation size
+    diffs, steps, successes = [], 0, 0
+    try:
+        for episode in range(episodes):
+            policy.reset()
+            obs, _ = env.reset(seed=seed + episode)
+            _send(peer, done=np.int64(0), success=np.int64(0), **obs)
+            success = False
+            for t in range(max_steps or env.spec.max_episode_steps):
+                served = _recv(peer)["action"]
+                diffs.append(float(np.abs(served - policy.act(obs)).max()))
+                obs, _, terminated, truncated, info = env.step(served)
+                steps += 1
+                success = success or bool(info["is_success"])
+                done = terminated or truncated or t + 1 == (max_steps or env.spec.max_episode_steps)
+                _send(peer, done=np.int64(done), success=np.int64(success), **obs)
+                if done:
+                    break
+            successes += success
+        metadata = json.loads(str(_recv(peer)["metadata"]))
+        peer.wait(timeout=30)
+    finally:
+        if peer.poll() is None:
+            peer.kill()
+        env.close()
+    return {"steps": steps, "episodes": episodes, "successes": successes, "max_abs_action_diff": max(diffs),
+            "bit_equal": max(diffs) == 0.0, "metadata": metadata}
+
+
+def check_openpi(py: str, work: Path) -> dict:
+    import torch
+
     from jepa_policy.policy import Policy
 
     checkpoint = _checkpoint(work)
     port, key = _free_port(), "interop-key"
     server = subprocess.Popen([sys.executable, "-m", "jepa_policy.cli", "serve", "--checkpoint", str(checkpoint),
-                               "--port", str(port), "--api-key", key, "--threads", "1"],
+                               "--port", str(port), "--threads", "1"], env={**os.environ, "JEPA_POLICY_API_KEY": key},
                               stdout=subprocess.PIPE, stderr=subprocess.PIPE)
     result: dict = {}
     try:
@@ -85,39 +126,13 @@ def check_openpi(py: str, work: Path) -> dict:
                                   f"WebsocketClientPolicy('127.0.0.1', {port})"], capture_output=True, text=True,
                                  timeout=60)
         result["refused_without_key"] = refused.returncode != 0 and "401" in refused.stderr
-        peer = subprocess.Popen([py, str(PEER), "127.0.0.1", str(port), key], stdin=subprocess.PIPE,
-                                stdout=subprocess.PIPE, stderr=subprocess.PIPE)
-        metadata = json.loads(str(_recv(peer)["metadata"]))
-        result["metadata"] = {k: metadata[k] for k in ("task", "observation", "obs_steps", "action", "control_hz")}
         torch.set_num_threads(1)   # as the server (--threads 1): the same arithmetic order, so equal floats
         policy = Policy.from_checkpoint(checkpoint)
-        env = gym.make("JEPA/PushT-v0", image_size=policy.spec.image_size)   # the metadata's observation size
-        obs, _ = env.reset(seed=11)
-        history, diffs, steps, infer_ms = [], [], 0, []
-        success = False
-        for t in range(env.spec.max_episode_steps):
-            history = (history + [obs])[-policy.obs_steps:]
-            stacked = {k: np.stack([h[k] for h in ([history[0]] * (policy.obs_steps - len(history)) + history)])
-                       for k in obs}
-            _send(peer, step=np.int64(t), **stacked)
-            reply = _recv(peer)
-            served = reply["action"]
-            if reply["infer_ms"] >= 0 and t % policy.n_action_steps == 0:
-                infer_ms.append(float(reply["infer_ms"]))
-            local = policy.act(obs)
-            diffs.append(float(np.abs(served - local).max()))
-            obs, _, terminated, truncated, info = env.step(served)
-            steps += 1
-            success = success or bool(info["is_success"])
-            if terminated or truncated:
-                break
-        _send(peer, done=np.int64(1))
-        peer.wait(timeout=30)
-        env.close()
-        result.update(steps=steps, inferences=int(np.ceil(steps / policy.n_action_steps)), success=success,
-                      max_abs_action_diff=max(diffs), bit_equal=max(diffs) == 0.0,
-                      median_infer_ms=float(np.median(infer_ms)) if infer_ms else None)
-        result["ok"] = result["refused_without_key"] and result["bit_equal"] and steps > 0
+        result.update(drive_documented_loop(py, port, key, policy, episodes=2))
+        meta = result.pop("metadata")
+        result["metadata"] = {k: meta[k] for k in ("task", "observation", "obs_steps", "action", "control_hz")}
+        result["inferences_per_episode"] = int(np.ceil(result["steps"] / result["episodes"] / policy.n_action_steps))
+        result["ok"] = result["refused_without_key"] and result["bit_equal"] and result["steps"] > 0
     finally:
         server.terminate()
         server.wait(timeout=30)
@@ -126,9 +141,10 @@ def check_openpi(py: str, work: Path) -> dict:
 
 def print_openpi(result: dict) -> None:
     meta = result["metadata"]
-    print("openpi-client 0.1.2 (WebsocketClientPolicy + ActionChunkBroker) against jepa-policy serve")
+    print("openpi-client 0.1.2 running docs/serving.md's loop (WebsocketClientPolicy + ActionChunkBroker) against "
+          "jepa-policy serve")
     print(f"  metadata: task {meta['task']}, observation {meta['observation']}, chunk {meta['action']['chunk']}")
-    print(f"  episode: {result['steps']} steps, {result['inferences']} inferences, success {result['success']}; "
-          f"actions vs in-process Policy.act: max |diff| {result['max_abs_action_diff']:.3g} "
-          f"({'bit-equal' if result['bit_equal'] else 'DIFFER'}); median server infer {result['median_infer_ms']} ms; "
-          f"refused without the API key: {result['refused_without_key']}")
+    print(f"  {result['episodes']} episodes, {result['steps']} steps, {result['successes']} successes; actions vs "
+          f"in-process Policy.act: max |diff| {result['max_abs_action_diff']:.3g} "
+          f"({'bit-equal' if result['bit_equal'] else 'DIFFER'}); refused without the API key: "
+          f"{result['refused_without_key']}")
