@@ -1,0 +1,163 @@
+"""Faults with a known onset (jepa_envs/tasks/faults.py): frames up to the onset untouched, the fault visible from
+frame onset+1 as its formula says, the same seed the same episode."""
+from __future__ import annotations
+
+import gymnasium as gym
+import numpy as np
+import pytest
+
+from jepa_envs.tasks.faults import (FAULTED_ENV, FAULTS, KINDS, ActionLatency, CameraShift, ColourShift,
+                                    wrap_fault)
+from jepa_envs.tasks.pusht import COLORS
+
+ONSET, STEPS, SIZE = 6, 14, 32
+
+
+def _push_actions(info):
+    """Drive the agent through the block's centre, so that the block moves (dynamics faults show)."""
+    x, y, _ = info["block_pose"]
+    return np.array([x, y], np.float32)
+
+
+def _run(env, seed, steps=STEPS):
+    """Frames, agent positions and block poses of ``steps`` steps pushing the block, and the infos."""
+    obs, info = env.reset(seed=seed)
+    frames, infos = [obs], [info]
+    for _ in range(steps):
+        obs, _, terminated, truncated, info = env.step(_push_actions(infos[-1]))
+        frames.append(obs)
+        infos.append(info)
+        if terminated or truncated:
+            break
+    return frames, infos
+
+
+def _clean(seed):
+    return _run(gym.make("JEPA/PushT-v0", image_size=SIZE), seed)
+
+
+def _faulted(name, seed, **kwargs):
+    return _run(gym.make(FAULTED_ENV, fault=name, image_size=SIZE, fault_kwargs={"onset": ONSET, **kwargs}), seed)
+
+
+def _same(a, b):
+    return all(np.array_equal(a[k], b[k]) for k in a)
+
+
+@pytest.mark.parametrize("name", sorted(FAULTS))
+def test_frames_up_to_the_onset_are_untouched_and_the_fault_shows_after_it(name):
+    clean, clean_info = _clean(5)
+    faulted, infos = _faulted(name, 5)
+    for j in range(ONSET + 1):
+        assert _same(faulted[j], clean[j]), f"{name}: frame {j} <= onset {ONSET} changed"
+    assert [i["fault_active"] for i in infos] == [False] * (ONSET + 1) + [True] * (len(infos) - ONSET - 1)
+    assert all(i["fault_onset"] == ONSET and i["fault"] == name for i in infos)
+    assert FAULTS[name].kind in KINDS
+    later = [j for j in range(ONSET + 1, len(faulted)) if not _same(faulted[j], clean[j])
+             or not np.allclose(infos[j]["block_pose"], clean_info[j]["block_pose"])]
+    assert later, f"{name}: nothing changed after the onset"
+    if FAULTS[name].kind in ("physical", "visual", "benign") or name == "action_noise":
+        assert later[0] == ONSET + 1, f"{name}: first visible at frame {later[0]}, not {ONSET + 1}"
+
+
+@pytest.mark.parametrize("name", sorted(FAULTS))
+def test_the_same_seed_gives_the_same_episode(name):
+    a, ai = _faulted(name, 11, onset=(2, 9))
+    b, bi = _faulted(name, 11, onset=(2, 9))
+    assert len(a) == len(b) and all(_same(x, y) for x, y in zip(a, b))
+    assert [i["fault_onset"] for i in ai] == [i["fault_onset"] for i in bi]
+
+
+def test_an_onset_range_is_drawn_from_the_seed():
+    def onsets(seed):
+        env = gym.make(FAULTED_ENV, fault="action_noise", image_size=SIZE, fault_kwargs={"onset": (5, 60)})
+        return env.reset(seed=seed)[1]["fault_onset"]
+
+    drawn = [onsets(s) for s in range(20)]
+    assert drawn == [onsets(s) for s in range(20)]
+    assert all(5 <= d <= 60 for d in drawn) and len(set(drawn)) > 5
+
+
+def test_random_faults_differ_between_seeds():
+    for name in ("block_displaced", "action_noise", "distractors"):
+        a, _ = _faulted(name, 1)
+        c, _ = _faulted(name, 2)
+        clean_a, _ = _clean(1)
+        clean_c, _ = _clean(2)
+        delta_a = [f["top_image"].astype(int) - g["top_image"] for f, g in zip(a, clean_a)]
+        delta_c = [f["top_image"].astype(int) - g["top_image"] for f, g in zip(c, clean_c)]
+        assert any(not np.array_equal(x, y) for x, y in zip(delta_a, delta_c)), name
+
+
+def test_visual_faults_follow_their_formulas():
+    clean, _ = _clean(7)
+    j = ONSET + 3
+    shifted, _ = _faulted("colour_shift", 7, brightness=0.5, gains=(1.0, 2.0, 1.0))
+    want = np.clip(clean[j]["top_image"].astype(np.float32) * np.array([0.5, 1.0, 0.5], np.float32), 0, 255)
+    np.testing.assert_array_equal(shifted[j]["top_image"], want.round().astype(np.uint8))
+
+    moved, _ = _faulted("camera_shift", 7, pixels=2)
+    env = CameraShift(gym.make("JEPA/PushT-v0", image_size=SIZE), onset=ONSET, pixels=2)
+    env.reset(seed=7)
+    dy, dx = env.shift
+    image, got = clean[j]["top_image"], moved[j]["top_image"]
+    inner = got[max(dy, 0):SIZE + min(dy, 0), max(dx, 0):SIZE + min(dx, 0)]
+    np.testing.assert_array_equal(inner, image[max(-dy, 0):SIZE + min(-dy, 0), max(-dx, 0):SIZE + min(-dx, 0)])
+
+    tinted, _ = _faulted("background_tint", 7, tint=(-20, 0, 20))
+    background = np.all(clean[j]["top_image"] == np.array(COLORS["background"], np.uint8), axis=-1)
+    assert background.mean() > 0.5
+    np.testing.assert_array_equal(tinted[j]["top_image"][~background], clean[j]["top_image"][~background])
+    assert (tinted[j]["top_image"][background] == np.array(COLORS["background"]) + [-20, 0, 20]).all()
+
+
+def test_latency_executes_the_action_given_n_steps_earlier():
+    actions = np.random.default_rng(0).uniform(100, 400, size=(STEPS, 2)).astype(np.float32)
+    env = ActionLatency(gym.make("JEPA/PushT-v0", image_size=SIZE), onset=ONSET, steps=3)
+    executed = []
+    inner_step = env.env.step
+    env.env.step = lambda a: (executed.append(np.array(a)), inner_step(a))[1]
+    env.reset(seed=0)
+    for a in actions:
+        env.step(a)
+    want = [actions[i] if i < ONSET else actions[i - 3] for i in range(STEPS)]
+    np.testing.assert_array_equal(np.stack(executed), np.stack(want))
+
+
+def test_dynamics_faults_change_the_simulation_at_the_onset_step():
+    for name, read in (("block_friction", lambda s: [shape.friction for shape in s.block.shapes]),
+                       ("block_slides", lambda s: s.space.damping), ("weak_actuator", lambda s: (s.kp, s.kv))):
+        env = gym.make(FAULTED_ENV, fault=name, image_size=SIZE, fault_kwargs={"onset": ONSET})
+        env.reset(seed=0)
+        sim = env.unwrapped.backend
+        before = read(sim)
+        for t in range(ONSET):
+            env.step(np.array([100, 100], np.float32))
+            assert read(sim) == before, f"{name} changed at step {t} < onset"
+        env.step(np.array([100, 100], np.float32))
+        assert read(sim) != before, name
+    sim = env.unwrapped.backend
+    assert (sim.kp, sim.kv) == (50.0, 10.0)   # halved
+
+
+def test_bad_options_are_refused_with_the_fix():
+    base = gym.make("JEPA/PushT-v0", image_size=SIZE)
+    with pytest.raises(ValueError, match="unknown fault 'smoke'; choose one of"):
+        wrap_fault(base, "smoke")
+    with pytest.raises(ValueError, match="its options are onset and those of ActionNoise"):
+        wrap_fault(base, "action_noise", sigma=3)
+    with pytest.raises(ValueError, match="onset must be >= 0"):
+        wrap_fault(base, "action_noise", onset=-1)
+    with pytest.raises(ValueError, match="needs JEPA/PushT-v0"):
+        wrap_fault(_OtherTask(), "weak_actuator")
+    wrap_fault(_OtherTask(), "action_noise")   # actuation and visual faults work on any task
+
+
+class _OtherTask(gym.Env):
+    observation_space = gym.spaces.Box(0, 1, (1,))
+    action_space = gym.spaces.Box(0, 1, (1,))
+
+
+def test_colour_shift_refuses_bad_gains():
+    with pytest.raises(ValueError, match="three positive channel gains"):
+        ColourShift(gym.make("JEPA/PushT-v0", image_size=SIZE), gains=(1, 1))
