@@ -27,6 +27,7 @@ import numpy as np
 import torch
 
 from jepa_policy.dataset import WindowDataset
+from monitor_service.scoring import nmse_rows
 
 TE32_BOUNDARY = 0.05
 VIEWS = {
@@ -94,8 +95,9 @@ def audit_checkpoint(policy, demos, samples: int = 4096, seed: int = 0, batch_si
 
 def nmse_matrix(z_hat: np.ndarray, targets: np.ndarray) -> np.ndarray:
     """(Q, P) d_NMSE of each query against each of its P candidates: z_hat (Q, D), targets (Q, P, D)."""
-    rms = np.sqrt(np.mean(targets * targets, axis=-1))
-    return np.mean(((z_hat[:, None, :] - targets) / np.maximum(rms, 1e-6)[..., None]) ** 2, axis=-1)
+    q, p, d = targets.shape
+    queries = np.broadcast_to(z_hat[:, None, :], targets.shape)
+    return nmse_rows(queries.reshape(q * p, d), targets.reshape(q * p, d)).reshape(q, p)
 
 
 def candidate_pools(n: int, pool: int, seed: int) -> np.ndarray:

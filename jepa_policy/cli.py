@@ -73,10 +73,17 @@ def cmd_eval(args) -> int:
 
     from jepa_policy.train import resolve_device
 
+    calibration = None
+    if args.residual_calibration:
+        path = Path(args.residual_calibration)
+        if not path.is_file():
+            raise FileNotFoundError(f"--residual-calibration {path} does not exist; write one with `jepa-policy eval "
+                                    "--out calib.jsonl` on other seeds (e.g. --seed 300000)")
+        calibration = [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
     policy = Policy.from_checkpoint(args.checkpoint, device=resolve_device(args.device), ema=not args.no_ema)
     report = evaluate(policy, episodes=args.episodes, seed=args.seed, num_envs=args.num_envs,
                       max_steps=args.max_steps, video_dir=args.video, out=args.out, workers=args.workers,
-                      save_rollouts=args.save_rollouts)
+                      save_rollouts=args.save_rollouts, residual_calibration=calibration)
     summary = {k: v for k, v in report.items() if k != "records"}
     print(json.dumps(summary))
     return 0
@@ -253,6 +260,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--save-rollouts", default=None, metavar="FILE.hdf5",
                    help="also write every episode (all frames, actions, rewards, outcome) as robomimic-layout HDF5, "
                         "e.g. for `jepa-envs lerobot export` (outcomes become next.success)")
+    p.add_argument("--residual-calibration", metavar="RECORDS.jsonl",
+                   help="records of a calibration split (`--out` of an eval on other seeds): nmse_residualised is "
+                        "taken against the line fitted there (default: cross-fitted over this run's episodes)")
     p.add_argument("--device", default="auto", help="auto (CUDA when present) | cpu | cuda | cuda:N")
     p.add_argument("--no-ema", action="store_true", help="act with the raw instead of the EMA weights")
     p.set_defaults(func=cmd_eval)

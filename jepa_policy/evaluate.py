@@ -21,15 +21,7 @@ import torch.distributed as dist
 import jepa_envs  # noqa: F401  (registers the JEPA/* ids)
 from jepa_envs.datasets.hdf5 import DemoWriter
 from jepa_envs.rollouts.pool import EnvPool, WorkerFailure
-
-
-def nmse(z_hat: np.ndarray, z: np.ndarray) -> np.ndarray:
-    """Target-RMS-normalised MSE per row, d_NMSE = ||(z_hat - z) / max(rms(z), 1e-6)||^2 / d_z (Sec. 3.3)."""
-    z_hat, z = np.asarray(z_hat, dtype=np.float64), np.asarray(z, dtype=np.float64)
-    if z_hat.shape != z.shape:
-        raise ValueError(f"z_hat shape {z_hat.shape} differs from target shape {z.shape}")
-    rms = np.sqrt(np.mean(z * z, axis=-1, keepdims=True))
-    return np.mean(((z_hat - z) / np.maximum(rms, 1e-6)) ** 2, axis=-1)
+from monitor_service.scoring import nmse_rows
 
 
 @dataclass
@@ -61,20 +53,74 @@ def reporting_protocols(curve: list[dict]) -> dict:
     }
 
 
-def residualise_records(records: list[dict]) -> dict | None:
-    """Sec. 4.10's control: log NMSE regressed on log persistence NMSE (the magnitude of latent change) over
-    every scored decision; each decision gets ``nmse_residualised``, its log NMSE minus the line. Returns the
-    line (None when fewer than 3 decisions have both scores)."""
+RESIDUAL_FOLDS = 5   # cross-fitting without a calibration split: an episode's fold is its seed modulo this
+
+
+def _scored_pairs(records: list[dict]) -> tuple[list[dict], np.ndarray, np.ndarray]:
+    """The decisions with both scores, their log NMSE (y) and log persistence NMSE (x)."""
     pairs = [d for r in records for d in r["decisions"]
              if d.get("nmse") is not None and d.get("nmse_persistence") is not None]
+    y = np.log(np.maximum([d["nmse"] for d in pairs], 1e-12)) if pairs else np.zeros(0)
+    x = np.log(np.maximum([d["nmse_persistence"] for d in pairs], 1e-12)) if pairs else np.zeros(0)
+    return pairs, y, x
+
+
+def residual_line(records: list[dict]) -> dict | None:
+    """Sec. 4.10's control line fitted on ``records`` (a calibration split): log NMSE = intercept + slope x log
+    persistence NMSE (the magnitude of latent change) over their scored decisions; None below 3 of them."""
+    pairs, y, x = _scored_pairs(records)
     if len(pairs) < 3:
         return None
-    y = np.log(np.maximum([d["nmse"] for d in pairs], 1e-12))
-    x = np.log(np.maximum([d["nmse_persistence"] for d in pairs], 1e-12))
     slope, intercept = np.polyfit(x, y, 1)
-    for d, yi, xi in zip(pairs, y, x):
-        d["nmse_residualised"] = float(yi - intercept - slope * xi)
+    scored = {id(d) for d in pairs}
     return {"intercept": float(intercept), "slope": float(slope), "decisions": len(pairs),
+            "episodes": sum(any(id(d) in scored for d in r["decisions"]) for r in records)}
+
+
+def _apply_line(records: list[dict], line: dict) -> None:
+    pairs, y, x = _scored_pairs(records)
+    for d, yi, xi in zip(pairs, y, x):
+        d["nmse_residualised"] = float(yi - line["intercept"] - line["slope"] * xi)
+
+
+def residualise_records(records: list[dict], calibration: list[dict] | dict | None = None,
+                        folds: int = RESIDUAL_FOLDS) -> dict | None:
+    """Sec. 4.10's control: each scored decision gets ``nmse_residualised``, its log NMSE minus a line of log NMSE
+    on log persistence NMSE that was never fitted on its own episode. Returns how (None: nothing to fit).
+
+    ``calibration``: the records of a calibration split (other seeds, e.g. ``jepa-policy eval --out`` of a
+    held-out block) or a line already fitted on one (``residual_line``). The line comes from there only, so an
+    episode's value depends on its own decisions and the calibration split, never on which other episodes
+    this run holds. Without one the run is cross-fitted: episode seed s is in fold s % ``folds`` and gets the
+    line fitted on the run's other folds (a fold whose complement has fewer than 3 scored decisions gets none);
+    its value then still moves with the episodes of the other folds.
+    """
+    if calibration is not None:
+        line = calibration if isinstance(calibration, dict) else residual_line(calibration)
+        if isinstance(line, dict) and not {"intercept", "slope"} <= set(line):
+            raise ValueError("a calibration line needs 'intercept' and 'slope' (residual_line of a calibration "
+                             "split's records); a cross-fitted report's residualised_fit is not one")
+        if line is None:
+            raise ValueError("the calibration split has fewer than 3 decisions with both NMSE and persistence "
+                             "NMSE; evaluate more held-out episodes for it")
+        _apply_line(records, line)
+        return {**line, "how": "fitted on the calibration split, applied to every episode of this run",
+                "what": "log NMSE = intercept + slope * log NMSE(z_t, z_{t+k}); nmse_residualised is the rest"}
+    if folds < 2:
+        raise ValueError(f"cross-fitting needs folds >= 2, got {folds}")
+    by_fold: dict[int, list[dict]] = {}
+    for r in records:
+        by_fold.setdefault(int(r["seed"]) % folds, []).append(r)
+    lines = {}
+    for fold, held in sorted(by_fold.items()):
+        line = residual_line([r for f, part in by_fold.items() if f != fold for r in part])
+        if line is not None:
+            _apply_line(held, line)
+        lines[fold] = line
+    if all(line is None for line in lines.values()):
+        return None
+    return {"how": f"cross-fitted: episode seed s in fold s % {folds}, residualised on the line of the other folds",
+            "folds": {str(f): line for f, line in lines.items()},
             "what": "log NMSE = intercept + slope * log NMSE(z_t, z_{t+k}); nmse_residualised is the rest"}
 
 
@@ -108,7 +154,7 @@ def evaluate(policy, episodes: int, seed: int, num_envs: int = 4, max_steps: int
              video_dir: str | Path | None = None, on_decision: Callable[[DecisionEvent], None] | None = None,
              keep_latents: bool = False, out: str | Path | None = None, pool: EnvPool | None = None,
              workers: int | None = 0, max_reruns: int = 2, shard: tuple[int, int] | None = None,
-             save_rollouts: str | Path | None = None) -> dict:
+             save_rollouts: str | Path | None = None, residual_calibration: list[dict] | dict | None = None) -> dict:
     """Run ``episodes`` rollouts with seeds seed, seed+1, ... in rounds of ``num_envs`` lockstep environments.
 
     The environments live in ``pool`` (a persistent ``EnvPool`` from ``make_pool``, reused across calls; its
@@ -125,6 +171,10 @@ def evaluate(policy, episodes: int, seed: int, num_envs: int = 4, max_steps: int
     returns the whole report (``out`` is written by rank 0) and it equals the one-process report. Each rank runs
     its own pool and delivers ``on_decision`` events of its own episodes. Without a process group, an explicit
     ``shard`` runs and reports that shard's episodes only.
+
+    ``residual_calibration``: the records (or the line, ``residual_line``) of a calibration split that each
+    decision's ``nmse_residualised`` is taken against; without it the run's episodes are cross-fitted
+    (``residualise_records``).
 
     ``save_rollouts``: also write every episode (all frames rendered, actions, rewards, its seed and outcome as
     ``success``) as a robomimic-layout HDF5 file, e.g. for ``jepa-envs lerobot export`` (its ``next.success``).
@@ -181,7 +231,7 @@ def evaluate(policy, episodes: int, seed: int, num_envs: int = 4, max_steps: int
         reruns = [x for _, _, part in gathered for x in part]
         shares = {k: [r["episode"] for r in part] for k, part, _ in gathered}
     valid = [d["nmse"] for r in records for d in r["decisions"] if d["nmse"] is not None]
-    fit = residualise_records(records)
+    fit = residualise_records(records, residual_calibration)
     report = {
         "task": spec.name,
         "episodes": episodes,
@@ -270,7 +320,7 @@ def _run_round(envs, policy, ids, seed, video_dir, on_decision, keep_latents, st
         if due:
             z_real = policy.encode_future(obs)
             for d, z_now in due:
-                err, err_persistence = nmse(d.z_hat, z_real), nmse(z_now, z_real)
+                err, err_persistence = nmse_rows(d.z_hat, z_real), nmse_rows(z_now, z_real)
                 for j in np.flatnonzero(live):
                     rec = {"step": d.step, "target_step": d.target_step, "nmse": float(err[j]),
                            "nmse_persistence": float(err_persistence[j])}

@@ -4,7 +4,8 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-RMS_FLOOR = 1e-6     # max(||z||_RMS, 1e-6) in d_NMSE (Sec. 3.3)
+from monitor_service.scoring import RMS_FLOOR
+
 RATIO_EPS = 1e-8     # epsilon of the adaptive ratio (Sec. 3.3)
 
 
@@ -12,8 +13,10 @@ def nmse(z_hat: Tensor, z: Tensor, reduction: str = "mean") -> Tensor:
     """Target-RMS-normalised MSE (Sec. 3.3).
 
     d_NMSE(z_hat, z) = || (z_hat - z) / max(||z||_RMS, 1e-6) ||^2 / d_z per sample; averaged over the batch
-    when ``reduction="mean"``, one value per sample with ``"none"`` (the rollout diagnostic e_fc, Sec. 3.6).
-    The caller applies stop-gradient to the target; this function does not.
+    when ``reduction="mean"``, one value per sample with ``"none"``. The caller applies stop-gradient to the
+    target; this function does not. It is ``monitor_service.scoring.nmse_rows`` (the project's one d_NMSE, which
+    scores rollouts, the monitor and the server) in torch, so that it carries gradients on the training device;
+    tests/jepa_policy/test_nmse_agreement.py holds the two together on random inputs.
     """
     if z_hat.shape != z.shape:
         raise ValueError(f"nmse: prediction shape {tuple(z_hat.shape)} differs from target {tuple(z.shape)}")

@@ -6,6 +6,8 @@ from collections.abc import Sequence
 
 import numpy as np
 
+RMS_FLOOR = 1e-6     # max(||z||_RMS, 1e-6) in d_NMSE (Sec. 3.3); the training loss uses the same constant
+
 
 def nmse(z_hat: np.ndarray, z: np.ndarray) -> float:
     """Target-normalised MSE d_NMSE(z_hat, z) = ||(z_hat - z) / max(rms(z), 1e-6)||^2 / d_z (Sec. 3.3).
@@ -21,13 +23,21 @@ def nmse(z_hat: np.ndarray, z: np.ndarray) -> float:
 
 def nmse_rows(z_hat: np.ndarray, z: np.ndarray) -> np.ndarray:
     """``nmse`` of each row pair of two (n, d) arrays, in one pass over the batch (the ingest path scores a
-    request's decisions together); float64."""
+    request's decisions together); float64.
+
+    The one d_NMSE of the project. The monitor scores with it, and so do the policy's evaluation records, its
+    server's replies and its retrieval audit (``jepa_policy`` may import this module; the monitor imports
+    neither ``jepa_policy`` nor torch). The training loss ``jepa_policy.losses.nmse`` is the same formula in
+    torch, because it must carry gradients on the training device in the autocast dtype; it shares
+    ``RMS_FLOOR`` and a property test holds it to this function on random inputs
+    (tests/jepa_policy/test_nmse_agreement.py).
+    """
     z_hat, z = np.asarray(z_hat), np.asarray(z)
     if z_hat.shape != z.shape or z.ndim != 2:
         raise ValueError(f"nmse_rows needs two (n, d) arrays of equal shape, got {z_hat.shape} and {z.shape}")
     d = z.shape[1]
     # accumulated in float64 without a float64 copy of the targets (measured: 6x quicker on a 64 x 1024 batch)
-    mean_square = np.maximum(np.einsum("ij,ij->i", z, z, dtype=np.float64) / d, 1e-12)   # rms floored at 1e-6
+    mean_square = np.maximum(np.einsum("ij,ij->i", z, z, dtype=np.float64) / d, RMS_FLOOR ** 2)
     diff = z_hat.astype(np.float64) - z
     return np.einsum("ij,ij->i", diff, diff) / (mean_square * d)
 

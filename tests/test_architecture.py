@@ -1,8 +1,8 @@
 """The import graph keeps its shape (docs/architecture.md): one direction between packages, no circles.
 
     jepa_envs  <-  jepa_policy  <-  jepa_policy.demo (the main job)
-    monitor_service stands alone; anyone may import its client; the main job also starts its server and runs
-    its study of alert rules on the rollouts.
+    monitor_service stands alone; anyone may import its client and its scores (``monitor_service.scoring``,
+    the one d_NMSE); the main job also starts its server and runs its study of alert rules on the rollouts.
     jepa_operator (the import-light operator commands and the robot protocol's version) imports no project
     module and may be imported by anyone; its command line hands other subcommands to jepa_envs as a new
     process, not an import.
@@ -140,8 +140,9 @@ def layer_violations(edges: list[Edge]) -> list[str]:
         elif src.startswith("jepa_policy") and not src.startswith("jepa_policy.demo"):
             if dst.startswith("jepa_policy.demo"):
                 bad.append(f"{where}: the policy package never imports the main job")
-            elif dst.startswith("monitor_service") and dst != "monitor_service.client":
-                bad.append(f"{where}: only the main job runs the monitor; the policy may use its client")
+            elif dst.startswith("monitor_service") and dst not in ("monitor_service.client", "monitor_service.scoring"):
+                bad.append(f"{where}: only the main job runs the monitor; the policy may use its client and its "
+                           "scores (the one d_NMSE)")
         elif src.startswith("jepa_policy.demo") and dst.startswith("monitor_service") and \
                 dst not in ("monitor_service.client", "monitor_service.server", "monitor_service.study"):
             bad.append(f"{where}: the main job uses the monitor's client, server and study only")

@@ -25,7 +25,6 @@ import websockets
 from websockets.asyncio.server import ServerConnection, serve
 from websockets.http11 import Request, Response
 
-from jepa_policy.evaluate import nmse
 from jepa_policy.policy import Policy
 from jepa_policy.serve.batcher import Batcher, ServerBusy, Work
 from jepa_policy.serve.codec import MAX_ARRAYS, MAX_MAPS, MAX_REQUEST_BYTES, RequestError, pack
@@ -34,6 +33,7 @@ from jepa_policy.serve.events import EventLog, log_to_stderr
 from jepa_policy.serve.request import RequestSchema, decode_request
 from jepa_policy.serve.sessions import Session
 from monitor_service.client import MonitorClient
+from monitor_service.scoring import nmse
 
 
 def _peer(connection: ServerConnection) -> str:

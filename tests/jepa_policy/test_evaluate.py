@@ -1,20 +1,24 @@
 """Evaluation: the NMSE formula, the Table 6 protocols, and real rollouts with consistent per-decision records."""
+import json
+
 import numpy as np
 import pytest
 
-from jepa_policy.evaluate import nmse, reporting_protocols
+from jepa_policy.evaluate import reporting_protocols, residual_line, residualise_records
+from monitor_service.scoring import nmse, nmse_rows
 
 
 def test_nmse_matches_hand_computation():
+    """The d_NMSE the records hold (``monitor_service.scoring.nmse_rows``; test_nmse_agreement.py: all agree)."""
     z = np.array([[3.0, 4.0], [0.0, 0.0]])
     z_hat = np.array([[3.0, 2.0], [1.0, -1.0]])
     rms0 = np.sqrt((9 + 16) / 2)
     expected0 = ((0 / rms0) ** 2 + (2 / rms0) ** 2) / 2
     expected1 = ((1 / 1e-6) ** 2 + (1 / 1e-6) ** 2) / 2  # zero target: the 1e-6 floor of Sec. 3.3
-    np.testing.assert_allclose(nmse(z_hat, z), [expected0, expected1], rtol=1e-12)
-    assert nmse(z[0], z[0]) == 0.0
-    with pytest.raises(ValueError, match="differs"):
-        nmse(np.zeros(3), np.zeros(4))
+    np.testing.assert_allclose(nmse_rows(z_hat, z), [expected0, expected1], rtol=1e-12)
+    assert nmse_rows(z[:1], z[:1])[0] == 0.0
+    with pytest.raises(ValueError, match="equal shape"):
+        nmse_rows(np.zeros((1, 3)), np.zeros((1, 4)))
 
 
 def test_reporting_protocols_of_table_6():
@@ -28,6 +32,75 @@ def test_reporting_protocols_of_table_6():
     assert p["evaluations"] == 7
     with pytest.raises(ValueError, match="eval_every"):
         reporting_protocols([])
+
+
+def synthetic_records(seeds, decisions: int = 6, seed: int = 0) -> list[dict]:
+    """Episodes whose log NMSE follows log persistence NMSE with noise, as rollout records hold them."""
+    rng = np.random.default_rng(seed)
+    out = []
+    for s in seeds:
+        x = rng.normal(-2.0, 1.0, decisions)
+        y = 0.3 + 0.7 * x + rng.normal(0.0, 0.5, decisions) + rng.normal(0.0, 1.0)   # + an episode's own shift
+        out.append({"seed": int(s), "decisions": [{"step": 8 * i, "nmse": float(np.exp(yi)),
+                                                   "nmse_persistence": float(np.exp(xi))}
+                                                  for i, (xi, yi) in enumerate(zip(x, y))]
+                   + [{"step": 8 * decisions, "nmse": None}]})
+    return out
+
+
+def _residuals(record) -> list[float]:
+    return [d["nmse_residualised"] for d in record["decisions"] if d["nmse"] is not None]
+
+
+def test_residualised_nmse_does_not_depend_on_the_runs_other_episodes():
+    """Issue 36.4: one line over the run gave an episode 0.090 with one companion and -0.611 with another."""
+    calibration = synthetic_records(range(300_000, 300_040), seed=1)   # a held-out block of seeds
+    episode, companion_a, companion_b = synthetic_records([100_000, 100_001, 100_002], seed=2)
+    with_a = [json_copy(episode), json_copy(companion_a)]
+    with_b = [json_copy(episode), json_copy(companion_b)]
+    fit_a = residualise_records(with_a, calibration)
+    residualise_records(with_b, calibration)
+    assert _residuals(with_a[0]) == _residuals(with_b[0])
+    line = residual_line(calibration)
+    assert fit_a["slope"] == line["slope"] and fit_a["decisions"] == 40 * 6 and fit_a["episodes"] == 40
+    assert fit_a["how"].startswith("fitted on the calibration split")
+    # the line of a calibration split can be given as such (e.g. kept from an earlier run)
+    again = [json_copy(episode)]
+    residualise_records(again, line)
+    assert _residuals(again[0]) == _residuals(with_a[0])
+    with pytest.raises(ValueError, match="fewer than 3"):
+        residualise_records([json_copy(episode)], synthetic_records([5], decisions=2))
+    with pytest.raises(ValueError, match="intercept"):
+        residualise_records([json_copy(episode)], {"how": "cross-fitted", "folds": {}})
+
+
+def test_residualised_nmse_is_cross_fitted_without_a_calibration_split():
+    """No episode is residualised on a line its own decisions helped fit: changing an episode's own scores moves
+    only its own residuals by exactly that change."""
+    records = synthetic_records(range(100_000, 100_012), seed=3)
+    fit = residualise_records(records)
+    assert fit["how"].startswith("cross-fitted") and sorted(fit["folds"]) == ["0", "1", "2", "3", "4"]
+    changed = json_copy(records)
+    for d in changed[0]["decisions"][:-1]:
+        d["nmse"] *= np.e                                         # + 1 on the log scale
+    residualise_records(changed)
+    np.testing.assert_allclose(_residuals(changed[0]), np.array(_residuals(records[0])) + 1.0, atol=1e-12)
+    fold0 = records[0]["seed"] % 5
+    for before, after in zip(records[1:], changed[1:]):
+        if before["seed"] % 5 == fold0:   # the same fold: fitted on the same other folds
+            assert _residuals(after) == _residuals(before)
+    # two episodes in different folds: each is residualised on the other's line, never on its own
+    pair = synthetic_records([100_000, 100_001], seed=4)
+    residualise_records(pair)
+    own = residual_line([pair[1]])
+    d = pair[0]["decisions"][0]
+    assert d["nmse_residualised"] == pytest.approx(np.log(d["nmse"]) - own["intercept"]
+                                                   - own["slope"] * np.log(d["nmse_persistence"]))
+    assert residualise_records(synthetic_records([7], decisions=2)) is None
+
+
+def json_copy(value):
+    return json.loads(json.dumps(value))
 
 
 @pytest.fixture(scope="module")
@@ -69,7 +142,7 @@ def test_rollouts_give_consistent_per_decision_nmse_records(checkpoint, tmp_path
             if d["target_step"] <= r["length"]:
                 z_hat, z = np.array(d["z_hat"]), np.array(d["z_real"])
                 assert z.shape == (policy.model.future_dim,)
-                assert d["nmse"] == pytest.approx(float(nmse(z_hat, z)), rel=1e-9)
+                assert d["nmse"] == pytest.approx(nmse(z_hat, z), rel=1e-9)
                 assert d["nmse"] > 0
             else:
                 assert d["nmse"] is None
@@ -79,17 +152,24 @@ def test_rollouts_give_consistent_per_decision_nmse_records(checkpoint, tmp_path
     scored = [d for r in records for d in r["decisions"] if d["nmse"] is not None]
     pers = [d["nmse_persistence"] for d in scored]
     assert all(v >= 0 for v in pers) and report["mean_nmse_persistence"] == pytest.approx(np.mean(pers))
-    x, y = np.log(pers), np.log([d["nmse"] for d in scored])
-    slope, intercept = np.polyfit(x, y, 1)
+    # cross-fitted (no calibration split given): episode seed s is residualised on the line of the other seeds
     fit = report["residualised_fit"]
-    assert fit["slope"] == pytest.approx(slope) and fit["intercept"] == pytest.approx(intercept)
-    np.testing.assert_allclose([d["nmse_residualised"] for d in scored], y - intercept - slope * x, atol=1e-9)
+    assert fit["how"].startswith("cross-fitted") and set(fit["folds"]) == {str(r["seed"] % 5) for r in records}
+    for r in records:
+        others = [d for o in records if o["seed"] % 5 != r["seed"] % 5 for d in o["decisions"]
+                  if d["nmse"] is not None]
+        slope, intercept = np.polyfit(np.log([d["nmse_persistence"] for d in others]),
+                                      np.log([d["nmse"] for d in others]), 1)
+        own = [d for d in r["decisions"] if d["nmse"] is not None]
+        np.testing.assert_allclose([d["nmse_residualised"] for d in own],
+                                   [np.log(d["nmse"]) - intercept - slope * np.log(d["nmse_persistence"])
+                                    for d in own], atol=1e-9)
     prediction = {(e.seed, e.step): e for e in events if e.kind == "prediction"}
     for r in records:
         for d in r["decisions"]:
             if d["nmse"] is not None:
                 z_now = prediction[(r["seed"], d["step"])].z_now
-                assert d["nmse_persistence"] == pytest.approx(float(nmse(z_now, np.array(d["z_real"]))), rel=1e-9)
+                assert d["nmse_persistence"] == pytest.approx(nmse(z_now, np.array(d["z_real"])), rel=1e-9)
     # the hook saw every prediction and every realized target, with the same numbers as the records
     realized = [e for e in events if e.kind == "realized"]
     assert len([e for e in events if e.kind == "prediction"]) == sum(len(r["decisions"]) for r in records)
