@@ -30,6 +30,7 @@ class ServeConfig:
     task_id: str | None = None          # the monitor's task name (default: the checkpoint's task)
     robot: str | None = None            # the monitor key's robot
     monitor_buffer: int = MONITOR_BUFFER
+    monitor_flush_s: float = 10.0       # on stop, how long buffered records may take to reach the monitor
 
 
 def check_config(config: ServeConfig) -> None:

@@ -4,7 +4,8 @@ Every line has ``ts`` (UTC, ISO 8601 with milliseconds), ``event`` and, where th
 and ``session``. Events: ``connect``, ``disconnect`` (requests served, seconds, close code), ``unauthorized`` (an
 HTTP 401: missing, wrong or repeated ``Authorization`` header; the key itself is never logged), ``refused`` (HTTP
 503: the connection cap), ``rejected`` (a request answered with an error text), ``busy`` (a request refused by
-the queue bound) and ``error`` (a request the server failed on: a bug, with its traceback). A peer that floods the
+the queue bound) and ``error`` (a request the server failed on: a bug, with its traceback) and ``stop`` (monitor records that could not
+be delivered before the server stopped). A peer that floods the
 server with bad requests cannot flood the log: each kind of event has a token bucket (``burst`` lines, refilled
 at ``rate`` per second); the next line of that kind that passes says how many were ``suppressed`` meanwhile.
 """

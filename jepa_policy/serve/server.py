@@ -215,8 +215,10 @@ class PolicyServer:
             self.batcher.task.cancel()
             self.batcher.executor.shutdown(wait=False)
             self.decoder.shutdown(wait=False)
-            if self.monitor is not None:
-                self.monitor.close(timeout=10)
+            if self.monitor is not None and not self.monitor.close(timeout=self.config.monitor_flush_s):
+                self.events.emit("stop", monitor_records_lost=self.monitor.pending,
+                                 problem=f"the monitor at {self.config.monitor_url} did not take every record within "
+                                         f"{self.config.monitor_flush_s} s")
 
     def run(self) -> None:
         asyncio.run(self.serve())
@@ -230,7 +232,8 @@ class PolicyServer:
         return self
 
     def stop(self) -> None:
-        if self._loop is not None and self._stop is not None:
+        """Stop serving (idempotent) and wait for the serving thread, if ``start_in_thread`` started one."""
+        if self._loop is not None and self._stop is not None and not self._loop.is_closed():
             self._loop.call_soon_threadsafe(self._stop.set)
         if getattr(self, "_thread", None) is not None:
             self._thread.join(timeout=30)

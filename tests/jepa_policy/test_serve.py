@@ -264,10 +264,11 @@ def test_the_monitor_inside_scores_decisions_and_never_blocks(serve, tmp_path):
             env.close()
 
 
-def test_a_down_monitor_costs_the_replies_nothing(serve):
-    """The monitor is unreachable: replies come at the same pace and the records wait in the bounded buffer. The
-    reply to an outcome names the episode it ended everywhere (its monitor state named the next one)."""
-    server = serve(monitor_url="http://127.0.0.1:9", monitor_key="k")
+def test_a_down_monitor_costs_the_replies_nothing(serve, events):
+    """The monitor is unreachable: replies come at the same pace and the records wait in the bounded buffer (the
+    records still undelivered at stop are counted in the event log). The reply to an outcome names the episode it
+    ended everywhere (its monitor state named the next one)."""
+    server = serve(monitor_url="http://127.0.0.1:9", monitor_key="k", monitor_flush_s=0.2)
     ws, _ = _client(server)
     env = gym.make("JEPA/PushT-v0", image_size=32)
     start = time.perf_counter()
@@ -280,4 +281,7 @@ def test_a_down_monitor_costs_the_replies_nothing(serve):
     ws.send(pack(GOOD))   # no id: the next episode gets a new one
     assert unpack(ws.recv())["episode"] not in ("ep-down", "")
     ws.close()
+    server.stop()
+    lost = [e for e in events() if e["event"] == "stop"]
+    assert lost and lost[0]["monitor_records_lost"] > 0
     env.close()
