@@ -180,6 +180,26 @@ def test_the_event_log_survives_a_flood_of_unauthorized_handshakes(serve, events
     assert disconnect["requests"] == 0 and disconnect["close_received"] == 1000
 
 
+def test_a_server_bug_is_an_answer_and_a_logged_traceback_not_a_closed_connection(serve, events, monkeypatch):
+    """Fault injection: a request the server itself fails on (here a session that raises) is answered with a text
+    naming a server bug, logged with its traceback, and the connection serves the next request."""
+    from jepa_policy.serve.sessions import Session
+
+    server = serve()
+    ws, _ = client(server)
+    feed = Session.feed
+    monkeypatch.setattr(Session, "feed", lambda self, *a: 1 / 0)
+    ws.send(pack(GOOD))
+    reply = ws.recv()
+    assert isinstance(reply, str) and "failed on this request (ZeroDivisionError)" in reply
+    monkeypatch.setattr(Session, "feed", feed)
+    ws.send(pack(GOOD))
+    assert unpack(ws.recv())["actions"].shape == (8, 2)
+    ws.close()
+    error = [e for e in events() if e["event"] == "error"]
+    assert len(error) == 1 and error[0]["problem"] == "ZeroDivisionError: division by zero" and error[0]["session"]
+
+
 # ----------------------------------------------------------------------------- the codec alone
 
 
