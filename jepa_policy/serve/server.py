@@ -106,7 +106,7 @@ class PolicyServer:
         session.new_episode(None)
         opened = time.monotonic()
         self.events.emit("connect", peer=session.peer, session=session.id,
-                         client=", ".join(ws.request.headers.get_all("User-Agent")) or None)
+                         client=", ".join(ws.request.headers.get_all("User-Agent"))[:200] or None)
         try:
             await ws.send(pack(self.metadata))
             async for message in ws:
