@@ -13,11 +13,11 @@ A calibration has four parts (docs/monitor.md):
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from monitor_service import rules, scoring, stats
+from monitor_service import detectors, rules, scoring, stats
 
 ASSUMPTIONS = (
     "The false-alert guarantee P(a successful episode raises any alert) <= alpha holds in each length regime of "
@@ -31,8 +31,9 @@ ASSUMPTIONS = (
 
 @dataclass
 class LabelledEpisode:
-    """A held-out episode: its decisions in step order ({"step", "target_step", "nmse", "nmse_persistence"},
-    NMSE null where the target never arrived), outcome, group and length (env steps) when known."""
+    """A held-out episode: its decisions in step order ({"step", "target_step", "nmse", "nmse_persistence",
+    "scores"}, NMSE null where the target never arrived, scores the named ones sent), outcome, group and length
+    (env steps) when known."""
 
     episode: str
     success: bool
@@ -44,9 +45,33 @@ class LabelledEpisode:
         return rules.EpisodeScores.from_decisions(self.decisions, self.success, self.length, self.group, self.episode)
 
     def early(self, key: str = "nmse", n_first: int = 5) -> float | None:
-        """Median of the first ``n_first`` decisions' ``key``; None unless all of them have it (Sec. 4.10)."""
+        """Median of the first ``n_first`` decisions' ``key``; None unless all of them have it (Sec. 4.10). For a
+        named score: of its first ``n_first`` values (a signal such as STAC has none at the first decision)."""
         ordered = sorted(self.decisions, key=lambda d: d["step"])
-        return scoring.early_score([d.get(key) for d in ordered], n_first)
+        values = [_value(d, key) for d in ordered]
+        if key not in ("nmse", "nmse_persistence"):
+            values = [v for v in values if v is not None]
+        return scoring.early_score(values, n_first)
+
+    def signal_episode(self) -> detectors.SignalEpisode:
+        """Its decisions as per-signal arrays (NaN where a decision lacks a signal); NMSE known at t + k."""
+        ordered = sorted(self.decisions, key=lambda d: d["step"])
+        names = {"nmse"} if any(d.get("nmse") is not None for d in ordered) else set()
+        names |= {name for d in ordered for name in (d.get("scores") or {})}
+        steps = np.array([d["step"] for d in ordered], dtype=np.int64)
+        known = np.array([d.get("target_step") if d.get("target_step") is not None else d["step"] for d in ordered],
+                         dtype=np.int64)
+        scores = {name: np.array([np.nan if _value(d, name) is None else _value(d, name) for d in ordered],
+                                 dtype=np.float64) for name in sorted(names)}
+        return detectors.SignalEpisode(scores, self.success, steps, {"nmse": known}, self.length, self.group,
+                                       self.episode)
+
+
+def _value(decision: dict, signal: str) -> float | None:
+    """A decision's NMSE (or persistence NMSE), or one of its named scores."""
+    if signal in ("nmse", "nmse_persistence"):
+        return decision.get(signal)
+    return (decision.get("scores") or {}).get(signal)
 
 
 def _labels(episodes: list[LabelledEpisode]) -> np.ndarray:
@@ -55,17 +80,17 @@ def _labels(episodes: list[LabelledEpisode]) -> np.ndarray:
 
 
 def early_figures(episodes: list[LabelledEpisode], early_decisions: int, n_bootstrap: int, n_permutation: int,
-                  seed: int) -> tuple[dict, int]:
+                  seed: int, signal: str = "nmse") -> tuple[dict, int]:
     """The paper's early-score figures over the episodes whose first decisions are all scored, and how many
     episodes were left out."""
-    usable = [(e, e.early(n_first=early_decisions)) for e in episodes]
+    usable = [(e, e.early(signal, early_decisions)) for e in episodes]
     usable = [(e, s) for e, s in usable if s is not None]
     scores = np.array([s for _, s in usable], dtype=np.float64)
     labels = _labels([e for e, _ in usable])
     groups = [e.group for e, _ in usable]
     if scores.size == 0:
-        raise ValueError(f"no held-out episode has an outcome and {early_decisions} scored decisions; record "
-                         "held-out labelled rollouts first")
+        raise ValueError(f"no held-out episode has an outcome and {early_decisions} decisions scored by {signal}; "
+                         "record held-out labelled rollouts first")
     groups_arr = None if any(g is None for g in groups) else np.array(groups, dtype=object)
     figures = stats.calibrate(scores, labels, groups_arr, n_bootstrap, n_permutation, seed).to_dict()
     return figures, len(episodes) - len(usable)
@@ -109,28 +134,53 @@ def control_figures(episodes: list[LabelledEpisode], early_decisions: int, n_boo
 
 
 def calibrate(episodes: list[LabelledEpisode], params: rules.RuleParams, alpha: float, *, folds: int = 5,
-              early_decisions: int = 5, n_bootstrap: int = 10_000, n_permutation: int = 10_000,
-              seed: int = 0) -> dict:
-    """Every figure of one calibration (JSON-ready). Raises ValueError with the fix when the data cannot
-    support it: no usable early scores, one outcome class only, or too few successes for the rule at alpha."""
-    figures, skipped = early_figures(episodes, early_decisions, n_bootstrap, n_permutation, seed)
-    scored = [e.scores() for e in episodes]
-    successes = [s for s in scored if s.success and s.steps.size]
-    rule = rules.calibrate_rule(successes, params, alpha, seed)
-    judged = [s for s in scored if s.steps.size]
-    detection = {kind: rules.cross_fit(judged, rules.RuleParams(kind, params.window, params.debounce,
-                                                                params.clear_ratio, params.shape), alpha, folds, seed)
-                 for kind in rules.RULE_KINDS}
+              early_decisions: int = 5, n_bootstrap: int = 10_000, n_permutation: int = 10_000, seed: int = 0,
+              signals: tuple[str, ...] = ("nmse",), combination: str = "single") -> dict:
+    """Every figure of one calibration (JSON-ready): the detector of ``signals`` combined by ``combination``,
+    each signal's own rule and early-score ranking, cross-fitted detection, the paper's figures and controls.
+    Raises ValueError with the fix when the data cannot support it: no usable early scores, one outcome class
+    only, or too few successes for a signal's rule at alpha."""
+    spec = detectors.DetectorSpec(tuple(signals), combination, "successes", params)
+    ranking = "nmse" if any(e.early("nmse", early_decisions) is not None for e in episodes) else spec.signals[0]
+    figures, skipped = early_figures(episodes, early_decisions, n_bootstrap, n_permutation, seed, ranking)
+    judged = [e.signal_episode() for e in episodes]
+    judged = [e for e in judged if e.scores and any(np.isfinite(v).any() for v in e.scores.values())]
+    detector = detectors.calibrate_detector(spec, judged, alpha, seed)
+    detection = {kind: detectors.cross_fit_detector(
+        judged, replace(spec, params=replace(params, kind=kind)), alpha, folds, seed) for kind in rules.RULE_KINDS}
     return {
         **figures,
+        "ranking_signal": ranking,
         "alpha": alpha,
-        "rule": rule.to_dict(),
+        "rule": detector.rules[spec.signals[0]].to_dict(),
+        "detector": detector.to_dict(),
+        "signals": signal_figures(episodes, judged, params, alpha, early_decisions, n_bootstrap, seed),
         "detection": detection,
         "controls": control_figures(episodes, early_decisions, n_bootstrap, seed),
         "assumptions": ASSUMPTIONS,
         "skipped_episodes": skipped,
-        "skipped_reason": f"held-out episodes whose first {early_decisions} decisions lack a valid target "
+        "skipped_reason": f"held-out episodes whose first {early_decisions} decisions lack a valid {ranking} score "
                           "(left out of the early-score figures only)",
         "n_bootstrap": n_bootstrap,
         "n_permutation": n_permutation,
     }
+
+
+def signal_figures(episodes: list[LabelledEpisode], judged: list[detectors.SignalEpisode], params: rules.RuleParams,
+                   alpha: float, early_decisions: int, n_bootstrap: int, seed: int) -> dict:
+    """Per signal with data: its own rule at alpha (or why it has none) and its early score's AUROC with CI."""
+    out = {}
+    for signal in sorted({s for e in judged for s in e.scores}):
+        entry: dict = {"rule": None, "reason": None, "early_auroc": None}
+        try:
+            entry["rule"] = detectors.calibrate_detector(detectors.DetectorSpec((signal,), params=params), judged,
+                                                         alpha, seed).rules[signal].to_dict()
+        except ValueError as exc:
+            entry["reason"] = str(exc)
+        early = [(e.early(signal, early_decisions), e.success) for e in episodes]
+        early = [(v, ok) for v, ok in early if v is not None]
+        labels = np.array([0 if ok else 1 for _, ok in early])
+        if labels.size and 0 < labels.sum() < labels.size:
+            entry["early_auroc"] = stats.auroc_with_ci(np.array([v for v, _ in early]), labels, n_bootstrap, seed)
+        out[signal] = entry
+    return out

@@ -109,12 +109,19 @@ def cmd_tasks(args) -> int:
     _, make_session = _sessionmaker(args)
     with make_session() as session:
         if args.action == "add":
+            signals = sorted({s.strip() for s in (args.signals or "").split(",") if s.strip()})
+            if "nmse" in signals:
+                raise ValueError("nmse is the service's own signal (computed from the latents); --signals names the "
+                                 "scores robots send")
             for name in args.names:
-                if session.get(Task, name) is None:
-                    session.add(Task(name=name, latent_dim=args.latent_dim, description=""))
+                task = session.get(Task, name)
+                if task is None:
+                    session.add(Task(name=name, latent_dim=args.latent_dim, description="", signals=signals))
+                elif signals:
+                    task.signals = sorted(set(task.signals or []) | set(signals))
             session.commit()
         for t in session.scalars(select(Task).order_by(Task.name)):
-            print(f"{t.name}\tlatent_dim={t.latent_dim}")
+            print(f"{t.name}\tlatent_dim={t.latent_dim}\tsignals={','.join(t.signals or []) or '-'}")
     return 0
 
 
@@ -126,6 +133,7 @@ def cmd_calibrate(args) -> int:
     row = calibrate_task(
         make_session, settings, args.task, args.checkpoint, args.alpha, args.rule, args.n_bootstrap,
         args.n_permutation, args.seed, args.folds, args.shape,
+        [s.strip() for s in args.signals.split(",")] if args.signals else None, args.combination,
     )
     r = row.result
     print(f"calibration #{row.id} task={row.task} checkpoint={row.checkpoint or '-'} "
@@ -138,6 +146,8 @@ def cmd_calibrate(args) -> int:
     rule = r["rule"]
     print(f"  alert rule {row.rule} (window {rule['params']['window']}, debounce {rule['params']['debounce']}): "
           f"threshold {row.threshold:.4g} at alpha={r['alpha']} ({rule['note']})")
+    spec = r["detector"]["spec"]
+    print(f"  detector {spec['combination']} of {', '.join(spec['signals'])}: {r['detector']['note']}")
     print(study_table(r["detection"]))
     for name, c in r["controls"].items():
         value = "n/a: " + c["reason"] if c["auroc"] is None else \
@@ -266,6 +276,7 @@ def build_parser() -> argparse.ArgumentParser:
     a = ts.add_parser("add")
     a.add_argument("names", nargs="+")
     a.add_argument("--latent-dim", type=int)
+    a.add_argument("--signals", help="comma-separated names of per-decision scores robots may send, e.g. stac,rnd")
     ts.add_parser("list")
     s.set_defaults(func=cmd_tasks)
 
@@ -276,6 +287,9 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--rule", choices=["running", "band"], help="alert rule (default: JEPA_MONITOR_ALERT_RULE)")
     s.add_argument("--shape", choices=["flat", "running-max"],
                    help="threshold shape over the decision index (default: JEPA_MONITOR_THRESHOLD_SHAPE)")
+    s.add_argument("--signals", help="comma-separated signals that alert (default nmse), e.g. stac or nmse,stac")
+    s.add_argument("--combination", choices=["single", "fiper", "bonferroni"],
+                   help="how several signals alert: fiper (both over) or bonferroni (any, each at alpha/K)")
     s.add_argument("--folds", type=int, help="folds of the cross-fitted detection figures (default 5)")
     s.add_argument("--n-bootstrap", type=int, help="AUROC bootstrap resamples (default 10000)")
     s.add_argument("--n-permutation", type=int, help="label permutations of the p-value (default 10000)")

@@ -34,6 +34,16 @@ def _latent(x: Any, name: str) -> np.ndarray:
     return arr
 
 
+def _scores(scores: dict[str, float]) -> dict[str, float]:
+    out = {}
+    for name, value in scores.items():
+        value = float(value)
+        if not np.isfinite(value) or value < 0:
+            raise ValueError(f"score {name!r} is {value}; the monitor accepts finite, non-negative scores only")
+        out[str(name)] = value
+    return out
+
+
 @dataclass
 class ClientStats:
     """Counters of what happened to the records handed to the client."""
@@ -62,15 +72,24 @@ class _Records:
         raise NotImplementedError
 
     def decision(
-        self, task: str, episode: str, step: int, horizon: int, z_hat: Any, *, checkpoint: str | None = None,
+        self, task: str, episode: str, step: int, horizon: int | None, z_hat: Any, *, checkpoint: str | None = None,
         held_out: bool = False, group: str | None = None, z_now: Any = None,
+        scores: dict[str, float] | None = None,
     ) -> bool:
         """Queue one decision's predicted latent z_hat for step + horizon; False if the buffer was full.
 
         ``z_now``: the current latent E_rgb(o_step), optional; the service then also scores the persistence
-        baseline (the paper's control, Sec. 4.10)."""
-        rec = {"kind": "decision", "task": task, "episode": episode, "step": int(step), "horizon": int(horizon),
-               "z_hat": _latent(z_hat, "z_hat"), "held_out": bool(held_out)}
+        baseline (the paper's control, Sec. 4.10). ``scores``: named per-decision risk scores of signals
+        registered for the task ({"stac": 0.12}; finite, non-negative); with scores, z_hat and horizon may be
+        None (a policy without a future head)."""
+        rec: dict[str, Any] = {"kind": "decision", "task": task, "episode": episode, "step": int(step),
+                               "held_out": bool(held_out)}
+        if z_hat is not None:
+            rec["horizon"], rec["z_hat"] = int(horizon), _latent(z_hat, "z_hat")
+        if scores:
+            rec["scores"] = _scores(scores)
+        elif z_hat is None:
+            raise ValueError("a decision needs z_hat (with horizon) or scores")
         if z_now is not None:
             rec["z_now"] = _latent(z_now, "z_now")
         if self.robot:

@@ -62,6 +62,10 @@ class SignalEpisode:
         if self.steps is not None and np.asarray(self.steps).size != n:
             raise ValueError(f"episode {self.episode!r}: {np.asarray(self.steps).size} steps for {n} decisions")
 
+    @property
+    def n_decisions(self) -> int:
+        return int(np.asarray(next(iter(self.scores.values()), [])).size)
+
     def series(self, signal: str) -> rules.EpisodeScores:
         """The signal's scored decisions in step order (a rule's input)."""
         if signal not in self.scores:
@@ -179,18 +183,19 @@ class CalibratedDetector:
                     i = over_a.get(int(fb.steps[j]))
                     if i is not None:
                         hit = (int(fb.steps[j]), int(max(fa.known_at[i], fb.known_at[j])), [a, b],
-                               i >= fa.calibrated or j >= fb.calibrated)
+                               i >= fa.calibrated or j >= fb.calibrated, int(j))
                         break
         else:
             for name, f in flags.items():
                 i = np.flatnonzero(f.over)
                 if i.size and (hit is None or f.steps[i[0]] < hit[0]):
-                    hit = (int(f.steps[i[0]]), int(f.known_at[i[0]]), [name], bool(i[0] >= f.calibrated))
+                    hit = (int(f.steps[i[0]]), int(f.known_at[i[0]]), [name], bool(i[0] >= f.calibrated), int(i[0]))
         if hit is None:
-            return {"alerted": False, "step": None, "known_at": None, "signals": [], "beyond_calibration": False,
-                    "lead": None}
-        step, known, signals, beyond = hit
-        return {"alerted": True, "step": step, "known_at": known, "signals": signals, "beyond_calibration": beyond,
+            return {"alerted": False, "step": None, "decision_index": None, "known_at": None, "signals": [],
+                    "beyond_calibration": False, "lead": None}
+        step, known, signals, beyond, index = hit
+        return {"alerted": True, "step": step, "decision_index": index, "known_at": known, "signals": signals,
+                "beyond_calibration": beyond,
                 "lead": None if episode.end_step is None else int(episode.end_step) - known}
 
 
@@ -250,6 +255,15 @@ def calibrate_detector(spec: DetectorSpec, episodes: Sequence[SignalEpisode], al
     if spec.calibration == "labelled":
         note = "labelled (Youden) thresholds: no false-alert guarantee"
     return CalibratedDetector(spec, alpha, calibrated, note)
+
+
+def cross_fit_detector(episodes: Sequence[SignalEpisode], spec: DetectorSpec, alpha: float, k: int = 5,
+                       seed: int = 0, within_groups: bool = False) -> dict:
+    """``rules.cross_fit`` for a detector: every episode judged by the detector calibrated on the other folds
+    (their successes, and their failures too for a ``labelled`` calibration)."""
+    figures = rules.cross_fit_with(list(episodes), lambda train: calibrate_detector(spec, train, alpha, seed), k, seed,
+                                   within_groups, with_failures=spec.calibration == "labelled")
+    return {"detector": spec.name, "rule": spec.params.to_dict(), "alpha": alpha, **figures}
 
 
 def default_detectors(signals: Sequence[str], params: rules.RuleParams = rules.RuleParams("band")

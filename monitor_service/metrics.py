@@ -30,10 +30,25 @@ GAPS = Counter("jepa_monitor_decision_gaps", "Decision indices skipped when a la
 LATE = Counter("jepa_monitor_late_decisions", "Decisions that arrived after a later decision of their episode",
                ["task", "robot"])
 WEBHOOK_FAILURES = Counter("jepa_monitor_webhook_failures", "Failed webhook delivery attempts")
+SCORE_BUCKETS = (0.001, 0.003, 0.01, 0.03, 0.1, 0.3, 1.0, 3.0, 10.0, 30.0, 100.0, 300.0, 1000.0)
+SCORES = Histogram("jepa_monitor_score", "Named per-decision scores sent beside the latents (per signal)",
+                   ["task", "robot", "signal"], buckets=SCORE_BUCKETS)
+SIGNAL_ALERTS = Counter("jepa_monitor_signal_alerts", "Alerts raised, per signal that raised them", ["task", "signal"])
 
 
-def publish(observations: list[tuple[str, str, str, float]]) -> None:
-    """Turn a committed request's (kind, task, robot, value) observations into Prometheus samples."""
+def publish(observations: list[tuple[str, str, str, float]],
+            signal_observations: list[tuple[str, str, str, str, float]] = ()) -> None:
+    """Turn a committed request's (kind, task, robot, value) and (kind, task, robot, signal, value) observations
+    into Prometheus samples. Signals are the task's registered names: bounded like tasks."""
+    children: dict[tuple[str, str, str], object] = {}
+    for kind, task, robot, signal, value in signal_observations:
+        if kind == "score":
+            child = children.get((task, robot, signal))
+            if child is None:
+                child = children[task, robot, signal] = SCORES.labels(task, robot, signal)
+            child.observe(value)
+        else:
+            SIGNAL_ALERTS.labels(task, signal).inc()
     counters = {"decision": DECISIONS, "target": TARGETS, "outcome": OUTCOMES, "alert": ALERTS, "gap": GAPS,
                 "late": LATE}
     counts: dict[tuple[str, str, str], float] = {}
@@ -83,6 +98,14 @@ class DatabaseGauges:
             "jepa_monitor_task_live_false_alert_rate",
             "Share of live successful episodes that raised an alert (compare with the false-alert target)",
             labels=["task"])
+        signal_threshold = GaugeMetricFamily(
+            "jepa_monitor_signal_threshold",
+            "Active calibration's threshold per signal at its longest calibrated decision index", labels=["task",
+                                                                                                          "checkpoint",
+                                                                                                          "signal"])
+        alerting = GaugeMetricFamily(
+            "jepa_monitor_signal_alerting", "1 for the signals of the active calibration's detector",
+            labels=["task", "checkpoint", "signal"])
         with self.make_session() as session:
             rows = session.scalars(
                 select(CalibrationRow).where(CalibrationRow.active.is_(True), CalibrationRow.checkpoint.is_(None))
@@ -95,6 +118,11 @@ class DatabaseGauges:
                 labels = [row.task, row.checkpoint or ""]
                 if rule is not None:
                     target.add_metric([*labels, row.rule], float(rule["alpha"]))
+                for signal, data in row.result.get("signals", {}).items():
+                    if data.get("rule") is not None:
+                        signal_threshold.add_metric([*labels, signal], float(data["rule"]["threshold"]))
+                for signal in (row.result.get("detector") or {}).get("spec", {}).get("signals", ["nmse"] if rule else []):
+                    alerting.add_metric([*labels, signal], 1.0)
                 if self.rule_params is not None:
                     params = (rule or {}).get("params", {})
                     made_for = (params.get("window"), params.get("debounce"), params.get("clear_ratio"))
@@ -118,7 +146,7 @@ class DatabaseGauges:
             ):
                 open_alerts.add_metric([task], n)
             session.rollback()
-        yield from (auroc, thr, open_alerts, target, stale, live_rate, live_false)
+        yield from (auroc, thr, open_alerts, target, stale, live_rate, live_false, signal_threshold, alerting)
 
 
 def exposition(make_session: sessionmaker, rule_params: tuple[int, int, float] | None = None) -> bytes:

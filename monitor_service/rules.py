@@ -85,6 +85,10 @@ class EpisodeScores:
     group: str | None = None
     episode: str = ""
 
+    @property
+    def n_decisions(self) -> int:
+        return int(np.asarray(self.steps).size)
+
     @classmethod
     def from_decisions(cls, decisions: list[dict], success: bool | None = None, end_step: int | None = None,
                        group: str | None = None, episode: str = "") -> "EpisodeScores":
@@ -490,9 +494,11 @@ def cross_fit(episodes: list[EpisodeScores], params: RuleParams, alpha: float, k
     return {"rule": params.to_dict(), "alpha": alpha, **figures}
 
 
-def cross_fit_with(episodes: list[EpisodeScores], fit, k: int = 5, seed: int = 0, within_groups: bool = False) -> dict:
+def cross_fit_with(episodes: list, fit, k: int = 5, seed: int = 0, within_groups: bool = False,
+                   with_failures: bool = False) -> dict:
     """``cross_fit`` for any ``fit(train_successes) -> object with judge(episode)`` that raises ValueError when
-    the training successes cannot support it (those episodes are counted as skipped)."""
+    the training successes cannot support it (those episodes are counted as skipped); ``with_failures``: fit gets
+    the training folds' failures too."""
     judged = {True: [], False: []}
     skipped = 0
     group_of = (lambda e: str(e.group)) if within_groups else (lambda e: "")
@@ -500,7 +506,7 @@ def cross_fit_with(episodes: list[EpisodeScores], fit, k: int = 5, seed: int = 0
         test_set = set(test.tolist())
         for group in sorted({group_of(episodes[i]) for i in test}):
             train = [e for i, e in enumerate(episodes)
-                     if i not in test_set and group_of(e) == group and e.success]
+                     if i not in test_set and group_of(e) == group and (e.success or with_failures)]
             members = [episodes[i] for i in test if group_of(episodes[i]) == group]
             try:
                 rule = fit(train)
@@ -508,7 +514,7 @@ def cross_fit_with(episodes: list[EpisodeScores], fit, k: int = 5, seed: int = 0
                 skipped += len(members)
                 continue
             for e in members:
-                judged[bool(e.success)].append({**rule.judge(e), "length": int(np.asarray(e.steps).size)})
+                judged[bool(e.success)].append({**rule.judge(e), "length": e.n_decisions})
     fa = sum(j["alerted"] for j in judged[True])
     ta = sum(j["alerted"] for j in judged[False])
     hits = [j for j in judged[False] if j["alerted"]]

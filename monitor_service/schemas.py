@@ -6,7 +6,8 @@ from typing import Annotated, Any, Literal
 
 import numpy as np
 from fastapi import Path as FastApiPath
-from pydantic import AfterValidator, BaseModel, BeforeValidator, ConfigDict, Discriminator, Field, Tag, WithJsonSchema
+from pydantic import (AfterValidator, BaseModel, BeforeValidator, ConfigDict, Discriminator, Field, Tag, WithJsonSchema,
+                      model_validator)
 
 Name = Annotated[str, Field(min_length=1, max_length=128, pattern=r"^[A-Za-z0-9_.:\-]+$")]
 Role = Literal["robot", "operator", "admin"]
@@ -97,15 +98,57 @@ class _Strict(BaseModel):
     model_config = ConfigDict(extra="forbid", arbitrary_types_allowed=True, strict=True)
 
 
+MAX_SIGNALS = 32
+RESERVED_SIGNALS = ("nmse",)   # computed by the service from the latents
+
+
+def _check_scores(value: Any) -> Any:
+    """Named per-decision scores: finite, non-negative (larger = riskier), not a reserved name."""
+    if isinstance(value, dict):
+        for name, v in value.items():
+            if name in RESERVED_SIGNALS:
+                raise ValueError(f"score {name!r} is computed by the service from z_hat and the realized latent; "
+                                 "send the latents instead, or name your score differently")
+            if isinstance(v, bool) or not isinstance(v, (int, float)):
+                raise ValueError(f"score {name!r} must be a number, got {type(v).__name__}")
+            if not np.isfinite(v):
+                raise ValueError(f"score {name!r} is {v}; send finite scores only (leave a signal out of `scores` "
+                                 "when this decision has none)")
+            if v < 0:
+                raise ValueError(f"score {name!r} is {v}; scores are non-negative risks, larger = riskier (shift or "
+                                 "negate it on the robot's side)")
+    return value
+
+
+Scores = Annotated[
+    dict[Name, float], BeforeValidator(_check_scores), Field(max_length=MAX_SIGNALS),
+    WithJsonSchema({"type": "object", "maxProperties": MAX_SIGNALS,
+                    "propertyNames": {"pattern": r"^[A-Za-z0-9_.:\-]+$", "minLength": 1, "maxLength": 128,
+                                      "not": {"enum": list(RESERVED_SIGNALS)}},
+                    "additionalProperties": {"type": "number", "minimum": 0, "maximum": 1.7e308}}),
+]
+
+
 class DecisionIn(_Strict):
-    """One policy decision: the predicted future latent z_hat for step t + k (Sec. 3.6)."""
+    """One policy decision: the predicted future latent z_hat for step t + k (Sec. 3.6), and/or named
+    per-decision scores of signals registered for the task."""
+
+    # the model validator's rule, published: latents (z_hat with horizon), or scores alone
+    model_config = ConfigDict(json_schema_extra={"anyOf": [
+        {"required": ["z_hat", "horizon"], "properties": {"z_hat": {"type": "array"}, "horizon": {"type": "integer"}}},
+        {"required": ["scores"], "properties": {"scores": {"type": "object", "minProperties": 1},
+                                                "z_hat": {"type": "null"}, "horizon": {"type": "null"},
+                                                "z_now": {"type": "null"}}}]})
 
     kind: Literal["decision"] = "decision"
     task: Name
     episode: Name
     step: json_int(0, MAX_STEP) = Field(description="decision step t")
-    horizon: json_int(1, MAX_HORIZON) = Field(description="prediction horizon k")
-    z_hat: Latent
+    horizon: json_int(1, MAX_HORIZON) | None = Field(None, description="prediction horizon k (with z_hat)")
+    z_hat: Latent | None = Field(None, description="predicted latent of step t + k; optional when scores are sent")
+    scores: Scores | None = Field(
+        None, description="named per-decision risk scores (non-negative, larger = riskier) of signals registered "
+        "for the task, e.g. {\"stac\": 0.12}; calibrated and alerted on per signal")
     z_now: Latent | None = Field(
         None, description="the current latent z_t = E_rgb(o_t), optional: scores the persistence baseline "
         "z_hat = z_t against the same realized target (a control of the paper's Sec. 4.10)")
@@ -113,6 +156,16 @@ class DecisionIn(_Strict):
     checkpoint: str | None = Field(None, max_length=256)
     held_out: bool = Field(False, description="a labelled calibration episode")
     group: Name | None = Field(None, description="held-out split group, e.g. the checkpoint's training seed")
+
+    @model_validator(mode="after")
+    def _latents_or_scores(self) -> "DecisionIn":
+        if self.z_hat is None and not self.scores:
+            raise ValueError("a decision carries z_hat (with horizon) or scores, or both")
+        if (self.z_hat is None) != (self.horizon is None):
+            raise ValueError("z_hat and horizon go together: the prediction of step t + horizon")
+        if self.z_now is not None and self.z_hat is None:
+            raise ValueError("z_now scores the persistence control against z_hat's target; send z_hat with it")
+        return self
 
 
 class TargetIn(_Strict):
@@ -143,8 +196,8 @@ def _record_kind(value: Any) -> str | None:
         return getattr(value, "kind", None)
     if "kind" in value:
         return value["kind"] if isinstance(value["kind"], str) else None
-    return next((kind for key, kind in (("z_hat", "decision"), ("z", "target"), ("success", "outcome"))
-                 if key in value), None)
+    return next((kind for key, kind in (("z_hat", "decision"), ("scores", "decision"), ("z", "target"),
+                                        ("success", "outcome")) if key in value), None)
 
 
 Record = Annotated[
@@ -179,21 +232,25 @@ class IngestResult(BaseModel):
 class TaskIn(_Strict):
     latent_dim: json_int(1, 1_000_000) | None = None
     description: str = Field("", max_length=512)
+    signals: list[Name] | None = Field(None, max_length=MAX_SIGNALS, description="named per-decision scores robots "
+                                       "may send (added to those registered; nmse needs no registration)")
 
 
 class TaskOut(BaseModel):
     name: str
     latent_dim: int | None
     description: str
+    signals: list[str] = Field(description="named scores robots may send beside (or instead of) the latents")
     created_at: UtcDatetime
 
 
 class DecisionOut(BaseModel):
     step: int
-    horizon: int
-    target_step: int
+    horizon: int | None
+    target_step: int | None
     nmse: float | None
     nmse_persistence: float | None = Field(description="NMSE of z_t against the same target, when z_now was sent")
+    scores: dict[str, float] | None = Field(description="the named scores sent with it")
 
 
 class EpisodeOut(BaseModel):
@@ -240,9 +297,12 @@ class RiskPoint(BaseModel):
 class EpisodeDetail(EpisodeOut):
     decisions: list[DecisionOut]
     rule: str | None = Field(description="the active calibration's alert rule (null: no usable calibration)")
-    threshold: float | None = Field(description="its threshold at the longest calibrated decision index (the "
-                                                "highest); each risk point carries its own")
-    risk: list[RiskPoint] = Field(description="the rule's statistic over the episode (the dashboard's trajectory)")
+    detector: str | None = Field(description="which signals alert and how, e.g. 'fiper(stac+nmse) band'")
+    threshold: float | None = Field(description="its first signal's threshold at the longest calibrated decision "
+                                                "index; each risk point carries its own")
+    risk: list[RiskPoint] = Field(description="the first signal's rule statistic over the episode (the dashboard's "
+                                              "trajectory)")
+    signal_risk: dict[str, list[RiskPoint]] = Field(description="every alerting signal's rule statistic")
 
 
 class CalibrateIn(_Strict):
@@ -254,6 +314,11 @@ class CalibrateIn(_Strict):
     rule: Literal["running", "band"] | None = Field(
         None, description="the alert rule to calibrate (default: the service's alert_rule); window, debounce and "
         "hysteresis are the service's settings and become part of the calibration")
+    signals: list[Name] | None = Field(None, min_length=1, max_length=MAX_SIGNALS, description="the signals that "
+                                       "alert (default [\"nmse\"]): nmse and/or scores registered for the task")
+    combination: Literal["single", "fiper", "bonferroni"] | None = Field(
+        None, description="how several signals alert: fiper (two signals over at one decision) or bonferroni (any "
+        "of K, each at alpha / K); default single for one signal, bonferroni for several")
     shape: Literal["flat", "running-max"] | None = Field(
         None, description="the threshold's shape over the decision index (default: the service's threshold_shape; "
         "docs/monitor.md)")

@@ -36,12 +36,13 @@ def calibration_data(session: Session, task: str, checkpoint: str | None) -> lis
     eps = {e.id: calibration.LabelledEpisode(e.id, bool(e.success), [], e.group, e.length)
            for e in session.scalars(q.order_by(Episode.id))}
     ids = list(eps)
-    cols = Decision.episode_id, Decision.step, Decision.target_step, Decision.nmse, Decision.nmse_persistence
+    cols = (Decision.episode_id, Decision.step, Decision.target_step, Decision.nmse, Decision.nmse_persistence,
+            Decision.scores)
     for start in range(0, len(ids), 500):   # bounded IN lists
         for r in session.execute(select(*cols).where(Decision.episode_id.in_(ids[start:start + 500]))
                                  .order_by(Decision.episode_id, Decision.step)):
             eps[r.episode_id].decisions.append({"step": r.step, "target_step": r.target_step, "nmse": r.nmse,
-                                                "nmse_persistence": r.nmse_persistence})
+                                                "nmse_persistence": r.nmse_persistence, "scores": r.scores})
     return list(eps.values())
 
 
@@ -49,17 +50,27 @@ def calibrate_task(
     make_session, settings: MonitorSettings, task: str, checkpoint: str | None = None, alpha: float | None = None,
     rule: str | None = None, n_bootstrap: int | None = None, n_permutation: int | None = None,
     seed: int | None = None, folds: int | None = None, shape: str | None = None,
+    signals: list[str] | None = None, combination: str | None = None,
 ) -> CalibrationRow:
     """Calibrate one task (optionally one checkpoint) from its held-out episodes and make it the active one.
 
-    The alert rule is the service's (window, debounce, hysteresis) with ``rule`` or the settings' kind.
-    Raises LookupError for an unknown task and ValueError when the data cannot support a calibration.
+    The alert rule is the service's (window, debounce, hysteresis) with ``rule`` or the settings' kind; the
+    detector alerts on ``signals`` (default nmse) combined by ``combination`` (default single).
+    Raises LookupError for an unknown task or a signal it does not have, ValueError when the data (or the
+    combination) cannot support a calibration.
     """
     alpha = settings.alpha if alpha is None else alpha
     params = rule_params(settings, rule, shape)
+    signals = list(dict.fromkeys(signals or ["nmse"]))
     with make_session() as session:
-        if session.get(Task, task) is None:
+        row = session.get(Task, task)
+        if row is None:
             raise LookupError(f"task {task!r} is not registered; register it with PUT /v1/tasks/{task}")
+        unknown = [s for s in signals if s != "nmse" and s not in (row.signals or [])]
+        if unknown:
+            raise LookupError(f"task {task!r} has no signal {unknown[0]!r} (its signals: nmse"
+                              + "".join(f", {s}" for s in row.signals or []) + f"); register it with PUT /v1/tasks/"
+                              f"{task} {{\"signals\": [\"{unknown[0]}\"]}} and send it on held-out episodes")
         episodes = calibration_data(session, task, checkpoint)
         session.rollback()  # release the database while the resampling runs
     result = calibration.calibrate(
@@ -67,7 +78,8 @@ def calibrate_task(
         early_decisions=settings.early_decisions,
         n_bootstrap=settings.n_bootstrap if n_bootstrap is None else n_bootstrap,
         n_permutation=settings.n_permutation if n_permutation is None else n_permutation,
-        seed=settings.stats_seed if seed is None else seed,
+        seed=settings.stats_seed if seed is None else seed, signals=tuple(signals),
+        combination=combination or ("single" if len(signals) == 1 else "bonferroni"),
     )
     with make_session() as session:
         cond = CalibrationRow.checkpoint.is_(None) if checkpoint is None else CalibrationRow.checkpoint == checkpoint

@@ -1,5 +1,14 @@
-"""Per episode after its records are applied: the early and running scores, and the calibrated alert rule
-stepped over the decisions scored since the last evaluation (``rules.py`` is the same rule, offline)."""
+"""Per episode after its records are applied: the early and running scores, and the active calibration's
+detector stepped over each of its signals' values scored since the last evaluation (``rules.py`` and
+``detectors.py`` are the same rules, offline).
+
+Each alerting signal keeps its own state in ``EpisodeState.signal_state``: the last evaluated step, how many
+consecutive values were above their thresholds (over) and below their clear levels (under), its latest value and
+threshold, and (for FIPER's rule) its recent over flags by step. A signal is *over* at a decision when its last
+``debounce`` values exceeded their thresholds, *under* when they lay below their clear levels. The detector
+raises when its signal is over (``single``), when any is (``bonferroni``), or when both are over at the same
+decision (``fiper``); a raised alert clears when every signal it combines is under.
+"""
 from __future__ import annotations
 
 import statistics
@@ -8,14 +17,14 @@ from bisect import bisect_right
 
 import numpy as np
 
-from monitor_service import rules, scoring
-from monitor_service.alerts import AlertState, step_alert
+from monitor_service import detectors, rules, scoring
 from monitor_service.ingest import sql as statements
 from monitor_service.ingest.sql import Sql
 from monitor_service.ingest.state import EpisodeState, Request
 from monitor_service.settings import MonitorSettings
 
 CALIBRATION_TTL_S = 1.0      # another process's new calibration is seen within this time
+FLAGS_KEPT = 64              # recent over flags per signal (FIPER's partner may be scored a little later)
 
 
 def rule_params(settings: MonitorSettings, kind: str | None = None, shape: str | None = None) -> rules.RuleParams:
@@ -25,14 +34,24 @@ def rule_params(settings: MonitorSettings, kind: str | None = None, shape: str |
                             settings.alert_clear_ratio, shape or settings.threshold_shape)
 
 
+def stored_detector(result: dict) -> detectors.CalibratedDetector:
+    """The detector of a calibration's result (one made before named signals: its NMSE rule alone). KeyError for
+    a calibration made before per-length thresholds."""
+    if "detector" in result:
+        return detectors.CalibratedDetector.from_dict(result["detector"])
+    rule = rules.CalibratedRule.from_dict(result["rule"])
+    return detectors.CalibratedDetector(detectors.DetectorSpec(("nmse",), params=rule.params), rule.alpha,
+                                        {"nmse": rule})
+
+
 class Alerting:
-    """The active calibrations' rules (cached briefly) and their evaluation over an episode's new scores."""
+    """The active calibrations' detectors (cached briefly) and their evaluation over an episode's new scores."""
 
     def __init__(self, sql: Sql, settings: MonitorSettings):
         self.sql = sql
         self.settings = settings
         self.calibrations: dict[tuple[str, str | None], tuple[float, tuple[int | None, dict | None]]] = {}
-        self.rules: dict[int, rules.CalibratedRule] = {}
+        self.detectors: dict[int, detectors.CalibratedDetector] = {}
 
     def forget_calibrations(self) -> None:
         self.calibrations.clear()
@@ -47,8 +66,15 @@ class Alerting:
         self.calibrations[key] = (now, found)
         return found
 
-    def usable_rule(self, cur, ep: EpisodeState) -> tuple[int | None, rules.CalibratedRule | None, str]:
-        """(calibration id, its rule or None when it cannot alert, the episode's alert note saying why)."""
+    def calibrated_signals(self, cur, task: str, checkpoint: str | None) -> tuple[int, frozenset[str]] | None:
+        """(id, the signals it has data for) of the active calibration, or None without one."""
+        cal_id, result = self._calibration(cur, task, checkpoint)
+        if cal_id is None:
+            return None
+        return cal_id, frozenset(result.get("signals", {}) or ("nmse",))
+
+    def usable_detector(self, cur, ep: EpisodeState) -> tuple[int | None, detectors.CalibratedDetector | None, str]:
+        """(calibration id, its detector or None when it cannot alert, the episode's alert note saying why)."""
         cal_id, result = self._calibration(cur, ep.task, ep.checkpoint)
         fix = f"`jepa-monitor calibrate --task {ep.task}` (or POST /v1/calibrations)"
         if cal_id is None:
@@ -60,21 +86,23 @@ class Alerting:
         if "shape" not in result["rule"]:
             return cal_id, None, (f"no alerts: calibration #{cal_id} predates per-length thresholds (its false-alert "
                                   f"guarantee held only on average over episode lengths); recalibrate with {fix}")
-        if cal_id not in self.rules:
-            self.rules[cal_id] = rules.CalibratedRule.from_dict(result["rule"])
-        rule = self.rules[cal_id]
-        now = rule_params(self.settings, rule.params.kind, rule.params.shape)
-        if rule.params != now:
+        if cal_id not in self.detectors:
+            self.detectors[cal_id] = stored_detector(result)
+        detector = self.detectors[cal_id]
+        made = detector.spec.params
+        now = rule_params(self.settings, made.kind, made.shape)
+        if made != now:
             return cal_id, None, (
-                f"no alerts: calibration #{cal_id} holds for window={rule.params.window}, "
-                f"debounce={rule.params.debounce}, clear ratio={rule.params.clear_ratio}, but the service runs "
-                f"window={now.window}, debounce={now.debounce}, clear ratio={now.clear_ratio}; its false-alert "
-                f"guarantee does not cover that rule, so recalibrate with {fix}")
-        return cal_id, rule, (
-            f"alerting when {rule.params.debounce} consecutive values of the {rule.params.kind} statistic (median "
-            f"of {rule.params.window}) exceed their decision's threshold (up to {rule.threshold:.6g}): calibration "
-            f"#{cal_id}, at most {rule.alpha:g} of successful episodes alert in each length regime up to "
-            f"{rule.calibrated_decisions} scored decisions")
+                f"no alerts: calibration #{cal_id} holds for window={made.window}, debounce={made.debounce}, clear "
+                f"ratio={made.clear_ratio}, but the service runs window={now.window}, debounce={now.debounce}, clear "
+                f"ratio={now.clear_ratio}; its false-alert guarantee does not cover that rule, so recalibrate with "
+                f"{fix}")
+        first = detector.rules[detector.spec.signals[0]]
+        return cal_id, detector, (
+            f"alerting with {detector.spec.name}: {made.debounce} consecutive values of the {made.kind} statistic "
+            f"(median of {made.window}) above their decision's threshold (up to {first.threshold:.6g} for "
+            f"{detector.spec.signals[0]}): calibration #{cal_id}, {detector.note} up to "
+            f"{first.calibrated_decisions} scored decisions")
 
     def early_score(self, ep: EpisodeState) -> None:
         """The early score from the first decisions of the episode's decision grid only (published once all of
@@ -89,53 +117,109 @@ class Alerting:
         ep.early_score = early
 
     def refresh(self, cur, req: Request, ep: EpisodeState) -> None:
-        """Early score, running NMSE, and the alert rule over the decisions scored since the last evaluated step,
-        in step order, each judged against its index's threshold. A decision scored after a later one was
+        """Early score, running NMSE, and the detector over each signal's values scored since its last evaluated
+        step, in step order, each judged against its index's threshold. A value scored after a later one was
         evaluated counts for the scores but is not evaluated for alerts."""
-        settings = self.settings
         self.early_score(ep)
         ep.n_scored += req.newly_scored.get(ep.id, 0)
-        running = scoring.running_score([v for _, v in ep.scored], settings.running_window)
+        running = scoring.running_score([v for _, v in ep.scored], self.settings.running_window)
         if running is not None:
             ep.running_score = running
-        first_new = bisect_right(ep.scored, (ep.last_evaluated_step, float("inf")))
-        todo = range(first_new, len(ep.scored))
+        state = dict(ep.signal_state or {})
+        signals = {"nmse"} | set(ep.series)
+        todo = any(self._new(ep, state, s) for s in signals)
         if not todo:
             return
-        cal_id, rule, ep.alert_note = self.usable_rule(cur, ep)
-        if rule is None:
-            ep.last_evaluated_step = ep.scored[-1][0]
+        cal_id, detector, ep.alert_note = self.usable_detector(cur, ep)
+        if detector is None:   # nothing to judge with: mark every value as seen
+            for s in signals:
+                values = ep.values(s)
+                if values:
+                    state[s] = {**state.get(s, {}), "last": values[-1][0]}
+            ep.last_evaluated_step = ep.scored[-1][0] if ep.scored else ep.last_evaluated_step
+            ep.signal_state = state
             ep.risk_threshold = ep.calibrated_decisions = None
             return
-        window = rule.params.window
-        lo = max(0, todo[0] + 1 - window)
-        part = ep.scored[lo:]
+        events = []
+        for s in detector.spec.signals:
+            events += self._step_signal(ep, state, s, detector.rules[s])
+        events.sort(key=lambda e: e[0])   # decision step order across signals (stable within a signal)
+        for step, signal, over, under, value, threshold, beyond in events:
+            self._judge(cur, req, ep, state, detector, cal_id, step, signal, over, under, value, threshold, beyond)
+        first = detector.spec.signals[0]
+        st = state.get(first, {})
+        ep.last_evaluated_step = st.get("last", ep.last_evaluated_step)
+        ep.over_count, ep.under_count = st.get("over", 0), st.get("under", 0)
+        if "value" in st:
+            ep.risk_score, ep.risk_threshold = st["value"], st["threshold"]
+        ep.calibrated_decisions = detector.rules[first].calibrated_decisions
+        ep.signal_state = state
+
+    @staticmethod
+    def _new(ep: EpisodeState, state: dict, signal: str) -> bool:
+        values = ep.values(signal)
+        last = state.get(signal, {}).get("last", ep.last_evaluated_step if signal == "nmse" else -1)
+        return bool(values) and values[-1][0] > last
+
+    def _step_signal(self, ep: EpisodeState, state: dict, signal: str, rule: rules.CalibratedRule) -> list[tuple]:
+        """Advance one signal's rule over its values after its last evaluated step: (step, signal, over, under,
+        value, threshold, beyond the calibrated length) per value."""
+        series = ep.values(signal)
+        st = dict(state.get(signal) or {"last": ep.last_evaluated_step if signal == "nmse" else -1,
+                                        "over": ep.over_count if signal == "nmse" else 0,
+                                        "under": ep.under_count if signal == "nmse" else 0})
+        st["flags"] = dict(st.get("flags", {}))
+        first_new = bisect_right(series, (st["last"], float("inf")))
+        if first_new >= len(series):
+            return []
+        window, debounce = rule.params.window, rule.params.debounce
+        lo = max(0, first_new + 1 - window)
+        part = series[lo:]
         steps = np.array([s for s, _ in part], dtype=np.int64)
         values = rules.decision_values(rule.params, rules.EpisodeScores(steps, np.array([v for _, v in part]), steps),
                                        rule.band).tolist()
-        thresholds = rule.thresholds(len(ep.scored)).tolist()
-        ep.calibrated_decisions = rule.calibrated_decisions
-        state = AlertState(ep.over_count, ep.under_count, ep.open_alert_id is not None)
-        for i in todo:
+        thresholds = rule.thresholds(len(series)).tolist()
+        out = []
+        for i in range(first_new, len(series)):
             j = i - lo
-            step = int(steps[j])
-            ep.last_evaluated_step = step
             value = float(statistics.median(values[max(0, j + 1 - window): j + 1]))
             threshold = thresholds[i]
+            st["over"] = st["over"] + 1 if value > threshold else 0
+            st["under"] = st["under"] + 1 if value < rules.clear_level(rule.params, threshold) else 0
+            st["last"], st["value"], st["threshold"] = int(steps[j]), value, threshold
+            over, under = st["over"] >= debounce, st["under"] >= debounce
+            st["is_under"] = under
             beyond = i >= rule.calibrated_decisions
-            ep.risk_score, ep.risk_threshold = value, threshold
             ep.beyond_calibration = ep.beyond_calibration or beyond
-            state, event = step_alert(state, value, threshold, rule.params.debounce,
-                                      rules.clear_level(rule.params, threshold))
-            if event == "raise":
-                note = f"{rule.params.kind} rule" + (
-                    f"; decision index {i} lies beyond the {rule.calibrated_decisions} calibrated decisions: no "
-                    "false-alert guarantee covers it" if beyond else "")
-                ep.open_alert_id = statements.insert_alert(self.sql, cur, ep, cal_id, step, value, threshold,
-                                                           note, beyond, self.settings.webhook_urls)
-                req.alerts_raised.append(ep.open_alert_id)
-                req.observations.append(("alert", ep.task, ep.robot, 1.0))
-            elif event == "clear":
-                statements.clear_alert(self.sql, cur, ep.open_alert_id)
-                ep.open_alert_id = None
-        ep.over_count, ep.under_count = state.over, state.under
+            st["flags"][str(int(steps[j]))] = over
+            out.append((int(steps[j]), signal, over, under, value, threshold, beyond))
+        if len(st["flags"]) > FLAGS_KEPT:
+            st["flags"] = dict(sorted(st["flags"].items(), key=lambda kv: int(kv[0]))[-FLAGS_KEPT:])
+        state[signal] = st
+        return out
+
+    def _judge(self, cur, req: Request, ep: EpisodeState, state: dict, detector: detectors.CalibratedDetector,
+               cal_id: int, step: int, signal: str, over: bool, under: bool, value: float, threshold: float,
+               beyond: bool) -> None:
+        """The detector's raise or clear after one signal's value at ``step``."""
+        spec = detector.spec
+        if ep.open_alert_id is None:
+            if not over:
+                return
+            raised_by = [signal]
+            if spec.combination == "fiper":
+                partner = next(s for s in spec.signals if s != signal)
+                if not state.get(partner, {}).get("flags", {}).get(str(step), False):
+                    return
+                raised_by = list(spec.signals)
+            note = f"{spec.name}: {'+'.join(raised_by)} over the threshold" + (
+                f"; beyond the {detector.rules[signal].calibrated_decisions} calibrated decisions of {signal}: no "
+                "false-alert guarantee covers it" if beyond else "")
+            ep.open_alert_id = statements.insert_alert(self.sql, cur, ep, cal_id, step, value, threshold, note, beyond,
+                                                       self.settings.webhook_urls, ",".join(raised_by))
+            req.alerts_raised.append(ep.open_alert_id)
+            req.observations.append(("alert", ep.task, ep.robot, 1.0))
+            req.signal_observations += [("alert", ep.task, ep.robot, s, 1.0) for s in raised_by]
+        elif under and all(state.get(s, {}).get("is_under", True) for s in spec.signals):
+            statements.clear_alert(self.sql, cur, ep.open_alert_id)
+            ep.open_alert_id = None

@@ -20,12 +20,17 @@ from monitor_service.schemas import DecisionIn, OutcomeIn, TargetIn
 
 
 class Episodes(Protocol):
-    """What applying records needs of the store: drafts of episodes and the known latent sizes."""
+    """What applying records needs of the store: drafts of episodes, the known latent sizes, the tasks'
+    registered signals and the signals their active calibration covers."""
 
     sql: Sql
     task_dims: dict[str, int]
 
     def draft(self, cur, req: Request, episode_id: str) -> EpisodeState | None: ...
+
+    def task_signals(self, cur, task: str) -> frozenset[str] | None: ...
+
+    def calibrated_signals(self, cur, task: str, checkpoint: str | None) -> tuple[int, frozenset[str]] | None: ...
 
 
 def apply_records(store: Episodes, cur, req: Request, records: list) -> None:
@@ -89,10 +94,36 @@ def _pair(req: Request, ep: EpisodeState, step: int, d: Dec, z: bytes) -> None:
     req.newly_scored[ep.id] = req.newly_scored.get(ep.id, 0) + 1
 
 
+def _check_scores(store: Episodes, cur, rec: DecisionIn) -> None:
+    """Every named score is a signal registered for the task, and a live episode's scores are covered by the
+    task's active calibration (a score no calibration has seen could not be judged)."""
+    registered = store.task_signals(cur, rec.task)
+    if registered is None:
+        raise IngestError(404, f"task {rec.task!r} is not registered; an admin registers it with PUT "
+                               f"/v1/tasks/{rec.task} or `jepa-monitor tasks add {rec.task}`")
+    unknown = sorted(set(rec.scores) - registered)
+    if unknown:
+        raise IngestError(422, f"task {rec.task!r} has no signal {unknown[0]!r} (its signals: "
+                               f"{sorted(registered) or 'none'}); register it with PUT /v1/tasks/{rec.task} "
+                               f"{{\"signals\": [\"{unknown[0]}\"]}} or `jepa-monitor tasks add {rec.task} --signals "
+                               f"{unknown[0]}`")
+    if rec.held_out:
+        return
+    covered = store.calibrated_signals(cur, rec.task, rec.checkpoint)
+    if covered is not None and not set(rec.scores) <= covered[1]:
+        missing = sorted(set(rec.scores) - covered[1])[0]
+        raise IngestError(409, f"task {rec.task!r} is calibrated (calibration #{covered[0]}) without signal "
+                               f"{missing!r}, so its live scores could not be judged; send {missing!r} on held-out "
+                               "episodes (held_out: true) and recalibrate, or leave it out of live decisions")
+
+
 def apply_decision(store: Episodes, cur, req: Request, rec: DecisionIn) -> None:
-    _check_dim(store, cur, req, rec.task, rec.z_hat.shape[0], "z_hat")
+    if rec.z_hat is not None:
+        _check_dim(store, cur, req, rec.task, rec.z_hat.shape[0], "z_hat")
     if rec.z_now is not None:
         _check_dim(store, cur, req, rec.task, rec.z_now.shape[0], "z_now")
+    if rec.scores:
+        _check_scores(store, cur, rec)
     robot = rec.robot or req.principal.robot
     if robot != req.principal.robot:
         raise IngestError(403, f"your key writes only for robot {req.principal.robot!r}, not {robot!r}")
@@ -107,28 +138,32 @@ def apply_decision(store: Episodes, cur, req: Request, rec: DecisionIn) -> None:
                                    "must be unique")
         if ep.success is not None:
             raise IngestError(409, f"episode {ep.id!r} has ended (outcome recorded); start a new episode id")
-    z_hat = rec.z_hat.tobytes()   # validated as little-endian float32 (schemas.Latent)
+    z_hat = None if rec.z_hat is None else rec.z_hat.tobytes()   # validated as little-endian float32 (schemas.Latent)
     z_now = None if rec.z_now is None else rec.z_now.tobytes()
-    digest = decision_digest(rec.horizon, z_hat, z_now)
+    digest = decision_digest(rec.horizon, z_hat, z_now, rec.scores)
     existing = ep.decisions.get(rec.step)
     if existing is not None:
         if existing.digest == digest:
             return   # the same record again: nothing to change, nothing double-counted
         raise IngestError(409, f"episode {ep.id!r} already has a different decision at step {rec.step}")
-    d = Dec(rec.horizon, digest, z_hat=z_hat, z_now=z_now, stored=False)
+    d = Dec(rec.horizon, digest, z_hat=z_hat, z_now=z_now, stored=False, scores=rec.scores or None)
     ep.decisions[rec.step] = d
+    for name, value in (rec.scores or {}).items():
+        insort(ep.series.setdefault(name, []), (rec.step, float(value)))
+        req.signal_observations.append(("score", ep.task, ep.robot, name, float(value)))
     skipped, late = ep.add_step(rec.step)
     if skipped:
         req.observations.append(("gap", ep.task, ep.robot, float(skipped)))
     if late:
         ep.late_decisions += 1
         req.observations.append(("late", ep.task, ep.robot, 1.0))
-    ep.unscored.add(rec.step)
     req.new_decisions.append((ep.id, rec.step))
-    z = _target_z(store, cur, ep, rec.step + rec.horizon)
-    if z is not None:
-        _pair(req, ep, rec.step, d, z)
-        ep.changed_target(rec.step + rec.horizon).z = None
+    if z_hat is not None:
+        ep.unscored.add(rec.step)
+        z = _target_z(store, cur, ep, rec.step + rec.horizon)
+        if z is not None:
+            _pair(req, ep, rec.step, d, z)
+            ep.changed_target(rec.step + rec.horizon).z = None
     ep.n_decisions += 1
     req.counts["decision"] += 1
     req.observations.append(("decision", ep.task, ep.robot, 1.0))

@@ -93,18 +93,21 @@ def load_episode(sql: Sql, cur, episode_id: str) -> EpisodeState | None:
                       bool(row[21]), late_decisions=row[22], early_revisions=row[23],
                       signal_state=row[24] if row[24] is None or isinstance(row[24], dict) else json.loads(row[24]),
                       ended=row[25] is not None)
-    cur.execute(q("SELECT step, horizon, nmse, nmse_persistence, z_hat, z_now FROM decisions "
+    cur.execute(q("SELECT step, horizon, nmse, nmse_persistence, z_hat, z_now, scores FROM decisions "
                   "WHERE episode_id = ? ORDER BY step"), (episode_id,))
-    for step, horizon, nmse, pers, z_hat, z_now in cur.fetchall():
-        z_hat, z_now = bytes(z_hat), None if z_now is None else bytes(z_now)
-        d = Dec(horizon, decision_digest(horizon, z_hat, z_now), nmse, pers)
-        if nmse is None:
+    for step, horizon, nmse, pers, z_hat, z_now, scores in cur.fetchall():
+        z_hat, z_now = None if z_hat is None else bytes(z_hat), None if z_now is None else bytes(z_now)
+        scores = scores if scores is None or isinstance(scores, dict) else json.loads(scores)
+        d = Dec(horizon, decision_digest(horizon, z_hat, z_now, scores), nmse, pers, scores=scores)
+        if z_hat is not None and nmse is None:
             d.z_hat, d.z_now = z_hat, z_now
             ep.unscored.add(step)
-        else:
+        elif nmse is not None:
             ep.scored.append((step, nmse))
+        for name, value in (scores or {}).items():
+            ep.series.setdefault(name, []).append((step, value))
         ep.decisions[step] = d
-    aimed = {s + d.horizon for s, d in ep.decisions.items()}
+    aimed = {s + d.horizon for s, d in ep.decisions.items() if d.horizon is not None}
     cur.execute(q("SELECT step, z FROM targets WHERE episode_id = ?"), (episode_id,))
     for step, z in cur.fetchall():
         z = bytes(z)
@@ -118,6 +121,16 @@ def target_latent(sql: Sql, cur, episode_id: str, step: int) -> bytes | None:
     cur.execute(sql.q("SELECT z FROM targets WHERE episode_id = ? AND step = ?"), (episode_id, step))
     row = cur.fetchone()
     return None if row is None else bytes(row[0])
+
+
+def task_signals(sql: Sql, cur, task: str) -> frozenset[str] | None:
+    """The named signals registered for a task, or None when the task is not registered."""
+    cur.execute(sql.q("SELECT signals FROM tasks WHERE name = ?"), (task,))
+    row = cur.fetchone()
+    if row is None:
+        return None
+    signals = row[0] if row[0] is None or isinstance(row[0], list) else json.loads(row[0])
+    return frozenset(signals or ())
 
 
 def task_latent_dim(sql: Sql, cur, task: str, dim: int) -> tuple[int, bool] | None:
@@ -196,11 +209,12 @@ def write_rows(sql: Sql, cur, req: Request, now) -> None:
                 "last_evaluated_step, over_count, under_count, alert_note, started_at, updated_at, version) "
                 "VALUES (?, ?, ?, ?, ?, ?, 0, 0, -1, 0, 0, '', ?, ?, 0)"),
                 (ep.id, ep.task, ep.robot, ep.checkpoint, ep.group, ep.held_out, now, now))
-    rows = [(eid, step, d.horizon, step + d.horizon, d.z_hat, d.nmse, d.z_now, d.nmse_persistence, now)
+    rows = [(eid, step, d.horizon, None if d.horizon is None else step + d.horizon, d.z_hat, d.nmse, d.z_now,
+             d.nmse_persistence, None if d.scores is None else json.dumps(d.scores), now)
             for eid, step in req.new_decisions for d in [req.drafts[eid].decisions[step]]]
     if rows:
         sql.insert_many(cur, "decisions", "episode_id, step, horizon, target_step, z_hat, nmse, z_now, "
-                                          "nmse_persistence, created_at", rows)
+                                          "nmse_persistence, scores, created_at", rows)
     if req.new_targets:
         sql.insert_many(cur, "targets", "episode_id, step, z, created_at",
                         [(eid, step, z, now) for eid, step, z in req.new_targets])

@@ -29,11 +29,14 @@ class StaleState(Exception):
 
 # What recognises an identical resend: SHA-256 (the CPU's SHA instructions make it about twice as quick as
 # BLAKE2b on a 4 KB latent here). Latents of one task have one fixed size, so the parts cannot shift.
-def decision_digest(horizon: int, z_hat: bytes, z_now: bytes | None) -> bytes:
-    h = hashlib.sha256(z_hat)
-    h.update(b"|%d|" % horizon)
+def decision_digest(horizon: int | None, z_hat: bytes | None, z_now: bytes | None,
+                    scores: dict[str, float] | None = None) -> bytes:
+    h = hashlib.sha256(z_hat or b"")
+    h.update(b"|%d|" % (horizon or 0))
     if z_now is not None:
         h.update(z_now)
+    if scores:
+        h.update(repr(sorted(scores.items())).encode())
     return h.digest()
 
 
@@ -48,16 +51,18 @@ GAP_STEPS_SHOWN = 50   # steps of missing decisions listed per episode (the coun
 class Dec:
     """A decision of an episode: what is needed to score it, recognise a resend, and step the alert rule."""
 
-    horizon: int
-    digest: bytes                     # of (horizon, z_hat, z_now): an identical resend changes nothing
+    horizon: int | None               # None: a decision that sent scores only
+    digest: bytes                     # of (horizon, z_hat, z_now, scores): an identical resend changes nothing
     nmse: float | None = None
     nmse_persistence: float | None = None
     z_hat: bytes | None = None        # kept only while unscored
     z_now: bytes | None = None
     stored: bool = True               # False: inserted by the current request
+    scores: dict[str, float] | None = None   # named scores sent with it
 
     def copy(self) -> "Dec":   # ~4x quicker than copy.copy on the ingest path
-        return Dec(self.horizon, self.digest, self.nmse, self.nmse_persistence, self.z_hat, self.z_now, self.stored)
+        return Dec(self.horizon, self.digest, self.nmse, self.nmse_persistence, self.z_hat, self.z_now, self.stored,
+                   self.scores)
 
 
 @dataclass(slots=True)
@@ -105,6 +110,7 @@ class EpisodeState:
     decisions: dict[int, Dec] = field(default_factory=dict)
     targets: dict[int, Tgt] = field(default_factory=dict)
     scored: list[tuple[int, float]] = field(default_factory=list)   # (step, nmse), sorted by step
+    series: dict[str, list[tuple[int, float]]] = field(default_factory=dict)   # named scores: (step, value) by step
     unscored: set[int] = field(default_factory=set)                   # steps of decisions without a target yet
     origin: int | None = None         # the decision grid: origin + k x cadence (``count_gaps``)
     cadence: int | None = None
@@ -117,9 +123,15 @@ class EpisodeState:
         d.decisions = dict(self.decisions)
         d.targets = dict(self.targets)
         d.scored = list(self.scored)
+        d.series = {name: list(values) for name, values in self.series.items()}
+        d.signal_state = None if self.signal_state is None else {k: dict(v) for k, v in self.signal_state.items()}
         d.unscored = set(self.unscored)
         d.gap_steps = list(self.gap_steps)
         return d
+
+    def values(self, signal: str) -> list[tuple[int, float]]:
+        """(step, value) of a signal's scored decisions in step order (``nmse``: the computed NMSE)."""
+        return self.scored if signal == "nmse" else self.series.get(signal, [])
 
     def grid_steps(self, n: int) -> list[int] | None:
         """The first ``n`` decision steps of the episode's grid, or None while the cadence is unknown."""
@@ -187,6 +199,8 @@ class Request:
     newly_scored: dict[str, int] = field(default_factory=dict)
     counts: dict[str, int] = field(default_factory=lambda: {"decision": 0, "target": 0, "outcome": 0})
     observations: list[tuple[str, str, str, float]] = field(default_factory=list)
+    signal_observations: list[tuple[str, str, str, str, float]] = field(default_factory=list)   # (kind, task,
+    #   robot, signal, value): "score" per named score, "alert" per signal that raised an alert
     alerts_raised: list[int] = field(default_factory=list)
     ended: set[str] = field(default_factory=set)                      # episodes whose outcome arrived now
     scored: int = 0

@@ -10,6 +10,7 @@ lost or changed.
 """
 from __future__ import annotations
 
+import time
 from collections import OrderedDict
 
 from monitor_service.auth import Principal
@@ -22,6 +23,7 @@ from monitor_service.ingest.state import EpisodeState, Request, StaleState
 from monitor_service.settings import MonitorSettings
 
 CACHE_EPISODES = 20_000      # live episodes kept in memory (least recently used leave first)
+TASK_TTL_S = 1.0             # another process's newly registered signal is accepted within this time
 
 
 class IngestStore:
@@ -37,11 +39,29 @@ class IngestStore:
         self.inline = engine.dialect.name == "sqlite"
         self.episodes: OrderedDict[str, EpisodeState] = OrderedDict()
         self.task_dims: dict[str, int] = {}
+        self.signals: dict[str, tuple[float, frozenset[str] | None]] = {}
         self.alerting = Alerting(self.sql, settings)
 
     def forget_calibrations(self) -> None:
         """Alert with a new calibration from the next record on (this process calibrated)."""
         self.alerting.forget_calibrations()
+
+    def forget_tasks(self) -> None:
+        """Accept a task's newly registered signals from the next record on (this process registered them)."""
+        self.signals.clear()
+
+    def task_signals(self, cur, task: str) -> frozenset[str] | None:
+        """The task's registered signals (None: no such task), cached briefly."""
+        hit = self.signals.get(task)
+        now = time.monotonic()
+        if hit is not None and now - hit[0] < TASK_TTL_S:
+            return hit[1]
+        found = statements.task_signals(self.sql, cur, task)
+        self.signals[task] = (now, found)
+        return found
+
+    def calibrated_signals(self, cur, task: str, checkpoint: str | None) -> tuple[int, frozenset[str]] | None:
+        return self.alerting.calibrated_signals(cur, task, checkpoint)
 
     def _remember(self, ep: EpisodeState) -> None:
         self.episodes[ep.id] = ep

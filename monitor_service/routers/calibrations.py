@@ -30,7 +30,8 @@ async def create_calibration(request: Request, body: CalibrateIn, _: Principal =
     try:
         row = await run_in_threadpool(
             calibrate_task, app.state.sessionmaker, app.state.settings, body.task, body.checkpoint, body.alpha,
-            body.rule, body.n_bootstrap, body.n_permutation, body.seed, body.folds, body.shape,
+            body.rule, body.n_bootstrap, body.n_permutation, body.seed, body.folds, body.shape, body.signals,
+            body.combination,
         )
     except LookupError as exc:
         raise HTTPException(404, str(exc)) from None

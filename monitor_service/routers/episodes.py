@@ -10,7 +10,8 @@ from sqlalchemy.orm import Session
 from monitor_service.auth import Principal, require
 from monitor_service.db import Decision, Episode, utcnow
 from monitor_service.deps import get_read_session, get_settings
-from monitor_service import rules
+from monitor_service.calibration import LabelledEpisode
+from monitor_service.ingest.alerting import stored_detector
 from monitor_service.schemas import DecisionOut, EpisodeDetail, EpisodeOut, RiskPoint, errors
 from monitor_service.service import active_calibration, rule_params
 from monitor_service.settings import MonitorSettings
@@ -64,25 +65,31 @@ def get_episode(
     if e is None:
         raise HTTPException(404, f"episode {episode_id!r} is unknown; list episodes with GET /v1/episodes")
     decisions = session.scalars(select(Decision).where(Decision.episode_id == e.id).order_by(Decision.step)).all()
-    rule = None
+    detector = None
     cal = active_calibration(session, e.task, e.checkpoint)
     if cal is not None and "shape" in cal.result.get("rule", {}):
-        candidate = rules.CalibratedRule.from_dict(cal.result["rule"])
-        if candidate.params == rule_params(settings, candidate.params.kind, candidate.params.shape):
-            rule = candidate
-    risk = []
-    if rule is not None:
-        scores = rules.EpisodeScores.from_decisions(
-            [{"step": d.step, "target_step": d.target_step, "nmse": d.nmse} for d in decisions])
-        running = rule.running(scores)
-        risk = [RiskPoint(step=int(s), known_at=int(k), value=float(v), threshold=float(t),
+        candidate = stored_detector(cal.result)
+        made = candidate.spec.params
+        if made == rule_params(settings, made.kind, made.shape):
+            detector = candidate
+    signal_risk = {}
+    if detector is not None:
+        episode = LabelledEpisode(e.id, bool(e.success), [
+            {"step": d.step, "target_step": d.target_step, "nmse": d.nmse, "scores": d.scores} for d in decisions],
+            e.group, e.length).signal_episode()
+        for signal, flags in detector.flags(episode).items():
+            rule = detector.rules[signal]
+            signal_risk[signal] = [
+                RiskPoint(step=int(s), known_at=int(k), value=float(v), threshold=float(t),
                           beyond_calibration=i >= rule.calibrated_decisions)
-                for i, (s, k, v, t) in enumerate(zip(scores.steps, scores.known_at, running,
-                                                     rule.thresholds(running.size)))]
+                for i, (s, k, v, t) in enumerate(zip(flags.steps, flags.known_at, flags.values, flags.thresholds))]
+    first = None if detector is None else detector.spec.signals[0]
     return EpisodeDetail(
         **episode_out(e, settings.live_episode_s),
         decisions=[DecisionOut(step=d.step, horizon=d.horizon, target_step=d.target_step, nmse=d.nmse,
-                               nmse_persistence=d.nmse_persistence) for d in decisions],
-        rule=None if rule is None else rule.params.kind, threshold=None if rule is None else rule.threshold,
-        risk=risk,
+                               nmse_persistence=d.nmse_persistence, scores=d.scores) for d in decisions],
+        rule=None if detector is None else detector.spec.params.kind,
+        detector=None if detector is None else detector.spec.name,
+        threshold=None if detector is None else detector.rules[first].threshold,
+        risk=signal_risk.get(first, []), signal_risk=signal_risk,
     )

@@ -1,6 +1,7 @@
 """Ingestion: decisions, realized latents and outcomes, single or batched, JSON or msgpack, idempotent by key."""
 from __future__ import annotations
 
+import contextlib
 import hashlib
 
 from fastapi import APIRouter, HTTPException, Request
@@ -31,7 +32,9 @@ def _error(status: int, message: str) -> JSONResponse:
     return JSONResponse({"detail": message}, status_code=status)
 
 
-def _handle(request: Request, body: bytes, adapter: TypeAdapter, principal: Principal) -> JSONResponse:
+def _handle(request: Request, body: bytes, adapter: TypeAdapter, principal: Principal, locked: bool = False
+            ) -> JSONResponse:
+    """Validate and apply one ingest body under the process's write lock (``locked``: the caller holds it)."""
     try:
         payload = adapter.validate_python(decode_body(body, request.headers.get("content-type")))
     except BodyError as exc:
@@ -45,7 +48,7 @@ def _handle(request: Request, body: bytes, adapter: TypeAdapter, principal: Prin
     body_hash = hashlib.sha256(body).hexdigest() if key is not None else ""
     store: IngestStore = request.app.state.ingest
     for attempt in range(2):   # a conflict with another process is retried once on fresh state
-        with request.app.state.write_lock:
+        with contextlib.nullcontext() if locked else request.app.state.write_lock:
             if key is not None:
                 prior = store.idempotent_answer(principal.key_id, key)
                 if prior is not None:
@@ -60,7 +63,7 @@ def _handle(request: Request, body: bytes, adapter: TypeAdapter, principal: Prin
                 if attempt == 1:
                     return _error(409, "conflicting concurrent write; retry the request with the same Idempotency-Key")
                 continue
-        metrics.publish(req.observations)
+        metrics.publish(req.observations, req.signal_observations)
         return JSONResponse(result, 200)
     raise AssertionError("unreachable")
 
@@ -69,8 +72,14 @@ async def ingest_response(request: Request, adapter: TypeAdapter) -> JSONRespons
     """Authenticate (robot keys only), read the body and apply it: the whole of an ingest request."""
     principal = authenticate(request, "robot", exact=True)
     body = await request.body()
-    if request.app.state.ingest.inline:
-        return _handle(request, body, adapter, principal)
+    lock = request.app.state.write_lock
+    # Inline on the event loop only when the write lock is free now: a request of another route may hold it until
+    # its session's teardown, which the event loop must run, so waiting for it here would never end.
+    if request.app.state.ingest.inline and lock.acquire(blocking=False):
+        try:
+            return _handle(request, body, adapter, principal, locked=True)
+        finally:
+            lock.release()
     return await run_in_threadpool(_handle, request, body, adapter, principal)
 
 

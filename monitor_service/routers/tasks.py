@@ -1,7 +1,7 @@
 """Task registry: an admin registers each task before robots may report on it."""
 from __future__ import annotations
 
-from fastapi import APIRouter, Depends, HTTPException
+from fastapi import APIRouter, Depends, HTTPException, Request
 from sqlalchemy import select
 from sqlalchemy.orm import Session
 
@@ -14,23 +14,32 @@ router = APIRouter(prefix="/v1/tasks", tags=["tasks"])
 
 
 def _out(t: Task) -> TaskOut:
-    return TaskOut(name=t.name, latent_dim=t.latent_dim, description=t.description, created_at=t.created_at)
+    return TaskOut(name=t.name, latent_dim=t.latent_dim, description=t.description, signals=t.signals or [],
+                   created_at=t.created_at)
 
 
-@router.put("/{name}", response_model=TaskOut, responses=errors(409))
-def put_task(name: Name, body: TaskIn, session: Session = Depends(get_session), _: Principal = Depends(require("admin"))) -> TaskOut:
-    """Register a task (or update its description); its latent dimension is fixed once set."""
-
+@router.put("/{name}", response_model=TaskOut, responses=errors(409, 422))
+def put_task(request: Request, name: Name, body: TaskIn, session: Session = Depends(get_session),
+             _: Principal = Depends(require("admin"))) -> TaskOut:
+    """Register a task (or update its description, or add named signals); its latent dimension is fixed once
+    set, and a signal once registered stays (its stored scores keep their meaning)."""
+    if "nmse" in (body.signals or []):
+        raise HTTPException(422, "nmse is the service's own signal (computed from the latents); register only the "
+                                 "names of scores robots send")
     task = session.get(Task, name)
     if task is None:
-        task = Task(name=name, latent_dim=body.latent_dim, description=body.description)
+        task = Task(name=name, latent_dim=body.latent_dim, description=body.description,
+                    signals=sorted(set(body.signals or [])))
         session.add(task)
     else:
         if body.latent_dim is not None and task.latent_dim not in (None, body.latent_dim):
             raise HTTPException(409, f"task {name!r} already uses latent_dim {task.latent_dim}; register a new task name")
         task.latent_dim = body.latent_dim or task.latent_dim
         task.description = body.description or task.description
+        if body.signals:
+            task.signals = sorted(set(task.signals or []) | set(body.signals))
     session.commit()
+    request.app.state.ingest.forget_tasks()   # this process accepts the new signals from the next record on
     return _out(task)
 
 

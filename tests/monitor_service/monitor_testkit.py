@@ -103,3 +103,28 @@ def alive(pid: int) -> bool:
     """Running and not a zombie (a zombie only waits for init to reap it)."""
     st = _stat(pid)
     return st is not None and st[0] != "Z"
+
+
+def records_with_scores(episode, task, rng, nmse_values, scores: dict, steps=None, held_out=True, success=None,
+                        length=None):
+    """``records_for_nmse`` whose decisions also carry named scores ({name: per-decision values}, NaN: left
+    out of that decision); with ``nmse_values`` None the decisions send scores only (no latents)."""
+    n = len(next(iter(scores.values())))
+    steps = list(range(0, 8 * n, 8)) if steps is None else list(steps)
+    if nmse_values is None:
+        recs = [{"kind": "decision", "task": task, "episode": episode, "step": t, "held_out": held_out}
+                for t in steps]
+    else:
+        recs = records_for_nmse(episode, task, rng, nmse_values, steps, held_out=held_out)
+    decisions = [r for r in recs if r["kind"] == "decision"]
+    for i, dec in enumerate(decisions):
+        present = {name: float(v[i]) for name, v in scores.items() if np.isfinite(v[i])}
+        if present:
+            dec["scores"] = present
+    recs = [r for r in recs if r["kind"] != "decision" or "z_hat" in r or "scores" in r]
+    if success is not None:
+        out = {"kind": "outcome", "episode": episode, "success": success}
+        if length is not None:
+            out["length"] = length
+        recs.append(out)
+    return recs

@@ -302,7 +302,7 @@ def test_calibration_report_and_alerts_end_to_end(client, robot, operator, admin
     recs, _ = episode_records("live-bad", "Square", rng, 1.5, n_steps=10, held_out=False)
     post_batch(client, robot, recs)
     ep = client.get("/v1/episodes/live-bad", headers=operator).json()
-    assert ep["open_alert_id"] is not None and "alerting when" in ep["alert_note"]
+    assert ep["open_alert_id"] is not None and "alerting with nmse" in ep["alert_note"]
     alerts = client.get("/v1/alerts?state=open", headers=operator).json()
     assert [a["episode_id"] for a in alerts] == ["live-bad"]
     assert alerts[0]["score"] > alerts[0]["threshold"]

@@ -68,8 +68,11 @@ def test_document_declares_errors_timestamps_and_latents():
     decisions = doc["paths"]["/v1/decisions"]["post"]
     for code in ("400", "401", "403", "404", "409", "413", "422"):
         assert decisions["responses"][code]["content"]["application/json"]["schema"] == error
-    latent = doc["components"]["schemas"]["DecisionIn"]["properties"]["z_hat"]
+    decision = doc["components"]["schemas"]["DecisionIn"]
+    latent = next(t for t in decision["properties"]["z_hat"]["anyOf"] if t.get("type") == "array")
     assert latent["minItems"] == 1
+    # latents with their horizon, or named scores alone: the document says so
+    assert [alt["required"] for alt in decision["anyOf"]] == [["z_hat", "horizon"], ["scores"]]
     assert set(decisions["requestBody"]["content"]) == {"application/json", "application/x-msgpack"}
     assert "text/plain" in doc["paths"]["/metrics"]["get"]["responses"]["200"]["content"]
     assert "HTTPValidationError" not in doc["components"]["schemas"]

@@ -226,3 +226,29 @@ def test_bench_runs_against_a_server_someone_else_started(db_url, tmp_path, caps
         assert f"the server at {server.url}" in capsys.readouterr().out
         with pytest.raises(ValueError, match="--admin-key"):
             run_bench(host="127.0.0.1", port=server.port)
+
+
+def test_ingest_never_blocks_the_event_loop_on_the_write_lock(client, robot):
+    """The write lock may be held by a request of another route until its session's teardown, which the event
+    loop runs: an ingest request that waited for it on the loop never returned (a live deadlock seen after PUT
+    /v1/tasks). Now it waits in a worker thread while the loop keeps answering."""
+    import threading
+    import time
+
+    from monitor_testkit import episode_records, post_batch, register_task
+
+    register_task(client, "Square")
+    recs, _ = episode_records("locked", "Square", np.random.default_rng(0), 0.3, n_steps=2)
+    lock = client.app.state.write_lock
+    lock.acquire()
+    answer = {}
+    sender = threading.Thread(target=lambda: answer.setdefault("r", post_batch(client, robot, recs)))
+    sender.start()
+    time.sleep(0.3)
+    start = time.monotonic()
+    assert client.get("/healthz").status_code == 200
+    assert time.monotonic() - start < 2.0, "the event loop waited for the write lock"
+    assert "r" not in answer   # the ingest waits for the lock, off the loop
+    lock.release()
+    sender.join(10)
+    assert answer["r"].status_code == 200 and answer["r"].json()["decisions"] == 2
