@@ -99,17 +99,17 @@ function histogramChart(task, hist) {
 // One live episode: the rule's statistic after each scored decision (by the env step at which it became
 // known) against its decision index's threshold (dashed); red points are above it, hollow points lie beyond the
 // calibrated length (no guarantee there).
-function trajectoryChart(detail) {
-  const pts = detail.risk;
+function trajectoryChart(detail, signal) {
+  const pts = detail.signal_risk[signal];
   const values = pts.map((p) => p.value).concat(pts.map((p) => p.threshold));
   let lo = Math.min(...values), hi = Math.max(...values);
   if (hi - lo < 1e-9) { lo -= 1; hi += 1; }
   const pad = 0.08 * (hi - lo);
   lo -= pad; hi += pad;
   const x0 = 0, x1 = Math.max(1, ...pts.map((p) => p.known_at));
-  const title = `${detail.id} (${detail.task}, ${detail.rule} rule)`;
-  const [root, X, Y] = frame("trajectory", { "data-episode": detail.id }, title, "env step",
-    detail.rule === "band" ? "band z-score, running median" : "NMSE, running median", 320, 220);
+  const title = `${detail.id} (${detail.task}, ${signal}, ${detail.rule} rule)`;
+  const [root, X, Y] = frame("trajectory", { "data-episode": detail.id, "data-signal": signal }, title, "env step",
+    detail.rule === "band" ? `${signal}: band z-score, running median` : `${signal}, running median`, 340, 220);
   const fx = (s) => X((s - x0) / (x1 - x0)), fy = (v) => Y((v - lo) / (hi - lo));
   root.append(svg("polyline", { points: pts.map((p) => `${fx(p.known_at)},${fy(p.threshold)}`).join(" "),
     fill: "none", stroke: "#b00020", "stroke-dasharray": "5", class: "threshold" }));
@@ -123,6 +123,12 @@ function trajectoryChart(detail) {
   ticks(root, X, Y, x0, x1, "x", (v) => v.toFixed(0));
   ticks(root, X, Y, lo, hi, "y", (v) => v.toPrecision(2));
   return root;
+}
+
+// Which signals alert and how, e.g. "stac" or "fiper(stac+nmse)" (a calibration before named signals: nmse).
+function detectorName(result) {
+  const spec = result.detector ? result.detector.spec : { signals: ["nmse"], combination: "single" };
+  return spec.combination === "single" ? spec.signals[0] : `${spec.combination}(${spec.signals.join("+")})`;
 }
 
 async function refresh() {
@@ -143,7 +149,7 @@ async function refresh() {
     tbody.append(h("tr", { "data-task": c.task },
       h("td", {}, c.task), h("td", {}, `${fmt(r.auroc)} [${fmt(r.auroc_ci_low)}, ${fmt(r.auroc_ci_high)}]`),
       h("td", {}, fmt(r.average_precision)), h("td", {}, fmt(r.permutation_p, 4)),
-      h("td", {}, `${c.rule}: up to ${fmt(c.threshold, 4)}`),
+      h("td", { class: "detector" }, `${detectorName(r)}, ${c.rule}: up to ${fmt(c.threshold, 4)}`),
       h("td", { class: "regimes" }, r.alpha === undefined ? "-" : `${r.alpha} in each of ${regimes} decisions`),
       h("td", {}, String(live.length)), h("td", { class: over ? "risk-high" : "" }, String(over)),
       h("td", {}, String(openAlerts))));
@@ -193,10 +199,12 @@ async function refresh() {
   const traj = document.getElementById("trajectories");
   traj.replaceChildren();
   for (const d of details) {
-    if (d.rule === null || d.risk.length === 0) continue;
-    const box = h("div", { class: "chart" });
-    box.append(trajectoryChart(d));
-    traj.append(box);
+    for (const [signal, pts] of Object.entries(d.signal_risk || {})) {
+      if (d.rule === null || pts.length === 0) continue;
+      const box = h("div", { class: "chart" });
+      box.append(trajectoryChart(d, signal));
+      traj.append(box);
+    }
   }
   if (!traj.children.length) traj.append(h("p", {}, "No live episode has a scored decision under a usable calibration."));
 }

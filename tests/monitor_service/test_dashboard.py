@@ -59,7 +59,8 @@ def test_dashboard_shows_risk_roc_and_acknowledges(tmp_path):
                 assert page.locator("svg.histogram[data-task='Square'] rect").count() > 0
                 assert "live-bad" in page.inner_text("#episodes")
                 # the live episode's risk trajectory against the band threshold, points above it in red
-                traj = page.locator("svg.trajectory[data-episode='live-bad']")
+                traj = page.locator("svg.trajectory[data-episode='live-bad'][data-signal='nmse']")
+                assert page.locator("#tasks tr[data-task='Square'] td.detector").inner_text().startswith("nmse, band")
                 traj.locator("polyline.risk").wait_for()
                 assert traj.locator("polyline.threshold").count() == 1
                 assert traj.locator("circle[fill='#b00020']").count() >= 2
