@@ -14,9 +14,11 @@ from __future__ import annotations
 import msgpack
 import zmq
 
-PROTOCOL_VERSION = 2   # v2: per-session seq required, liveness by ZMTP heartbeats, observe / stream
+# v3: liveness by the bridge's pings, echoed on the client's link connection (no ZMTP heartbeats: libzmq 4.3.5
+# aborts on them under a flood); an operator ROUTER that answers the e-stop before anything queued
+PROTOCOL_VERSION = 3
 
-# operator -> bridge (operator socket, ZeroMQ REQ -> REP); each answered with {"type": "result", ...} or error
+# operator -> bridge (operator socket, ZeroMQ REQ -> ROUTER); each answered with {"type": "result", ...} or error
 OP_ESTOP = "estop"
 OP_CLEAR_ESTOP = "clear_estop"
 OP_CONFIRM = "confirm"
@@ -33,24 +35,39 @@ class OperatorError(RuntimeError):
 
 
 class OperatorClient:
-    """The operator's side: e-stop, confirm, home, status over the bridge's operator socket."""
+    """The operator's side: e-stop, confirm, home, status over the bridge's operator socket.
+
+    Usable for as long as it lives: a call that times out (no bridge, or one that did not answer in time) raises
+    TimeoutError and leaves a fresh socket behind, so the next call (the e-stop of a long-lived tool) goes out
+    at once instead of failing on the REQ socket's state. Nothing is queued while no bridge is connected
+    (ZMQ_IMMEDIATE), so an e-stop that timed out is never delivered minutes later to a bridge that starts then.
+    """
 
     def __init__(self, address: str = DEFAULT_OPERATOR, timeout_s: float = 5.0):
         self.address = address
+        self.timeout_ms = int(timeout_s * 1000)
         self._ctx = zmq.Context()
-        self._sock = self._ctx.socket(zmq.REQ)
-        self._sock.setsockopt(zmq.LINGER, 0)
-        self._sock.setsockopt(zmq.RCVTIMEO, int(timeout_s * 1000))
-        self._sock.setsockopt(zmq.SNDTIMEO, int(timeout_s * 1000))
-        self._sock.connect(address)
+        self._sock = self._connect()
+
+    def _connect(self) -> zmq.Socket:
+        sock = self._ctx.socket(zmq.REQ)
+        sock.setsockopt(zmq.LINGER, 0)
+        sock.setsockopt(zmq.IMMEDIATE, 1)
+        sock.setsockopt(zmq.RCVTIMEO, self.timeout_ms)
+        sock.setsockopt(zmq.SNDTIMEO, self.timeout_ms)
+        sock.connect(self.address)
+        return sock
 
     def _call(self, message: dict) -> dict:
         try:
             self._sock.send(msgpack.packb({"v": PROTOCOL_VERSION, **message}, use_bin_type=True))
             reply = msgpack.unpackb(self._sock.recv(), raw=False, strict_map_key=False)
         except zmq.Again as exc:
-            raise TimeoutError(f"no robot bridge answered on the operator socket {self.address}; "
-                               "is `jepa-robot-bridge serve` running there?") from exc
+            # the REQ socket now waits for a reply that may never come; a new one starts clean
+            self._sock.close(linger=0)
+            self._sock = self._connect()
+            raise TimeoutError(f"no robot bridge answered {message['type']!r} on the operator socket {self.address} "
+                               f"within {self.timeout_ms / 1000:g}s; is `jepa-robot-bridge serve` running there?") from exc
         if not isinstance(reply, dict) or reply.get("type") not in (RESULT, ERROR):
             raise OperatorError(f"the bridge sent an unexpected reply {reply!r:.200}")
         if reply["type"] == ERROR:
@@ -58,7 +75,9 @@ class OperatorClient:
         return reply
 
     def estop(self) -> dict:
-        """Latch the emergency stop: the robot holds now, mid-chunk included; no motion until cleared."""
+        """Latch the emergency stop: the robot holds now, mid-chunk included; no motion until cleared. Returns
+        ``{"estop": True, "latched_at": <bridge's wall clock>, "held": <the backend's stop returned>, ...}``,
+        answered by the bridge's e-stop path itself (``status`` then shows the interrupted episode)."""
         return self._call({"type": OP_ESTOP})["status"]
 
     def clear_estop(self) -> dict:

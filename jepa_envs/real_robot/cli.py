@@ -95,6 +95,14 @@ def _parser() -> argparse.ArgumentParser:
     bench.add_argument("--max-seconds", type=float, default=120.0)
     bench.add_argument("--estop-runs", type=int, default=10, help="time the e-stop command this many times")
     bench.add_argument("--json", help="also write the numbers to this file")
+    bench.add_argument("--load", metavar="SCENARIOS",
+                       help="instead: the bridge under local load, comma-separated from flood, operators, big, "
+                            "aborts (e-stop latency, controller chunk rate, bridge aborts; issue 35)")
+    bench.add_argument("--trials", type=int, default=20, help="--load: e-stops per scenario")
+    bench.add_argument("--window", type=float, default=4.0,
+                       help="--load: seconds the controller's chunk rate is counted alone, then under the load")
+    bench.add_argument("--abort-runs", type=int, default=30, help="--load aborts: fresh bridges flooded")
+    bench.add_argument("--flood-seconds", type=float, default=3.0, help="--load aborts: seconds of flood per run")
     return parser
 
 
@@ -450,6 +458,9 @@ def main(argv: list[str] | None = None) -> int:
         return observe(args)
     if args.command == "keys":
         return keys(args)
+    if args.load:
+        from jepa_envs.real_robot.load_bench import run_load_bench
+        return run_load_bench(args)
     from jepa_envs.real_robot.bench import run_bench
     return run_bench(args)
 

@@ -1,4 +1,5 @@
-"""Per-episode records: observations at decision frames, actions, timing, outcome and the evaluation manifest.
+"""Per-episode records: observations at decision frames, actions, timing, outcome and the evaluation manifest;
+and the newest frames the bridge serves (``FrameHistory``).
 
 Each finished episode becomes ``<root>/<task>/<episode_id>.h5`` (arrays) plus ``<episode_id>.json`` (the
 evaluation manifest: policy checkpoint, seed, outcome, chunk budget, latency summary, safety events), so a
@@ -6,6 +7,7 @@ result can be audited later without the robot.
 """
 from __future__ import annotations
 
+import collections
 import json
 import time
 import uuid
@@ -84,6 +86,12 @@ class EpisodeRecord:
         if executed is not None:
             self.steps += 1
 
+    def chunk_arrived(self, latency_s: float) -> bool:
+        """Count one chunk and its frame-to-chunk latency; True when it is a steady-state one (not the first)."""
+        self.chunks += 1
+        self.chunk_latency_s.append(latency_s)
+        return self.chunks > 1
+
     def add_safety_event(self, step: int, report: dict) -> None:
         self.safety_events.append({"step": int(step), **report})
 
@@ -152,6 +160,35 @@ class EpisodeRecord:
             f.create_dataset("action_times", data=np.asarray(self.action_times, np.float64))
             f.create_dataset("chunk_latency_s", data=np.asarray(self.chunk_latency_s, np.float64))
             f.attrs["summary"] = summary_text
+
+
+class FrameHistory:
+    """The newest observations with the episode step and the time each was taken (oldest dropped first): what
+    ``observe`` serves, and the decision frame a streamed chunk was predicted from."""
+
+    def __init__(self, size: int):
+        self.recent: collections.deque = collections.deque(maxlen=size)   # (step, time, obs)
+        self.obs: dict | None = None
+        self.info: dict = {}
+        self.time = 0.0
+
+    def reset(self, obs: dict, info: dict) -> None:
+        self.recent.clear()
+        self.add(0, obs, info)
+
+    def add(self, step: int, obs: dict, info: dict) -> None:
+        self.time = time.monotonic()
+        self.obs, self.info = obs, info
+        self.recent.append((step, self.time, obs))
+
+    def newest(self, history: int) -> list[tuple[int, float, dict]]:
+        """The newest ``history`` frames, oldest first, padded with the oldest (as in training); [] when none."""
+        frames = list(self.recent)[-history:]
+        return [frames[0]] * (history - len(frames)) + frames if frames else []
+
+    def at(self, step: int) -> tuple[float, dict]:
+        """(time, observation) of the frame of ``step``, or of the newest when it is no longer kept."""
+        return next(((t, o) for s, t, o in reversed(self.recent) if s == step), (self.time, self.obs))
 
 
 def load_episode(manifest_path: str | Path) -> tuple[dict, dict[str, np.ndarray]]:

@@ -1,20 +1,23 @@
-"""The operator socket, served by a thread of its own so that no other traffic can block the e-stop.
+"""The operator socket, served by a thread of its own: the e-stop is answered before anything else is done.
 
-The socket is a REP: each request must get exactly one reply or the socket refuses every later one, so the
-reply is sent in a ``finally``, whatever the request held. The e-stop does not wait for the bridge's event
-loop: this thread latches it (``estop_latch``, a ``threading.Event``) before anything else, and the loop
-checks the latch before it decodes any control message and before every action it applies. Only then does
-the thread ask the loop to do the rest (hold, interrupt the episode, answer a client waiting for a
-confirmation) and report its status; if the loop does not answer within ``estop_wait_s`` (it may be inside a
-long backend call) the reply says the latch is set and the loop has not yet acknowledged it.
+The socket is a ROUTER (operators connect with REQ, ``jepa_operator.OperatorClient``), so one operator's request
+never waits for another's answer. Each turn the thread reads every request that is waiting (up to
+``TURN_REQUESTS``) and handles the e-stops among them first: ``EStop.press`` latches and stops the robot in this
+thread and the answer goes out at once, before any other request of the turn is looked at. It never waits for
+the event loop, the control socket or another operator request.
 
-Every other operator command (status, confirm, home, clear_estop, shutdown) runs on the event loop, which owns
-the robot, through ``call_loop``; a loop that does not answer in time gets the operator a clear error.
+Every other command (status, confirm, home, clear_estop, shutdown) runs on the event loop, which owns the robot:
+the thread forwards it over an inproc socket the loop polls, and sends the loop's answer back when it comes,
+serving new requests (e-stops first) meanwhile. At most ``MAX_PENDING`` commands wait for the loop; more are
+answered ``busy`` at once. ``handle`` is the same entry for callers inside the bridge's process
+(``RobotBridge.command``), whose commands wait in a queue the loop serves on the same turn (``serve_loop``).
 """
 from __future__ import annotations
 
 import collections
+import itertools
 import logging
+import queue
 import threading
 import time
 from typing import Callable
@@ -22,29 +25,35 @@ from typing import Callable
 import zmq
 
 from jepa_envs.real_robot import protocol as P
+from jepa_envs.real_robot.estop import EStop
 from jepa_envs.real_robot.wire import decode_request, encode_reply
 
 log = logging.getLogger(__name__)
 
 OPERATOR_COMMANDS = (P.OP_ESTOP, P.OP_CLEAR_ESTOP, P.OP_CONFIRM, P.OP_HOME, P.OP_STATUS, P.OP_SHUTDOWN)
+TURN_REQUESTS = 256     # requests read per turn (the e-stops among them are answered first)
+MAX_PENDING = 64        # operator commands waiting for the event loop
+LOOP_TURN_COMMANDS = 16     # forwarded commands the event loop answers per turn
+_ids = itertools.count()
 
 
 class OperatorChannel:
-    """Owns the REP operator socket in its own thread; ``handle`` is also the in-process entry (``command``)."""
+    """Owns the operator ROUTER in its own thread; ``loop_sockets`` are the event loop's end of the forwarding."""
 
-    def __init__(self, ctx: zmq.Context, address: str, estop_latch: threading.Event,
-                 call_loop: Callable[[dict, float], dict], command_timeout_s: float = 5.0,
-                 estop_wait_s: float = 0.5):
-        self.estop_latch = estop_latch
-        self.call_loop = call_loop
+    def __init__(self, ctx: zmq.Context, address: str, estop: EStop, answer: Callable[[dict], dict],
+                 on_failure: Callable[[], None], command_timeout_s: float = 5.0):
+        self.estop = estop
+        self.answer = answer            # the event loop's command (it owns the robot); may raise
+        self.on_failure = on_failure    # called when ``answer`` fails: the robot holds
         self.command_timeout_s = float(command_timeout_s)
-        self.estop_wait_s = float(estop_wait_s)
+        self.loop_thread: int | None = None        # the event loop's thread, once it runs
+        self._in_process: queue.Queue = queue.Queue()   # (message, reply box) from ``handle``
         self.counters: collections.Counter = collections.Counter()
         self._lock = threading.Lock()      # counters are read by the loop's status()
-        self.latched_at: float | None = None
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
-        self.sock = ctx.socket(zmq.REP)
+        self._pending = 0
+        self.sock = ctx.socket(zmq.ROUTER)
         self.sock.setsockopt(zmq.LINGER, 0)
         self.sock.setsockopt(zmq.MAXMSGSIZE, P.MAX_OPERATOR_MESSAGE_BYTES)
         try:
@@ -53,6 +62,14 @@ class OperatorChannel:
             self.sock.close(linger=0)
             raise
         self.endpoint = self.sock.getsockopt_string(zmq.LAST_ENDPOINT)
+        name = f"inproc://robot-bridge-operator-{next(_ids)}"
+        self._to_loop, self._from_loop = ctx.socket(zmq.PUSH), ctx.socket(zmq.PULL)
+        self._to_loop.bind(name + "-commands")
+        self._from_loop.bind(name + "-answers")
+        # the event loop's ends: it reads commands from the first and writes answers to the second
+        self.loop_commands, self.loop_answers = ctx.socket(zmq.PULL), ctx.socket(zmq.PUSH)
+        self.loop_commands.connect(name + "-commands")
+        self.loop_answers.connect(name + "-answers")
 
     # ------------------------------------------------------------ thread
     def start(self) -> None:
@@ -60,37 +77,101 @@ class OperatorChannel:
         self._thread.start()
 
     def stop(self) -> None:
-        """Stop the thread and close the socket (before the bridge's ZeroMQ context is terminated)."""
+        """Stop the thread and close every socket of the channel (before the ZeroMQ context is terminated)."""
         self._stop.set()
         if self._thread is not None and self._thread is not threading.current_thread():
             self._thread.join(timeout=10)
             self._thread = None
         elif self._thread is None:
-            self.sock.close(linger=0)
+            self._close_thread_sockets()
+        for sock in (self.loop_commands, self.loop_answers):
+            sock.close(linger=0)
+
+    def _close_thread_sockets(self) -> None:
+        for sock in (self._to_loop, self._from_loop):
+            sock.close(linger=0)
+        self.sock.close(linger=500)   # the last answers (a shutdown's) still go out
 
     def _serve(self) -> None:
         poller = zmq.Poller()
         poller.register(self.sock, zmq.POLLIN)
+        poller.register(self._from_loop, zmq.POLLIN)
         try:
             while not self._stop.is_set():
-                if not poller.poll(50):
-                    continue
-                try:
-                    frames = self.sock.recv_multipart(zmq.NOBLOCK)
-                except zmq.ZMQError:   # nothing was received, so no reply is owed
-                    continue
-                reply = None
-                try:
-                    reply = self.answer(frames)
-                except Exception as exc:   # a bug here must still answer, or the socket would refuse the e-stop
-                    self._count("internal_errors")
-                    log.exception("operator request failed")
-                    reply = P.error(P.ERR_INTERNAL, f"the bridge failed on this operator request "
-                                                    f"({type(exc).__name__}); see its log")
-                finally:
-                    self.sock.send(encode_reply(reply))
+                events = dict(poller.poll(50))
+                if self.sock in events:
+                    self._serve_requests()
+                if self._from_loop in events:
+                    self._send_answers()
+            if self._from_loop.poll(200):   # the loop's last answer (a shutdown) was sent just before it stopped
+                self._send_answers()
         finally:
-            self.sock.close(linger=0)
+            self._close_thread_sockets()
+
+    def _serve_requests(self) -> None:
+        waiting = []
+        for _ in range(TURN_REQUESTS):
+            try:
+                waiting.append(self.sock.recv_multipart(zmq.NOBLOCK))
+            except zmq.Again:
+                break
+        decoded = [self._decode(frames) for frames in waiting]
+        for route, message, refusal in decoded:   # the e-stops first, each answered at once
+            if message is not None and message["type"] == P.OP_ESTOP:
+                self._send(route, self._press())
+        for route, message, refusal in decoded:
+            if refusal is not None:
+                self._send(route, refusal)
+            elif message["type"] == P.OP_ESTOP:
+                continue
+            elif self._pending >= MAX_PENDING:
+                self._count("operator_busy")
+                self._send(route, P.error(P.ERR_BUSY, f"{self._pending} operator commands are waiting for the "
+                                                      "bridge's event loop; try again (the e-stop never waits)"))
+            else:
+                self._pending += 1
+                self._to_loop.send_multipart([*route, P.encode(message)])
+
+    def _send_answers(self) -> None:
+        while True:
+            try:
+                frames = self._from_loop.recv_multipart(zmq.NOBLOCK)
+            except zmq.Again:
+                return
+            self._pending -= 1
+            self._send(frames[:-1], frames[-1])
+
+    def _send(self, route: list[bytes], reply: dict | bytes) -> None:
+        payload = reply if isinstance(reply, bytes) else encode_reply(reply)
+        try:
+            self.sock.send_multipart([*route, payload], zmq.NOBLOCK)
+        except zmq.ZMQError:   # the operator's connection is gone or not reading; nothing is owed
+            self._count("undeliverable")
+
+    def _decode(self, frames: list[bytes]) -> tuple[list[bytes], dict | None, dict | None]:
+        """(route, message, None) for a known operator command, else (route, None, the refusal that answers it);
+        the route is the sender's identity and, for a REQ socket, its empty delimiter."""
+        route = frames[:2] if len(frames) >= 3 and frames[1] == b"" else frames[:1]
+        body = frames[len(route):]
+        if len(body) != 1:
+            self._count("malformed")
+            return route, None, P.error(P.ERR_BAD_MESSAGE, f"an operator request is one frame; got {len(body)}")
+        message, refusal = decode_request(body[0])
+        if refusal is None and message["type"] not in OPERATOR_COMMANDS:
+            message, refusal = None, P.error(P.ERR_BAD_MESSAGE, f"unknown operator command {message['type'][:40]!r}; "
+                                                                "use estop, clear_estop, confirm, home, status, "
+                                                                "shutdown")
+        if refusal is not None:
+            self._count("malformed")
+        return route, message, refusal
+
+    def _press(self) -> dict:
+        self._count("estops")
+        facts = self.estop.press()
+        text = ("the e-stop is latched and the robot was told to hold; the episode ends as interrupted/estop"
+                if facts["held"] else "the e-stop is latched (no action is applied) but the backend's stop "
+                                      "FAILED: use the hardware e-stop; see the bridge log")
+        return {"type": P.RESULT, "ok": True, "status": {**facts, "message": text}}
 
     def _count(self, name: str) -> None:
         with self._lock:
@@ -100,39 +181,57 @@ class OperatorChannel:
         with self._lock:
             return dict(self.counters)
 
-    # ------------------------------------------------------------ requests
-    def answer(self, frames: list[bytes]) -> dict:
-        """The reply to one operator request, whatever its bytes."""
-        if len(frames) != 1:
-            self._count("malformed")
-            return P.error(P.ERR_BAD_MESSAGE, f"an operator request is one frame; got {len(frames)}")
-        message, refusal = decode_request(frames[0])
-        if refusal is not None:
-            self._count("malformed")
-            return refusal
-        return self.handle(message)
+    # ------------------------------------------------------------ the event loop's side
+    def serve_loop(self) -> None:
+        """On the event loop: answer the commands waiting for it, forwarded (bounded per turn) or in-process."""
+        for _ in range(LOOP_TURN_COMMANDS):
+            try:
+                frames = self.loop_commands.recv_multipart(zmq.NOBLOCK)
+            except zmq.Again:
+                break
+            message, refusal = decode_request(frames[-1])   # decoded once already: a known, versioned command
+            self.loop_answers.send_multipart([*frames[:-1], encode_reply(refusal or self._answer(message))])
+        while True:
+            try:
+                message, box = self._in_process.get_nowait()
+            except queue.Empty:
+                return
+            box.put(self._answer(message))
 
+    def _answer(self, message: dict) -> dict:
+        try:
+            return self.answer(message)
+        except (P.ProtocolError, ValueError, TypeError) as exc:
+            self._count("malformed")
+            return P.error(P.ERR_BAD_MESSAGE, str(exc))
+        except Exception as exc:
+            self._count("internal_errors")
+            log.exception("operator command failed")
+            self.on_failure()
+            return P.error(P.ERR_INTERNAL, f"the bridge failed on this command ({type(exc).__name__}: {exc}); "
+                                           "the robot holds")
+
+    # ------------------------------------------------------------ in-process callers
     def handle(self, message: dict) -> dict:
-        """Run one decoded operator command: the e-stop latches here first, the rest runs on the event loop."""
+        """One decoded operator command from inside the bridge's process (any thread): the e-stop latches here,
+        the rest runs on the event loop (TimeoutError's reply when it does not answer in time)."""
         kind = message.get("type")
         if type(kind) is not str or kind not in OPERATOR_COMMANDS:
             self._count("malformed")
             return P.error(P.ERR_BAD_MESSAGE, f"unknown operator command {str(kind)[:40]!r}; use estop, "
                                               "clear_estop, confirm, home, status, shutdown")
         if kind == P.OP_ESTOP:
-            self.estop_latch.set()
-            self.latched_at = time.monotonic()
+            return self._press()
+        if threading.get_ident() == self.loop_thread:
+            return self._answer(message)
+        box: queue.Queue = queue.Queue(maxsize=1)
+        self._in_process.put((message, box))
+        deadline = time.monotonic() + self.command_timeout_s
+        while time.monotonic() < deadline and self.loop_thread is not None:
             try:
-                return self.call_loop(message, self.estop_wait_s)
-            except TimeoutError:
-                return {"type": P.RESULT, "ok": True, "status": {
-                    "estop": True, "acknowledged": False,
-                    "message": f"the e-stop is latched: no further action is applied; the event loop did not "
-                               f"confirm the hold within {self.estop_wait_s:.1f}s (it may be inside a long "
-                               "backend call); check `jepa-robot-bridge status`"}}
-        try:
-            return self.call_loop(message, self.command_timeout_s)
-        except TimeoutError:
-            return P.error(P.ERR_INTERNAL, f"the bridge's event loop did not answer {kind!r} within "
-                                           f"{self.command_timeout_s:.1f}s; the e-stop still works (it does not "
-                                           "wait for the loop)")
+                return box.get(timeout=0.05)
+            except queue.Empty:
+                continue
+        return P.error(P.ERR_INTERNAL, f"the bridge's event loop did not answer {kind!r} within "
+                                       f"{self.command_timeout_s:.1f}s; the e-stop still works (it does not "
+                                       "wait for the loop)")

@@ -19,10 +19,12 @@ import numpy as np
 from jepa_operator import (ERROR, OP_CLEAR_ESTOP, OP_CONFIRM, OP_ESTOP, OP_HOME, OP_SHUTDOWN,  # noqa: F401
                            OP_STATUS, PROTOCOL_VERSION, RESULT)
 
-# size limits: a message above them is dropped by ZeroMQ before it is read (a chunk is a few KB; an operator
-# command a few bytes); nothing a host on the network sends can make the bridge allocate more than this
-MAX_CONTROL_MESSAGE_BYTES = 16 * 1024 * 1024
-MAX_OPERATOR_MESSAGE_BYTES = 64 * 1024
+# size limits, checked before anything is decoded (decoding holds the interpreter: 64 KiB of the slowest msgpack
+# takes ~3 ms). ZeroMQ closes a connection whose message is above its socket's limit before the bridge reads a
+# byte of it; a chunk is a few KB, a hello a few hundred bytes, an operator command a few bytes
+MAX_CONTROL_MESSAGE_BYTES = 64 * 1024
+MAX_STRANGER_MESSAGE_BYTES = 16 * 1024     # from a connection that is not the session's: a hello, or a refusal
+MAX_OPERATOR_MESSAGE_BYTES = 4 * 1024
 MAX_SEQ = 2**63 - 1
 
 # client -> bridge (control socket, ZeroMQ DEALER -> ROUTER)
@@ -38,7 +40,9 @@ BYE = "bye"
 # bridge -> client
 WELCOME = "welcome"
 PENDING = "pending"  # reply deferred: waiting for the operator's confirmation
-LINK = "link"        # bridge -> client notice (never a reply): the link was held or resumed; clients skip it
+# bridge -> client notice (never a reply): a ping on the client's link connection (echoed back), or the state of
+# the link on its control connection; clients skip it. client -> bridge: opens the session's link connection
+LINK = "link"
 # error codes a client can act on
 ERR_VERSION = "version_mismatch"
 ERR_BUSY = "busy"
@@ -52,6 +56,7 @@ ERR_INTERNAL = "internal_error"
 ERR_REPLAY = "replayed_or_stale"   # a seq not above the session's last one
 ERR_OBSERVE_ONLY = "observe_only"  # the bridge serves observations only; actions are disabled
 ERR_LOST = "request_lost"          # the request never arrived (the connection dropped first); send it again
+ERR_RATE = "rate_limited"          # a connection without the session sent faster than the bridge answers strangers
 
 
 class ProtocolError(RuntimeError):

@@ -6,17 +6,21 @@ absolute actions, ``info["is_success"]``). For the real robot ``is_success`` is 
 at episode end. ``step_chunk`` sends a whole action chunk in one round trip (the paper's synchronous loop,
 Sec. 4.8); ``observe`` and ``stream`` drive the asynchronous loop (``executor.AsyncChunkExecutor``).
 
-Liveness needs no thread here: libzmq's I/O thread answers the bridge's heartbeats, also while this process
-is busy in a long call. The connection keeps one routing id for its lifetime, so after a network drop it
-reconnects as the same client and the bridge delivers a reply it held back; a client whose session the
-bridge dropped gets ``LostControl`` with the reason and can call ``reconnect()``.
+Liveness costs this process nothing: after ``hello`` the env opens a second connection, its *link*, and
+``zmq.proxy`` echoes every ping the bridge sends on it from a thread that holds no GIL, so the pings are answered
+also while this process is busy in a long call (inference, a C call that holds the GIL). The control
+connection keeps one routing id for its lifetime, so after a network drop it reconnects as the same client and
+the bridge delivers a reply it held back; a client whose session the bridge dropped gets ``LostControl`` with
+the reason and can call ``reconnect()``.
 """
 from __future__ import annotations
 
 import dataclasses
+import itertools
 import os
 import secrets
 import socket
+import threading
 import time
 
 import numpy as np
@@ -104,13 +108,11 @@ class RealRobotEnv(JEPAEnv):
         self._task = task
         self._client = client_name or f"{socket.gethostname()}:{os.getpid()}"
         self._ctx = zmq.Context()
-        self._sock = self._ctx.socket(zmq.DEALER)
-        self._sock.setsockopt(zmq.LINGER, 0)
+        self._keys = (curve_server_key, curve_client_key)
         # one routing id for the connection's lifetime: a reconnect after a network drop is the same client
-        self._sock.setsockopt(zmq.ROUTING_ID, b"jepa-" + secrets.token_bytes(12))
-        self._sock.setsockopt(zmq.RECONNECT_IVL, 20)
-        self._sock.setsockopt(zmq.RECONNECT_IVL_MAX, 500)
-        _setup_curve_client(self._sock, curve_server_key, curve_client_key)
+        self._routing_id = b"jepa-" + secrets.token_bytes(12)
+        self._sock = self._dealer(self._routing_id)
+        self._link: tuple[zmq.Socket, zmq.Socket, zmq.Socket, threading.Thread] | None = None
         self._curve = curve_server_key is not None
         # the connection's own events: a second handshake means it dropped and came back (``_request`` resumes)
         self._monitor = self._sock.get_monitor_socket(
@@ -138,13 +140,47 @@ class RealRobotEnv(JEPAEnv):
         self._last_obs: dict | None = None
         self._last_obs_time = time.monotonic()
 
+    def _dealer(self, routing_id: bytes) -> zmq.Socket:
+        sock = self._ctx.socket(zmq.DEALER)
+        sock.setsockopt(zmq.LINGER, 0)
+        sock.setsockopt(zmq.ROUTING_ID, routing_id)
+        sock.setsockopt(zmq.RECONNECT_IVL, 20)
+        sock.setsockopt(zmq.RECONNECT_IVL_MAX, 500)
+        _setup_curve_client(sock, *self._keys)
+        return sock
+
     def _hello(self) -> dict:
         self.session = None
         welcome = self._request({"type": P.HELLO, "task": self._task, "client": self._client},
                                 timeout_s=self.timeout_s)
         self.session = welcome["session"]
         self.welcome = welcome
+        self._open_link()
         return welcome
+
+    def _open_link(self) -> None:
+        """The link connection: registered with the session's token, then echoed back by ``zmq.proxy``."""
+        self._close_link()
+        link = self._dealer(self._routing_id + b"/link-" + secrets.token_bytes(4))   # never an old link's id
+        link.connect(self.address)
+        link.send(P.encode({"type": P.LINK, "session": self.session}))
+        steer_address = f"inproc://robot-link-{next(_LINKS)}"
+        steer, steered = self._ctx.socket(zmq.PAIR), self._ctx.socket(zmq.PAIR)
+        steer.bind(steer_address)
+        steered.connect(steer_address)
+        echo = threading.Thread(target=_echo, args=(link, steered), name="robot-link-echo", daemon=True)
+        echo.start()
+        self._link = (link, steer, steered, echo)
+
+    def _close_link(self) -> None:
+        if self._link is None:
+            return
+        link, steer, steered, echo = self._link
+        steer.send(b"TERMINATE")
+        echo.join(timeout=5)
+        for sock in (link, steer, steered):
+            sock.close(linger=0)
+        self._link = None
 
     def reconnect(self) -> None:
         """Take control again after ``LostControl`` (the bridge refuses with ``BridgeBusy`` if another client
@@ -220,6 +256,7 @@ class RealRobotEnv(JEPAEnv):
         return self._handshakes > 1
 
     def _close_sockets(self) -> None:
+        self._close_link()
         try:
             self._sock.disable_monitor()
         except zmq.ZMQError:
@@ -298,6 +335,17 @@ class RealRobotEnv(JEPAEnv):
         self._close_sockets()
         super().close()
 
+
+
+_LINKS = itertools.count()
+
+
+def _echo(link: zmq.Socket, steered: zmq.Socket) -> None:
+    """Send every message the bridge sends on the link straight back, inside libzmq (no GIL), until TERMINATE."""
+    try:
+        zmq.proxy_steerable(link, link, None, steered)
+    except zmq.ContextTerminated:
+        pass
 
 
 def _setup_curve_client(sock: zmq.Socket, server_key: str | None, client_key: str | None) -> None:

@@ -12,17 +12,26 @@ from dataclasses import dataclass, field
 from typing import Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, field_validator
+from pydantic import BaseModel, ConfigDict, ValidationError, field_validator
 
 
 class InvalidAction(ValueError):
     """An action that can never be executed (NaN, infinite, wrong shape, degenerate rotation)."""
 
 
-class SafetyConfig(BaseModel):
-    """Limits of one robot set-up; the bridge refuses to start with an inconsistent one."""
+# beyond these a rule is switched off in all but name: a watchdog that waits an hour is no watchdog
+MAX_COMMAND_DEADLINE_S = 600.0
+MAX_LINK_SECONDS = 600.0
 
-    model_config = ConfigDict(extra="forbid")
+
+class SafetyConfig(BaseModel):
+    """Limits of one robot set-up; the bridge refuses to start with an inconsistent one.
+
+    Every number must be finite (a NaN compares false with everything, so ``jump > nan`` never fires and a NaN
+    limit would switch its rule off): pydantic refuses NaN and infinity in every field, nested lists included.
+    """
+
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
     action_low: list[float] | None = None   # workspace / gripper lower bound per action dim (None: backend's)
     action_high: list[float] | None = None
@@ -33,26 +42,36 @@ class SafetyConfig(BaseModel):
     joint_high: list[float] | None = None
     command_deadline_s: float = 2.0       # watchdog: longest silence between commands inside an episode
     link_timeout_s: float | None = None   # a silent connection is closed after this: default one control period
-    heartbeat_interval_s: float | None = None  # ZeroMQ heartbeat (PING) interval: default a quarter of the above
+    heartbeat_interval_s: float | None = None  # the bridge's link pings: default a quarter of the above
     link_grace_s: float = 5.0             # a lost link holds the robot; control is released after this long
 
-    @field_validator("command_deadline_s", "link_grace_s")
+    @field_validator("command_deadline_s")
     @classmethod
-    def _positive_seconds(cls, v: float, info) -> float:
-        if v <= 0:
-            raise ValueError(f"{info.field_name} must be > 0 seconds")
+    def _watchdog_on(cls, v: float) -> float:
+        if not 0 < v <= MAX_COMMAND_DEADLINE_S:
+            raise ValueError(f"must be > 0 and at most {MAX_COMMAND_DEADLINE_S:g} seconds (the command watchdog "
+                             "cannot be switched off)")
+        return v
+
+    @field_validator("link_grace_s")
+    @classmethod
+    def _grace_bounded(cls, v: float) -> float:
+        if not 0 < v <= MAX_LINK_SECONDS:
+            raise ValueError(f"must be > 0 and at most {MAX_LINK_SECONDS:g} seconds")
         return v
 
     @field_validator("link_timeout_s", "heartbeat_interval_s")
     @classmethod
-    def _positive_or_default(cls, v: float | None, info) -> float | None:
-        if v is not None and v <= 0:
-            raise ValueError(f"{info.field_name} must be > 0 seconds (or left out for the default)")
+    def _positive_or_default(cls, v: float | None) -> float | None:
+        if v is not None and not 0 < v <= MAX_LINK_SECONDS:
+            raise ValueError(f"must be > 0 and at most {MAX_LINK_SECONDS:g} seconds (or left out for the default)")
         return v
 
-    def problems(self, action_dim: int, n_joints: int | None, control_hz: float | None = None) -> list[str]:
+    def problems(self, action_dim: int, n_joints: int | None, control_hz: float | None = None,
+                 action_range: tuple[np.ndarray, np.ndarray] | None = None) -> list[str]:
         """Every length or bound that does not fit a robot with ``action_dim`` actions and ``n_joints`` joints,
-        and every timing rule that contradicts another at ``control_hz`` (when given).
+        every workspace bound outside the backend's own ``action_range`` (when given), and every timing rule that
+        contradicts another at ``control_hz`` (when given).
 
         ``n_joints`` None: the backend measures no joints (PushT), so joint limits must be absent. Checked by
         the bridge before it opens any socket and by ``jepa-robot-bridge check`` before any hardware is touched.
@@ -75,6 +94,17 @@ class SafetyConfig(BaseModel):
                             ("max_step_delta", delta if isinstance(delta, list) else None)):
             if value is not None and not all(np.isfinite(value)):
                 out.append(f"safety.{name} has NaN or infinite entries")
+        if action_range is not None:
+            for name, value, inside in (("action_low", self.action_low, lambda v, lo, hi: v >= lo),
+                                        ("action_high", self.action_high, lambda v, lo, hi: v <= hi)):
+                if value is None or len(value) != action_dim:
+                    continue
+                outside = [i for i, (v, lo, hi) in enumerate(zip(value, *action_range)) if not inside(v, lo, hi)]
+                if outside:
+                    i = outside[0]
+                    out.append(f"safety.{name} leaves the backend's own action range at indices {outside} (e.g. "
+                               f"{value[i]:g} outside [{action_range[0][i]:g}, {action_range[1][i]:g}]); a "
+                               "configured bound may only narrow it")
         if self.action_low is not None and self.action_high is not None and len(self.action_low) == len(
                 self.action_high) and any(lo > hi for lo, hi in zip(self.action_low, self.action_high)):
             out.append("safety.action_low must be <= action_high in every dimension")
@@ -93,6 +123,10 @@ class SafetyConfig(BaseModel):
                            f"in a {action_dim}-D action")
         if self.heartbeat_interval_s and self.link_timeout_s and self.heartbeat_interval_s >= self.link_timeout_s:
             out.append("safety.heartbeat_interval_s must be below link_timeout_s (several heartbeats per timeout)")
+        if control_hz is not None and self.heartbeat_interval_s and not self.link_timeout_s and (
+                self.heartbeat_interval_s >= self.resolved_link_timeout(control_hz)):
+            out.append(f"safety.heartbeat_interval_s ({self.heartbeat_interval_s:g}s) must be below the link timeout "
+                       f"({self.resolved_link_timeout(control_hz):g}s, one control period by default)")
         if control_hz is not None:
             # one rule (docs/real_robot.md, "Lost link and the command watchdog"): a link that goes silent is
             # held for link_grace_s; the watchdog only judges a live link, so it must not fire before a silent
@@ -111,6 +145,21 @@ class SafetyConfig(BaseModel):
         if self.heartbeat_interval_s:
             return float(self.heartbeat_interval_s)
         return self.resolved_link_timeout(control_hz) / 4.0
+
+
+def config_errors(exc: ValidationError, prefix: str = "safety.") -> list[str]:
+    """One line per refused field of a pydantic ValidationError (a field typed ``list | float`` would otherwise
+    get one line per alternative), the finite-number reason first, with the value that was given."""
+    by_field: dict[str, list[dict]] = {}
+    for error in exc.errors():
+        by_field.setdefault(".".join(str(p) for p in error["loc"][:1]) or "config", []).append(error)
+    lines = []
+    for name, errors in by_field.items():
+        error = next((e for e in errors if "finite" in e["msg"]), errors[0])
+        given = error.get("input")
+        lines.append(f"{prefix}{name}: {error['msg'].removeprefix('Value error, ')}"
+                     + ("" if isinstance(given, dict) else f" (got {given!r:.60})"))
+    return lines
 
 
 @dataclass

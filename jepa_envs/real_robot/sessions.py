@@ -6,12 +6,16 @@ any connection, whether it speaks for the session; a message that does not (no s
 token of the wrong type or alphabet, a stale seq) is answered and counted, and changes nothing of the
 session's state or of its episode.
 
-Link liveness (docs/real_robot.md, "Lost link and the command watchdog"): ZeroMQ's heartbeats run in libzmq's
-I/O threads; the bridge learns of a lost connection from a disconnect event (the descriptor of the session's
-connection), or from a notice that cannot be delivered (probed every ``link_timeout`` on a quiet session). The
-link is then *held*: the session and its episode are kept for ``link_grace`` seconds, during which the command
-watchdog does not run (the one rule: a held session keeps its episode for exactly the grace); a request of the
-same session resumes it, and past the grace it is *dropped* and its client is told why when it returns.
+Link liveness (docs/real_robot.md, "Lost link and the command watchdog"): the client opens a second connection,
+its *link*, whose messages libzmq echoes back without the client's interpreter (``zmq.proxy`` in a thread, which
+holds no GIL), and registers it with its token. The bridge pings the link every ``heartbeat_interval``; the link
+is *silent* when nothing came from the session (a request, or an echo) for ``link_timeout`` seconds of the
+bridge listening, and *closed* when the control connection's descriptor reports a disconnect or a notice to it
+cannot be delivered. Either way it is *held*: the session and its episode are kept for ``link_grace`` seconds,
+during which the command watchdog does not run (the one rule: a held session keeps its episode for exactly the
+grace); a request of the same session resumes it (an echo too, after a silence), and past the grace it is
+*dropped* and its client is told why when it returns. (libzmq's own ZMTP heartbeats are not used: with them
+libzmq 4.3.5 aborts the process when a flooding connection closes, ``stream_engine_base.cpp:310``.)
 """
 from __future__ import annotations
 
@@ -39,6 +43,10 @@ class Session:
     held_since: float | None = None
     last_reply: tuple[int, dict] | None = None   # (seq, reply): sent again when a reconnected client asks
     next_probe: float = 0.0                       # when a quiet session's connection is checked next
+    link_identity: bytes | None = None            # the client's link connection (echoes the bridge's pings)
+    last_heard: float = 0.0                       # the last message from either of its connections
+    next_ping: float = 0.0
+    hold_cause: str | None = None                 # "silent" or "closed"
 
     @property
     def held(self) -> bool:
@@ -56,9 +64,10 @@ class Refused(Exception):
 class SessionKeeper:
     """The controlling session and its link; pure state, no sockets (the bridge sends what it decides)."""
 
-    def __init__(self, link_timeout: float, link_grace: float):
+    def __init__(self, link_timeout: float, link_grace: float, heartbeat_interval: float):
         self.link_timeout = float(link_timeout)
         self.link_grace = float(link_grace)
+        self.heartbeat_interval = float(heartbeat_interval)
         self.session: Session | None = None
         self.dropped: dict[bytes, dict] = {}   # identity -> why its session was dropped (told on return)
 
@@ -83,7 +92,7 @@ class SessionKeeper:
                                                      f"2**62, e.g. at 1"), "malformed")
         now = time.monotonic()
         self.session = Session(secrets.token_hex(16), identity, client, now, fd, list(envelope), last_seq=seq,
-                               next_probe=now + self.link_timeout)
+                               next_probe=now + self.link_timeout, last_heard=now, next_ping=now)
         self.dropped.pop(identity, None)
         return self.session
 
@@ -91,12 +100,22 @@ class SessionKeeper:
         """The client said ``bye``: control is free."""
         self.session = None
 
-    def authenticate(self, identity: bytes, message: dict) -> Session:
-        """The session this request speaks for, or Refused; a refused request changes no state here."""
+    def _check_token(self, identity: bytes, message: dict) -> Session:
         s = self.session
         token = message.get("session")
         if s is None or type(token) is not str or not token.isascii() or not hmac.compare_digest(token, s.token):
             raise Refused(self._not_controlling(identity, message.get("seq")), "not_controlling")
+        return s
+
+    def open_link(self, identity: bytes, message: dict) -> Session:
+        """A ``link`` message with the session's token: ``identity`` is the connection to ping from now on."""
+        s = self._check_token(identity, message)
+        s.link_identity, s.next_ping = identity, time.monotonic()
+        return s
+
+    def authenticate(self, identity: bytes, message: dict) -> Session:
+        """The session this request speaks for, or Refused; a refused request changes no state here."""
+        s = self._check_token(identity, message)
         seq, kind = message.get("seq"), message["type"]
         if seq is None:
             raise Refused(P.error(P.ERR_BAD_MESSAGE, f"{kind[:40]!r} needs a 'seq' above the session's last one"),
@@ -115,7 +134,7 @@ class SessionKeeper:
         resumed = None
         if s.held_since is not None:
             resumed = time.monotonic() - s.held_since
-            s.held_since = None
+            s.held_since = s.hold_cause = None
         s.identity, s.envelope = identity, envelope
         if fd is not None:
             s.fd = fd
@@ -135,10 +154,36 @@ class SessionKeeper:
         return {**P.error(P.ERR_NOT_CONTROLLING, text), "seq": seq if type(seq) is int else None}
 
     # ------------------------------------------------------------ link liveness
-    def hold(self) -> Session:
-        """The session's link is lost: keep the session for the grace."""
+    def heard(self, identity: bytes, now: float) -> float | None:
+        """A message arrived from ``identity``; when it is the session's, its link is alive: returns how long the
+        link was held when this echo or request ends a silence (a closed connection resumes by a request)."""
         s = self.session
-        s.held_since = time.monotonic()
+        if s is None or identity not in (s.identity, s.link_identity):
+            return None
+        s.last_heard = now
+        if s.held_since is not None and s.hold_cause == "silent":
+            held, s.held_since, s.hold_cause = now - s.held_since, None, None
+            return held
+        return None
+
+    def silent(self, now: float, listening_since: float) -> bool:
+        """Whether nothing came from the live session for ``link_timeout`` of the bridge listening (a loop busy
+        in a long backend call, a homing, heard nothing and is not a silent client)."""
+        s = self.session
+        return s is not None and not s.held and now - max(s.last_heard, listening_since) > self.link_timeout
+
+    def ping_due(self, now: float) -> Session | None:
+        """The session when its link connection is due for a ping."""
+        s = self.session
+        if s is None or s.link_identity is None or now < s.next_ping:
+            return None
+        s.next_ping = now + self.heartbeat_interval
+        return s
+
+    def hold(self, cause: str) -> Session:
+        """The session's link is lost (``cause``: "silent" or "closed"): keep the session for the grace."""
+        s = self.session
+        s.held_since, s.hold_cause = time.monotonic(), cause
         return s
 
     def disconnected(self, fd: int) -> bool:

@@ -1,5 +1,14 @@
 """The control socket's wire: ZeroMQ frames in, one decoded request out; replies out. Never raises on input.
 
+It is also where a local flood is kept from costing the bridge: the ROUTER socket already takes one message from
+each connection in turn (libzmq's fair queuing), so the session's messages are never behind more than one of
+each stranger's; the bridge reads a bounded number per turn (``RobotBridge._pump``). A connection that is not
+the session's (a *stranger*) is limited before any byte is decoded: a message above
+``MAX_STRANGER_MESSAGE_BYTES`` is refused undecoded, and beyond ``STRANGER_RATE`` messages a second (a burst of
+``STRANGER_BURST``) each gets one prepared ``rate_limited`` refusal, unread, and is counted: a message then
+costs the bridge a receive and a send, never a decode. The session's own link connection (the echo of the
+bridge's pings) is never decoded at all: its arrival is what counts.
+
 The control socket is a ROUTER: a DEALER client's message arrives as ``[identity, payload]``, a REQ client's
 as ``[identity, b"", payload]`` (its envelope, which the reply must carry back). ``ControlWire.receive`` turns
 whatever arrived into an ``Incoming``: either a decoded, versioned map, or the error reply that tells the
@@ -20,9 +29,19 @@ from jepa_envs.real_robot import protocol as P
 log = logging.getLogger(__name__)
 
 
+STRANGER_RATE = 1000.0     # a stranger's messages answered per second: fuzzers and scanners, not a flood
+STRANGER_BURST = 200
+REMEMBERED_STRANGERS = 4096
+
+
+_RATE_LIMITED = P.encode(P.error(P.ERR_RATE, f"this connection, which does not control the robot, sent more than "
+                                             f"{STRANGER_RATE:g} messages a second; its messages are refused unread"))
+
+
 @dataclass
 class Incoming:
-    """One received control message: who sent it, and either its decoded map or why it was refused."""
+    """One received control message: who sent it, and either its decoded map or why it was refused; neither
+    when it was dropped unread (a stranger over its rate, or the echo on the session's link connection)."""
 
     identity: bytes
     envelope: list = field(default_factory=list)   # [] for DEALER clients, [b""] for REQ clients
@@ -73,25 +92,57 @@ class ControlWire:
     def __init__(self, sock: zmq.Socket, counters: collections.Counter):
         self.sock = sock
         self.counters = counters
+        self._buckets: collections.OrderedDict[bytes, list[float]] = collections.OrderedDict()  # [tokens, time]
 
-    def receive(self) -> Incoming:
-        """The next message (the socket has one waiting); malformed input comes back as a refusal."""
-        frames = self.sock.recv_multipart(copy=False)
+    def receive(self, session: bytes | None, link: bytes | None, now: float) -> Incoming | None:
+        """The next waiting message, None when none is; the ``session`` connection's is decoded, the ``link``
+        connection's is not, a stranger's is limited first (module docstring)."""
+        try:
+            frames = self.sock.recv_multipart(zmq.NOBLOCK, copy=False)
+        except zmq.Again:
+            return None
         identity, parts, envelope = frames[0].bytes, frames[1:], []
+        if identity == link:
+            return Incoming(identity)
         if len(parts) >= 2 and len(parts[0]) == 0:   # a REQ socket: empty delimiter, then the request
             envelope, parts = [b""], parts[1:]
+        if identity != session and not self._admit(identity, now):
+            self.counters["rate_limited"] += 1
+            self._send_payload(identity, envelope, _RATE_LIMITED, count=True)
+            return Incoming(identity, envelope)
         if len(parts) != 1:
             self.counters["malformed"] += 1
             return Incoming(identity, envelope, refusal=P.error(
                 P.ERR_BAD_MESSAGE, f"a request is one frame holding one msgpack map; got {len(parts)} frames"))
+        if identity != session and len(parts[0]) > P.MAX_STRANGER_MESSAGE_BYTES:
+            self.counters["oversized"] += 1
+            return Incoming(identity, envelope, refusal=P.error(
+                P.ERR_BAD_MESSAGE, f"a message of {len(parts[0])} bytes from a connection that does not control "
+                                   f"the robot; up to {P.MAX_STRANGER_MESSAGE_BYTES} are read (a hello is a few "
+                                   "hundred)"))
         message, refusal = decode_request(parts[0].bytes)
         if refusal is not None:
             self.counters["malformed"] += 1
         return Incoming(identity, envelope, _source_fd(parts[0]), message, refusal)
 
+    def _admit(self, identity: bytes, now: float) -> bool:
+        """A stranger's token bucket: STRANGER_RATE a second, bursts of STRANGER_BURST."""
+        bucket = self._buckets.pop(identity, None) or [float(STRANGER_BURST), now]
+        bucket[0] = min(float(STRANGER_BURST), bucket[0] + (now - bucket[1]) * STRANGER_RATE)
+        bucket[1] = now
+        self._buckets[identity] = bucket   # most recent last: the oldest is forgotten first
+        while len(self._buckets) > REMEMBERED_STRANGERS:
+            self._buckets.popitem(last=False)
+        if bucket[0] < 1.0:
+            return False
+        bucket[0] -= 1.0
+        return True
+
     def send(self, identity: bytes, message: dict, envelope: list = (), count: bool = True) -> bool:
         """Send one message; False when the client is gone (or not reading), which is never an error here."""
-        payload = encode_reply(message)
+        return self._send_payload(identity, envelope, encode_reply(message), count)
+
+    def _send_payload(self, identity: bytes, envelope: list, payload: bytes, count: bool) -> bool:
         try:
             # copy=False: observations are ~150 KB with three 128x128 cameras; let ZeroMQ own the buffer
             self.sock.send_multipart([identity, *envelope, payload], flags=zmq.NOBLOCK, copy=False)

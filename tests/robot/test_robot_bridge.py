@@ -95,7 +95,7 @@ def test_out_of_bounds_clipped_when_configured(robot):
     _, _, _, _, info = env.step(np.array([450.0, 50.0]))
     assert info["executed"] == 1 and info["safety"][0]["clipped"] and not info["safety"][0]["refused"]
     env.reset(seed=1)   # ends and records the first episode
-    manifest, arrays = load_episode(bridge.saved_manifests[-1])
+    manifest, arrays = load_episode(bridge.runner.saved_manifests[-1])
     assert np.array_equal(arrays["actions_requested"][-1], [450.0, 50.0])
     assert np.array_equal(arrays["actions_executed"][-1], [400.0, 100.0])
     assert manifest["outcome"] == "interrupted" and manifest["safety_events"][0]["kind"] == "clipped"

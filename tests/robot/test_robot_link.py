@@ -1,8 +1,9 @@
-"""A link that is lost only when the link fails: liveness by ZeroMQ heartbeats, hold-don't-drop, reconnection.
+"""A link that is lost only when the link fails: liveness by the bridge's pings echoed on the client's link
+connection, hold-don't-drop, reconnection.
 
 The policy runs in a child process, as on the robot. Its failures are made real: a C call holding the GIL
 (the old Python heartbeat thread stalled on those), SIGSTOP (a frozen host or a cut cable: nothing answers the
-bridge's heartbeats, no TCP close either), SIGKILL (the process dies: the connection closes).
+bridge's pings, no TCP close either), SIGKILL (the process dies: the connection closes).
 """
 from __future__ import annotations
 
@@ -43,8 +44,11 @@ CLIENT = textwrap.dedent("""
             except LostControl as exc:
                 say(lost=str(exc))
         elif command == "step":
-            _, _, term, trunc, info = env.step(obs["agent_pos"])
-            say(executed=info["executed"], outcome=info["outcome"])
+            try:
+                _, _, term, trunc, info = env.step(obs["agent_pos"])
+                say(executed=info["executed"], outcome=info["outcome"])
+            except LostControl as exc:
+                say(lost=str(exc))
         elif command == "reconnect":
             env.reconnect()
             env.reset(seed=1)
@@ -100,7 +104,7 @@ def _events(status: dict, kind: str) -> list[dict]:
 
 def test_policy_holding_the_gil_keeps_its_link(robot, child_of):
     """1.5 s inside one C call (15x the link timeout at 10 Hz): libzmq's I/O thread still answers the
-    heartbeats, so nothing is held or dropped. (The old heartbeat was a Python thread: dropped at 0.1 s.)"""
+    pings, so nothing is held or dropped. (The old heartbeat was a Python thread: dropped at 0.1 s.)"""
     bridge = robot.bridge(link_timeout_s=None, command_deadline_s=60.0)
     assert bridge.link_timeout == pytest.approx(0.1)
     child = child_of(bridge)
@@ -114,7 +118,7 @@ def test_policy_holding_the_gil_keeps_its_link(robot, child_of):
 
 
 def test_frozen_client_holds_the_robot_then_resumes(robot, child_of):
-    """SIGSTOP mid-chunk (a frozen host: no heartbeat answers, no TCP close): the bridge holds within the link
+    """SIGSTOP mid-chunk (a frozen host: no echo of the pings, no TCP close): the bridge holds within the link
     timeout and stops the chunk at its next action, keeps the session and the episode; on SIGCONT the client
     reconnects by itself, gets the chunk's reply (how many actions ran, ``held``) and the episode goes on."""
     bridge = robot.bridge(realtime=True, link_timeout_s=None, link_grace_s=5.0, command_deadline_s=60.0)
@@ -127,7 +131,7 @@ def test_frozen_client_holds_the_robot_then_resumes(robot, child_of):
     status = wait_for(lambda: (s := op.status())["link"] == "held" and s)
     hold = _events(status, "link_hold")[0]
     delay = hold["time"] - stopped
-    # heartbeat timeout (one period, 0.1 s) + one heartbeat interval (25 ms) + scheduling slack
+    # link timeout (one period, 0.1 s) + one ping interval (25 ms) + scheduling slack
     assert delay < 0.1 + 0.025 + 0.1, f"hold after {delay:.3f}s"
     time.sleep(0.5)
     status = op.status()
@@ -143,7 +147,8 @@ def test_frozen_client_holds_the_robot_then_resumes(robot, child_of):
 
 def test_client_gone_past_the_grace_loses_control_and_is_told(robot, child_of):
     """Frozen longer than link_grace_s: the episode is interrupted and control released; when the client comes
-    back, its pending request fails with LostControl saying why, and reconnect() takes control again."""
+    back it reads its chunk's answer (held: what ran before the freeze), its next request fails with LostControl
+    saying why, and reconnect() takes control again."""
     bridge = robot.bridge(realtime=True, link_timeout_s=None, link_grace_s=0.4, command_deadline_s=60.0)
     child = child_of(bridge)
     op = robot.operator(bridge)
@@ -154,6 +159,9 @@ def test_client_gone_past_the_grace_loses_control_and_is_told(robot, child_of):
     status = wait_for(lambda: (s := op.status())["client"] is None and s)
     assert status["episode"]["outcome"] == "interrupted" and status["episode"]["reason"] == "link_lost"
     child.signal(signal.SIGCONT)
+    reply = child.read()
+    assert reply["held"] == "link_hold" and reply["executed"] < 8
+    child.send("step")
     lost = child.read()["lost"]
     assert "dropped this client's session" in lost and "env.reconnect()" in lost
     child.send("reconnect")

@@ -169,7 +169,7 @@ def _run_async(robot, delay_s: float, horizon: int, replan: int, budget: int):
         return frames, info
     env.observe = observe
     record = executor.run_episode(seed=0)
-    manifest, arrays = load_episode(bridge.saved_manifests[-1])
+    manifest, arrays = load_episode(bridge.runner.saved_manifests[-1])
     return record, arrays["actions_requested"]
 
 
@@ -212,4 +212,4 @@ def test_console_script_hands_other_commands_to_the_full_cli(tmp_path):
     out = subprocess.run([sys.executable, "-m", "jepa_operator.cli", "check", str(_setup_file(tmp_path))],
                          capture_output=True, text=True, timeout=120)
     assert out.returncode == 0 and "OK, nothing touched" in out.stdout
-    assert P.PROTOCOL_VERSION == 2
+    assert P.PROTOCOL_VERSION == 3

@@ -68,15 +68,18 @@ def test_type_confused_operator_message_never_silences_the_estop(robot, ctx, ver
     reply = recv_reply(op)
     assert reply["type"] == P.ERROR and reply["code"] in (P.ERR_VERSION, P.ERR_BAD_MESSAGE)
     assert env.step(obs["agent_pos"])[4]["outcome"] is None, "the client's episode is untouched"
-    status = robot.operator(bridge).estop()
+    op = robot.operator(bridge)
+    assert op.estop()["estop"] is True
+    status = wait_for(lambda: (s := op.status())["episode"]["outcome"] and s)
     assert status["estop"] is True and status["episode"]["reason"] == "estop"
     with pytest.raises(BridgeError, match="emergency stop is latched"):
         env.reset(seed=2)
 
 
 def test_estop_latches_before_the_event_loop_answers(robot):
-    """The e-stop's latch is set by the operator thread itself: a loop stuck inside a long backend call cannot
-    delay it, and no action is applied after it (the loop checks the latch before each one)."""
+    """The e-stop's latch is set and the backend's stop called by the operator thread itself: a loop stuck inside
+    a long backend call cannot delay either, and no action is applied after it (the loop checks the latch
+    before each one)."""
     bridge = robot.bridge()
     env, obs = _running_client(robot, bridge)
     backend = bridge.backend
@@ -87,8 +90,11 @@ def test_estop_latches_before_the_event_loop_answers(robot):
         time.sleep(1.5)   # a homing move: the loop is busy inside the backend
         return original_reset(seed)
 
+    stops = []
+    backend.emergency_stop = lambda: stops.append(time.monotonic())
+
     def watched_apply(action):
-        if bridge.estop_latch.is_set():
+        if bridge.estop.latched:
             applied_after_latch.append(action)
         return original_apply(action)
 
@@ -100,7 +106,9 @@ def test_estop_latches_before_the_event_loop_answers(robot):
     status = robot.operator(bridge).estop()
     elapsed = time.monotonic() - start
     assert elapsed < 1.0, f"the e-stop waited {elapsed:.2f}s for the busy loop"
-    assert status["estop"] is True and status["acknowledged"] is False and bridge.estop_latch.is_set()
+    assert status["estop"] is True and status["held"] is True and bridge.estop.latched
+    assert len(stops) == 1 and start <= stops[0] <= start + elapsed, "the robot was stopped by the e-stop's path"
+    assert resetting.is_alive(), "answered while the loop was still inside the backend's reset"
     resetting.join(timeout=10)
     status = wait_for(lambda: (s := robot.operator(bridge).status())["episode"]["outcome"] and s)
     assert status["estop"] and status["episode"]["reason"] == "estop", "the loop applied the latch once free"

@@ -69,7 +69,7 @@ class CameraConfig(BaseModel):
 class ARX5Config(BaseModel):
     """The robot computer's set-up file (TOML), e.g. deploy/robot/arx5_cabinet.toml."""
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)   # a NaN bound would switch its check off
     task: str
     arms: list[ArmConfig]
     cameras: list[CameraConfig]
@@ -107,7 +107,8 @@ class ARX5Config(BaseModel):
             raise ValueError(f"task {spec.name} needs cameras {list(spec.cameras)}; add {sorted(missing)}")
         if any(lo >= hi for lo, hi in zip(self.workspace_low, self.workspace_high)):
             raise ValueError("workspace_low must be below workspace_high on x, y and z")
-        problems = self.safety.problems(spec.action_dim, JOINTS_PER_ARM * len(self.arms), spec.control_hz)
+        problems = self.safety.problems(spec.action_dim, JOINTS_PER_ARM * len(self.arms), spec.control_hz,
+                                        action_range=arx5_action_bounds(self))
         if problems:
             raise ValueError("; ".join(problems))
         if (self.curve_secret_key is None) != (self.curve_authorized_dir is None):
@@ -261,6 +262,12 @@ class ARX5Backend(RobotBackend):
 
     def hold(self) -> None:
         self._command(self.current_action(), 0.0)
+
+    def emergency_stop(self) -> None:
+        """The e-stop thread's hold, concurrent with the loop's calls: arx5-sdk's controllers guard their command
+        and state with their own mutexes, so a hold set here wins over a target set just before it, and the
+        bridge sends the loop's next command only after checking the latch."""
+        self.hold()
 
     def home(self) -> None:
         for controller in self._controllers:

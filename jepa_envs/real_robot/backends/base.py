@@ -1,7 +1,9 @@
 """The interface every hardware backend of the bridge implements.
 
 The bridge owns timing, safety and episodes; a backend only moves the robot and reads its sensors. All
-methods are called from the bridge's single event-loop thread, so backends need no locking.
+methods but ``emergency_stop`` are called from the bridge's single event-loop thread; ``emergency_stop`` comes
+from the e-stop thread at any moment, also while another call runs, and must stop the robot without waiting for
+that call.
 """
 from __future__ import annotations
 
@@ -68,6 +70,12 @@ class RobotBackend(ABC):
     @abstractmethod
     def hold(self) -> None:
         """Stop where the robot is now (watchdog, lost link, e-stop, refused action)."""
+
+    def emergency_stop(self) -> None:
+        """Stop now, from the e-stop thread, concurrently with any other call (see the module docstring). The
+        default is ``hold``: right for backends whose hold touches no state another call is changing (the
+        simulators, whose hold moves nothing); hardware overrides it with its driver's thread-safe stop."""
+        self.hold()
 
     @abstractmethod
     def home(self) -> None:

@@ -1,0 +1,87 @@
+"""Where the bridge listens and who may connect: its configuration, the loopback rule, CurveZMQ, the control socket.
+
+The control socket is a ROUTER with no ZMTP heartbeats (liveness is the bridge's own pings, ``sessions.py``),
+a size limit checked by libzmq before the bridge reads a byte (``protocol.MAX_CONTROL_MESSAGE_BYTES``), and
+``ROUTER_MANDATORY`` so that a reply to a vanished client fails instead of vanishing. A network address is
+refused without CurveZMQ unless ``insecure_network`` says so (docs/real_robot.md, "Network security").
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import zmq
+import zmq.auth
+from zmq.auth.thread import ThreadAuthenticator
+
+from jepa_envs.real_robot import protocol as P
+
+
+@dataclass
+class BridgeConfig:
+    """Where the bridge listens and what it records."""
+
+    control_address: str = "tcp://127.0.0.1:5555"   # "tcp://127.0.0.1:*" picks a free port
+    operator_address: str = "tcp://127.0.0.1:5556"
+    record_dir: str | None = None                    # per-episode HDF5 + JSON manifest; None: not written
+    chunk_budget: int | None = None                  # None: the task's budget (``bridge.chunk_budget_for``)
+    observe_only: bool = False                       # serve observations; refuse every motion
+    curve_secret_key: str | None = None              # CurveZMQ: the bridge's key file (jepa-robot-bridge keys)
+    curve_authorized_dir: str | None = None          # CurveZMQ: public keys of the clients allowed to connect
+    insecure_network: bool = False                   # allow a network bind without CurveZMQ (said explicitly)
+    state_file: str | None = None                    # the e-stop latch across restarts (``estop.py``)
+
+
+def is_loopback(endpoint: str) -> bool:
+    """Whether a ZeroMQ endpoint is reachable from this computer only."""
+    host = endpoint.split("://", 1)[-1].rsplit(":", 1)[0]
+    return endpoint.startswith(("inproc://", "ipc://")) or P.is_loopback_host(host)
+
+
+def network_bind_problem(control_address: str, curve: bool, insecure_network: bool) -> str | None:
+    """Why a control socket may not bind here: a network address without CurveZMQ, unless said explicitly."""
+    if curve or insecure_network or is_loopback(control_address):
+        return None
+    return (f"the control socket {control_address} would be reachable from the network without encryption: "
+            "anyone who can reach it can read the session token and drive the robot; use CurveZMQ "
+            "(--curve-keys, or curve_secret_key/curve_authorized_dir in the set-up file), bind 127.0.0.1 and "
+            "tunnel over SSH, or pass --insecure-network on a dedicated, isolated robot-policy link "
+            "(docs/real_robot.md, 'Network security')")
+
+
+def open_control_socket(ctx: zmq.Context, config: BridgeConfig) -> tuple[zmq.Socket, ThreadAuthenticator | None]:
+    """The bound control ROUTER and, with CurveZMQ, the authenticator that admits the authorised clients."""
+    sock = ctx.socket(zmq.ROUTER)
+    sock.setsockopt(zmq.LINGER, 0)
+    sock.setsockopt(zmq.ROUTER_MANDATORY, 1)
+    sock.setsockopt(zmq.MAXMSGSIZE, P.MAX_CONTROL_MESSAGE_BYTES)
+    auth = None
+    try:
+        auth = _setup_curve(ctx, sock, config)
+        sock.bind(config.control_address)
+    except (zmq.ZMQError, ValueError, RuntimeError):
+        if auth is not None:
+            auth.stop()
+        sock.close(linger=0)
+        raise
+    return sock, auth
+
+
+def _setup_curve(ctx: zmq.Context, sock: zmq.Socket, config: BridgeConfig) -> ThreadAuthenticator | None:
+    if config.curve_secret_key is None:
+        return None
+    if not zmq.has("curve"):
+        raise RuntimeError("this libzmq has no CURVE support; install pyzmq's wheels (they include it)")
+    public, secret = zmq.auth.load_certificate(config.curve_secret_key)
+    if secret is None:
+        raise ValueError(f"{config.curve_secret_key} holds no secret key; pass the bridge's '.key_secret' file "
+                         "made by `jepa-robot-bridge keys`")
+    authorized = config.curve_authorized_dir
+    if not authorized or not Path(authorized).is_dir():
+        raise ValueError("CurveZMQ needs curve_authorized_dir: a folder with the public key of every client "
+                         "allowed to connect (`jepa-robot-bridge keys` writes one)")
+    auth = ThreadAuthenticator(ctx)
+    auth.start()
+    auth.configure_curve(domain="*", location=str(authorized))
+    sock.curve_secretkey, sock.curve_publickey, sock.curve_server = secret, public, True
+    return auth

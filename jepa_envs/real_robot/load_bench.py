@@ -1,0 +1,388 @@
+"""``jepa-robot-bridge bench --load``: the bridge under local load (issue 35), every party in a process of its own.
+
+A simulated PushT bridge (``serve --backend sim``, heartbeats on: the default link timeout of one control
+period) serves a policy process that runs action chunks back to back, as fast as the simulator allows (the
+bridge's loop is never idle, the worst case for draining its sockets). The scenarios:
+
+* ``flood``: a stranger process with four DEALER sockets sends undecodable and tokenless frames at full speed on
+  the control socket and reads the replies. Measured: the e-stop, and the controller's chunk rate under the
+  flood over its rate alone (the same length of time just before).
+* ``operators``: 50 operator connections each keep a ``status`` queued (each sends the next on its answer).
+* ``operators+flood``: both at once (an e-stop queued behind other operators' commands on a flooded bridge).
+* ``big``: a stranger keeps sending a 16 MiB message that is slow to decode (16 M one-byte integers).
+* ``aborts``: ``--abort-runs`` fresh bridges, each with a controller, flooded for ``--flood-seconds``; counts the
+  bridges that died (libzmq's ``!_io_error`` abort is exit -6) and the controller links held or lost meanwhile.
+
+E-stop: the operator's ``OperatorClient.estop`` timed from send to answer, ``--trials`` times per scenario, each
+followed by ``clear_estop`` (the controller starts a new episode). ``latched`` is the bridge's own clock at the
+latch (its ``latched_at``) minus the send time, where the bridge reports it. Prints p50 / max per scenario.
+"""
+from __future__ import annotations
+
+import json
+import os
+import random
+import subprocess
+import sys
+import threading
+import time
+
+import msgpack
+import numpy as np
+import zmq
+
+from jepa_envs.real_robot import protocol as P
+from jepa_envs.real_robot.proxy import BridgeError, RealRobotEnv
+from jepa_operator import OperatorClient, OperatorError
+
+FLOOD_SOCKETS = 4
+OPERATOR_CONNECTIONS = 50
+BIG_MESSAGE = msgpack.packb([1] * (16 * 1024 * 1024 - 16))   # 16 MiB of one-byte integers: slow to decode
+# each scenario's load processes (``aborts`` is its own loop of fresh bridges)
+LOADS = {"flood": ["flood"], "operators": ["operators"], "operators+flood": ["operators", "flood"], "big": ["big"]}
+SCENARIOS = (*LOADS, "aborts")
+
+
+# ----------------------------------------------------------------------------- the load, one process each
+def _until_stdin_closes() -> threading.Event:
+    stop = threading.Event()
+
+    def watch() -> None:
+        sys.stdin.read()
+        stop.set()
+    threading.Thread(target=watch, daemon=True).start()
+    return stop
+
+
+def run_flood(address: str, sockets: int = FLOOD_SOCKETS) -> None:
+    """Undecodable bytes and tokenless requests at full speed on ``sockets`` DEALER connections."""
+    stop = _until_stdin_closes()
+    ctx = zmq.Context()
+    frames = [b"\xc1\xc1 not msgpack \xc1", P.encode({"type": P.STEP, "seq": 7, "action": [1.0, 2.0]}),
+              P.encode({"type": P.CHUNK, "seq": 9, "session": "0" * 32, "actions": [[1.0, 2.0]] * 8})]
+    socks = []
+    for _ in range(sockets):
+        sock = ctx.socket(zmq.DEALER)
+        sock.setsockopt(zmq.LINGER, 0)
+        sock.connect(address)
+        socks.append(sock)
+    sent = received = 0
+    while not stop.is_set():
+        for sock in socks:
+            for frame in frames:
+                try:
+                    sock.send(frame, zmq.NOBLOCK)
+                    sent += 1
+                except zmq.Again:
+                    pass
+            for _ in range(8):
+                try:
+                    sock.recv(zmq.NOBLOCK)
+                    received += 1
+                except zmq.Again:
+                    break
+    print(json.dumps({"sent": sent, "received": received}), flush=True)
+    for sock in socks:
+        sock.close(linger=0)
+    ctx.term()
+
+
+def run_operators(address: str, connections: int = OPERATOR_CONNECTIONS) -> None:
+    """``connections`` REQ sockets, each with one ``status`` always queued."""
+    stop = _until_stdin_closes()
+    ctx = zmq.Context()
+    poller = zmq.Poller()
+    request = msgpack.packb({"v": P.PROTOCOL_VERSION, "type": P.OP_STATUS})
+    socks = []
+    for _ in range(connections):
+        sock = ctx.socket(zmq.REQ)
+        sock.setsockopt(zmq.LINGER, 0)
+        sock.connect(address)
+        sock.send(request)
+        poller.register(sock, zmq.POLLIN)
+        socks.append(sock)
+    answered = 0
+    while not stop.is_set():
+        for sock, _ in poller.poll(100):
+            sock.recv()
+            answered += 1
+            sock.send(request)
+    print(json.dumps({"answered": answered}), flush=True)
+    for sock in socks:
+        sock.close(linger=0)
+    ctx.term()
+
+
+def run_big(address: str) -> None:
+    """A stranger that keeps one 16 MiB slow-to-decode message in flight."""
+    stop = _until_stdin_closes()
+    ctx = zmq.Context()
+    sock = ctx.socket(zmq.DEALER)
+    sock.setsockopt(zmq.LINGER, 0)
+    sock.connect(address)
+    sent = 0
+    while not stop.is_set():
+        sock.send(BIG_MESSAGE)
+        sent += 1
+        if not sock.poll(2000):   # a bridge that drops it unread (size limit) answers nothing
+            sock.close(linger=0)
+            sock = ctx.socket(zmq.DEALER)
+            sock.setsockopt(zmq.LINGER, 0)
+            sock.connect(address)
+            continue
+        sock.recv()
+    print(json.dumps({"sent": sent}), flush=True)
+    sock.close(linger=0)
+    ctx.term()
+
+
+def run_controller(address: str) -> None:
+    """A policy process: episodes of 8-action chunks back to back; prints each chunk's wall-clock end."""
+    stop = _until_stdin_closes()
+    env = RealRobotEnv(address=address, client_name="controller", timeout_s=30.0)
+    print(json.dumps({"ready": True}), flush=True)
+    done, errors = [], {}
+    obs = None
+    while not stop.is_set():
+        try:
+            if obs is None:
+                obs, _ = env.reset()
+            obs, _, terminated, truncated, _ = env.step_chunk(np.tile(obs["agent_pos"], (8, 1)))
+            done.append(time.time())
+            if terminated or truncated:
+                obs = None
+        except (BridgeError, TimeoutError) as exc:   # e-stop latched: wait for the operator's clear
+            errors[type(exc).__name__] = errors.get(type(exc).__name__, 0) + 1
+            obs = None
+            time.sleep(0.02)
+    print(json.dumps({"chunks": done, "errors": errors}), flush=True)
+    env.close()
+
+
+ROLES = {"flood": run_flood, "operators": run_operators, "big": run_big, "controller": run_controller}
+
+
+# ----------------------------------------------------------------------------- the stack under test
+class Child:
+    """A role of this module in a process of its own; ``finish`` closes its stdin and reads its last line."""
+
+    def __init__(self, role: str, address: str):
+        self.proc = subprocess.Popen([sys.executable, "-m", "jepa_envs.real_robot.load_bench", role, address],
+                                     stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+
+    def wait_ready(self) -> None:
+        line = self.proc.stdout.readline()
+        if not line:
+            raise RuntimeError(f"the load process ended before it was ready (exit {self.proc.poll()})")
+
+    def finish(self, timeout: float = 60.0) -> dict:
+        try:
+            self.proc.stdin.close()
+            out = self.proc.stdout.read()
+            self.proc.wait(timeout=timeout)
+        except (subprocess.TimeoutExpired, BrokenPipeError):
+            self.proc.kill()
+            self.proc.wait()
+            return {}
+        lines = [line for line in out.splitlines() if line.startswith("{")]
+        return json.loads(lines[-1]) if lines else {}
+
+
+class Bridge:
+    """A sim bridge in a child process on free loopback ports (heartbeats on: the default link timeout)."""
+
+    def __init__(self, extra: tuple[str, ...] = ()):
+        env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+        self.proc = subprocess.Popen(
+            [sys.executable, "-m", "jepa_envs.real_robot.cli", "serve", "--backend", "sim", "--task", "PushT",
+             "--chunk-budget", "1000000", "--bind", "tcp://127.0.0.1:*", "--operator-bind", "tcp://127.0.0.1:*",
+             "--no-prompt", *extra], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
+        banner = self.proc.stdout.readline()
+        if " on " not in banner:
+            raise RuntimeError(f"the bridge did not start: {banner!r} {self.proc.stderr.read()[-2000:]}")
+        self.control = banner.split(" on ")[1].split(",")[0].strip()
+        self.operator = banner.rsplit("operator socket ", 1)[1].split()[0].strip()
+        self._stderr: list[str] = []
+        threading.Thread(target=lambda: self._stderr.extend(self.proc.stderr), daemon=True).start()
+
+    def alive(self) -> bool:
+        return self.proc.poll() is None
+
+    def abort_line(self) -> str:
+        return next((line.strip() for line in self._stderr if "Assertion failed" in line), "")
+
+    def status(self) -> dict:
+        with OperatorClient(self.operator, timeout_s=10.0) as op:
+            return op.status()
+
+    def close(self) -> int:
+        if self.alive():
+            try:
+                with OperatorClient(self.operator, timeout_s=5.0) as op:
+                    op.shutdown()
+                self.proc.wait(timeout=20)
+            except (TimeoutError, subprocess.TimeoutExpired):
+                self.proc.kill()
+                self.proc.wait()
+        return self.proc.returncode
+
+
+def _wait_for_chunks(controller_started: float, seconds: float) -> None:
+    time.sleep(max(0.0, controller_started + seconds - time.time()))
+
+
+def time_estops(operator: str, trials: int, seed: int = 0) -> dict:
+    """``trials`` e-stops, each answered (or timed out) then cleared; latencies in ms."""
+    rng = random.Random(seed)
+    answer, latched, unacknowledged, failures = [], [], 0, 0
+    op = OperatorClient(operator, timeout_s=5.0)
+    try:
+        for _ in range(trials):
+            time.sleep(rng.uniform(0.15, 0.35))   # mid-chunk, at a random phase
+            sent_wall, t0 = time.time(), time.perf_counter()
+            try:
+                status = op.estop()
+            except (TimeoutError, OperatorError, zmq.ZMQError) as exc:
+                failures += 1
+                answer.append(float("inf"))
+                op.close()
+                op = OperatorClient(operator, timeout_s=5.0)   # a REQ socket after a timeout is stuck
+                print(f"  e-stop failed: {type(exc).__name__}: {exc}", file=sys.stderr)
+                continue
+            answer.append((time.perf_counter() - t0) * 1e3)
+            if status.get("latched_at") is not None:
+                latched.append((status["latched_at"] - sent_wall) * 1e3)
+            if status.get("acknowledged") is False:
+                unacknowledged += 1
+            for _ in range(3):
+                try:
+                    op.clear_estop()
+                    break
+                except (TimeoutError, OperatorError, zmq.ZMQError):
+                    op.close()
+                    op = OperatorClient(operator, timeout_s=5.0)
+    finally:
+        op.close()
+    return {"trials": trials, "answer_ms": answer, "latched_ms": latched, "unacknowledged": unacknowledged,
+            "failures": failures}
+
+
+def _summary(samples: list[float]) -> dict:
+    x = np.asarray(samples, np.float64)
+    if not x.size:
+        return {"p50_ms": None, "max_ms": None, "over_100ms": 0}
+    return {"p50_ms": float(np.median(x)), "max_ms": float(x.max()), "over_100ms": int((x > 100).sum())}
+
+
+def scenario(name: str, trials: int, window_s: float) -> dict:
+    """One load scenario on a fresh bridge with a controller: chunk rates and the e-stop under that load."""
+    bridge = Bridge()
+    controller = Child("controller", bridge.control)
+    controller.wait_ready()
+    loads: list[Child] = []
+    out: dict = {"scenario": name}
+    try:
+        started = time.time()
+        time.sleep(window_s)   # the controller alone
+        alone = (started, time.time())
+        for role in LOADS[name]:
+            loads.append(Child(role, bridge.operator if role == "operators" else bridge.control))
+        time.sleep(0.3)
+        loaded_from = time.time()
+        time.sleep(window_s)   # the controller under the load
+        loaded = (loaded_from, time.time())
+        out["estop"] = time_estops(bridge.operator, trials) if bridge.alive() else {
+            "trials": trials, "answer_ms": [], "latched_ms": [], "unacknowledged": 0, "failures": trials}
+        out["load"] = [child.finish() for child in loads]
+        loads = []
+        out["bridge_alive"] = bridge.alive()
+        out["abort"] = bridge.abort_line()
+        status = bridge.status() if bridge.alive() else {"events": [], "counters": {}}
+        out["link_events"] = [e["kind"] for e in status["events"] if e["kind"].startswith("link")]
+        out["counters"] = status["counters"]
+    finally:
+        for child in loads:
+            child.finish()
+        result = controller.finish()
+        bridge.close()
+    chunks = np.asarray(result.get("chunks", []), np.float64)
+    rates = [float(((chunks >= a) & (chunks < b)).sum() / (b - a)) for a, b in (alone, loaded)]
+    out["chunks_per_s_alone"], out["chunks_per_s_loaded"] = rates
+    out["rate_ratio"] = rates[1] / rates[0] if rates[0] else None
+    out["controller_errors"] = result.get("errors", {})
+    return out
+
+
+def abort_runs(runs: int, flood_seconds: float) -> dict:
+    """``runs`` fresh bridges flooded with a controller running; which died, which lost the controller's link."""
+    died, lost_link, lines = 0, 0, []
+    for run in range(runs):
+        state = "alive"
+        bridge = Bridge()
+        controller = Child("controller", bridge.control)
+        controller.wait_ready()
+        try:
+            time.sleep(0.5)
+            flood = Child("flood", bridge.control)
+            time.sleep(flood_seconds)
+            flood.finish()
+            time.sleep(0.5)   # the flood's connections close: libzmq's abort came here
+            if bridge.alive():
+                status = bridge.status()
+                if any(e["kind"].startswith("link") for e in status["events"]):
+                    lost_link += 1
+                    state = "alive, the controller's link was held or lost"
+            else:
+                died += 1
+                state = f"DIED (exit {bridge.proc.returncode}: {bridge.abort_line()})"
+                lines.append(f"run {run + 1}: exit {bridge.proc.returncode}: {bridge.abort_line()}")
+        finally:
+            controller.finish()
+            bridge.close()
+        print(f"  run {run + 1}/{runs}: {state}", flush=True)
+    return {"runs": runs, "aborts": died, "controller_link_lost_or_held": lost_link, "abort_lines": lines}
+
+
+def run_load_bench(args) -> int:
+    """Run the scenarios named by ``args.load`` and print their numbers (see the module docstring)."""
+    names = [n.strip() for n in args.load.split(",") if n.strip()]
+    unknown = sorted(set(names) - set(SCENARIOS))
+    if unknown:
+        raise SystemExit(f"error: unknown load scenario(s) {unknown}; choose from {', '.join(SCENARIOS)}")
+    with open("/proc/loadavg") as f:
+        load = f.read().split()[:3]
+    print(f"load average before: {' '.join(load)} ({os.cpu_count()} CPUs); libzmq {zmq.zmq_version()}, "
+          f"pyzmq {zmq.__version__}", flush=True)
+    results = {"loadavg": load, "libzmq": zmq.zmq_version(), "pyzmq": zmq.__version__}
+    for name in names:
+        if name == "aborts":
+            results["aborts"] = r = abort_runs(args.abort_runs, args.flood_seconds)
+            print(f"aborts: {r['aborts']}/{r['runs']} bridges died under a {args.flood_seconds:g} s flood with a "
+                  f"controller; the controller's link held or lost in {r['controller_link_lost_or_held']} of the "
+                  "surviving runs", flush=True)
+            for line in r["abort_lines"]:
+                print(f"  {line}")
+            continue
+        results[name] = r = scenario(name, args.trials, args.window)
+        e = r["estop"]
+        answer, latched = _summary(e["answer_ms"]), _summary(e["latched_ms"])
+        print(f"{name}: e-stop answered p50 {answer['p50_ms'] or float('nan'):.1f} ms, max "
+              f"{answer['max_ms'] or float('nan'):.1f} ms ({answer['over_100ms']}/{e['trials']} over 100 ms, "
+              f"{e['unacknowledged']} unacknowledged, {e['failures']} failed)"
+              + (f"; latched p50 {latched['p50_ms']:.1f} ms, max {latched['max_ms']:.1f} ms" if e["latched_ms"]
+                 else "; latch time not reported") + f"; bridge {'alive' if r['bridge_alive'] else 'DIED'}",
+              flush=True)
+        ratio = r["rate_ratio"]
+        print(f"  controller: {r['chunks_per_s_alone']:.1f} chunks/s alone, {r['chunks_per_s_loaded']:.1f} under "
+              f"the load (ratio {ratio if ratio is None else round(ratio, 2)}); link events {r['link_events']}; "
+              f"errors {r['controller_errors']}; load process {r['load']}", flush=True)
+        if r["abort"]:
+            print(f"  {r['abort']}")
+    if args.json:
+        with open(args.json, "w") as f:
+            json.dump(results, f, indent=2)
+    return 0
+
+
+if __name__ == "__main__":
+    ROLES[sys.argv[1]](sys.argv[2])
