@@ -176,6 +176,9 @@ def _lerobot_args(p: argparse.ArgumentParser) -> None:
                    help="video codec: lossless H.264 RGB (default; bit-identical frames), av1 (LeRobot's "
                         "default, lossy), h264 (yuv420p, lossy)")
     e.add_argument("--instruction", help="task string of every episode without its own (default: from the task)")
+    e.add_argument("--encoder-timeout", type=float, default=60.0, metavar="S",
+                   help="seconds a video encoder may go without taking a frame or handing back a packet before "
+                        "the export stops as stalled, naming the episode (default 60)")
     i = sub.add_parser("import", help="a LeRobotDataset v3.0 folder -> an HDF5 file the loader and trainer read")
     i.add_argument("src", help="the dataset's root folder (the one holding meta/info.json)")
     i.add_argument("out", help="HDF5 file to write")
@@ -205,7 +208,7 @@ def lerobot(args: argparse.Namespace) -> int:
     t0 = time.perf_counter()
     if args.action == "export":
         summary = lr.export_lerobot(args.src, args.out, task=args.task, fps=args.fps, codec=args.codec,
-                                    instruction=args.instruction)
+                                    instruction=args.instruction, encoder_timeout_s=args.encoder_timeout)
     else:
         summary = lr.import_lerobot(args.src, args.out, args.task, args.map, fps=args.fps)
     seconds = time.perf_counter() - t0

@@ -34,6 +34,7 @@ import io
 import json
 import shutil
 import tempfile
+import threading
 from dataclasses import dataclass, field
 from fractions import Fraction
 from pathlib import Path
@@ -75,10 +76,14 @@ DONE = "next.done"
 SUCCESS = "next.success"
 CODECS = {   # name: (FFmpeg encoder, pixel format, options)
     "lossless": ("libx264rgb", "rgb24", {"crf": "0", "preset": "veryfast", "g": "2", "bf": "0"}),
-    "av1": ("libsvtav1", "yuv420p", {"crf": "30", "g": "2"}),
+    # lp=1: one thread per SVT-AV1 stage. With more (its default: one per core), SVT-AV1 4.1 now and then hands
+    # a frame's packet out 74 frames early (the picture slot it reuses), which the muxer refuses, or stalls for
+    # good in svt_av1_enc_get_packet: 8 in 10 runs of 20 exports failed so, 0 in 250 exports with lp=1
+    "av1": ("libsvtav1", "yuv420p", {"crf": "30", "g": "2", "svtav1-params": "lp=1"}),
     "h264": ("libx264", "yuv420p", {"crf": "18", "preset": "veryfast", "g": "2", "bf": "0"}),
 }
 TOLERANCE_S = 1e-4             # a frame belongs to an episode when its time lies in [from, to) within this
+ENCODER_TIMEOUT_S = 60.0       # an encoder that takes no frame and hands back no packet for this long has stalled
 
 
 class LeRobotError(ValueError):
@@ -220,15 +225,25 @@ def _jsonable(value):
 
 
 class VideoWriter:
-    """One camera's video files: episodes appended one after the other, a new file past VIDEO_FILE_MB."""
+    """One camera's video files: episodes appended one after the other, a new file past VIDEO_FILE_MB.
 
-    def __init__(self, root: Path, key: str, fps: int, codec: str, height: int, width: int):
+    The encoder runs on a watched thread: one that takes no frame and hands back no packet for ``timeout_s``
+    has stalled (a C library call cannot be interrupted), and the export stops with the episode and the fix
+    instead of waiting for good."""
+
+    def __init__(self, root: Path, key: str, fps: int, codec: str, height: int, width: int,
+                 timeout_s: float = ENCODER_TIMEOUT_S):
         self.root, self.key, self.fps, self.codec = root, key, fps, codec
         self.height, self.width = height, width
+        self.timeout_s = timeout_s
         self.chunk = self.file = 0
         self.container = None
         self.frames = 0          # frames in the current file
         self.bytes = 0           # bytes muxed into it (the encoder may hold frames back: not the file's size yet)
+        self.progress = 0        # frames sent and packets muxed, ever: what the watch looks at
+        self.stalled = False
+        self.episode = -1        # the episode being encoded (or the last one, while flushing)
+        self.last_dts: int | None = None
 
     def _open(self) -> None:
         encoder, pix_fmt, options = CODECS[self.codec]
@@ -241,8 +256,9 @@ class VideoWriter:
         self.stream.time_base = Fraction(1, self.fps)
         self.stream.options = dict(options)
         self.frames = self.bytes = 0
+        self.last_dts = None
 
-    def add_episode(self, frames: np.ndarray) -> dict:
+    def add_episode(self, frames: np.ndarray, episode: int) -> dict:
         """Encode one episode's (T, H, W, 3) uint8 frames; returns its LeRobot episode columns."""
         if self.container is not None and self.bytes / 2**20 >= VIDEO_FILE_MB:
             self.close()
@@ -250,23 +266,75 @@ class VideoWriter:
         if self.container is None:
             self._open()
         start = self.frames
-        for frame in frames:
-            vf = av.VideoFrame.from_ndarray(np.ascontiguousarray(frame), format="rgb24")
-            vf.pts, vf.time_base = self.frames, Fraction(1, self.fps)
-            self.frames += 1
-            for packet in self.stream.encode(vf):
-                self.bytes += packet.size
-                self.container.mux(packet)
+        self.episode = episode
+        self._watched(lambda: self._encode(frames), f"encoding episode {episode}")
         return {f"videos/{self.key}/chunk_index": self.chunk, f"videos/{self.key}/file_index": self.file,
                 f"videos/{self.key}/from_timestamp": start / self.fps,
                 f"videos/{self.key}/to_timestamp": self.frames / self.fps}
 
+    def _encode(self, frames: np.ndarray) -> None:
+        for frame in frames:
+            vf = av.VideoFrame.from_ndarray(np.ascontiguousarray(frame), format="rgb24")
+            vf.pts, vf.time_base = self.frames, Fraction(1, self.fps)
+            self.frames += 1
+            self.progress += 1
+            for packet in self.stream.encode(vf):
+                self._mux(packet)
+
+    def _mux(self, packet) -> None:
+        if self.last_dts is not None and packet.dts is not None and packet.dts <= self.last_dts:
+            raise LeRobotError(f"the {CODECS[self.codec][0]} encoder of {self.key} handed out frame {packet.dts} "
+                               f"after frame {self.last_dts} (episode {self.episode}); packets out of decoding order "
+                               "cannot be stored: export again, or with --codec lossless or h264")
+        self.last_dts = packet.dts
+        self.bytes += packet.size
+        self.progress += 1
+        self.container.mux(packet)
+
+    def _watched(self, job, what: str) -> None:
+        """Run ``job`` on a daemon thread; raise (leaving the thread behind) if it makes no progress for
+        ``timeout_s``, and re-raise what it raised."""
+        failure: list[BaseException] = []
+
+        def run() -> None:
+            try:
+                job()
+            except BaseException as exc:   # handed to the caller's thread below
+                failure.append(exc)
+
+        thread = threading.Thread(target=run, name=f"encoder {self.key}", daemon=True)
+        seen = self.progress
+        thread.start()
+        while True:
+            thread.join(self.timeout_s)
+            if not thread.is_alive():
+                break
+            if self.progress == seen:
+                self.stalled = True
+                raise LeRobotError(f"the {CODECS[self.codec][0]} encoder of {self.key} made no progress for "
+                                   f"{self.timeout_s:g} s while {what}; it has stalled (nothing was written): "
+                                   f"export again, or with --codec lossless or h264 (or a longer "
+                                   f"--encoder-timeout when frames are large)")
+            seen = self.progress
+        if failure:
+            raise failure[0]
+
     def close(self) -> None:
+        """Flush the encoder (the frames it still holds) and close the current file."""
         if self.container is not None:
-            for packet in self.stream.encode():
-                self.container.mux(packet)
+            self._watched(self._flush, f"flushing the frames it held after episode {self.episode}")
             self.container.close()
             self.container = None
+
+    def _flush(self) -> None:
+        for packet in self.stream.encode():
+            self._mux(packet)
+
+    def discard(self) -> None:
+        """Give up the current file without flushing (the export failed); a stalled encoder is left alone."""
+        if self.container is not None and not self.stalled:
+            self.container.close()
+        self.container = None
 
     def info(self) -> dict:
         """The feature's ``info`` as LeRobot's ``get_video_info`` reads it from the file."""
@@ -335,8 +403,10 @@ class VideoReader:
 
 
 def export_lerobot(src: str | Path, out_dir: str | Path, task: str | None = None, fps: int | None = None,
-                   codec: str = "lossless", instruction: str | None = None, robot_type: str | None = None) -> dict:
-    """Write a robomimic-layout demos (or rollouts) file as a LeRobotDataset v3.0 folder; returns a summary."""
+                   codec: str = "lossless", instruction: str | None = None, robot_type: str | None = None,
+                   encoder_timeout_s: float = ENCODER_TIMEOUT_S) -> dict:
+    """Write a robomimic-layout demos (or rollouts) file as a LeRobotDataset v3.0 folder; returns a summary.
+    An encoder that makes no progress for ``encoder_timeout_s`` stops the export with the episode it was on."""
     if codec not in CODECS:
         raise LeRobotError(f"codec {codec!r} is not one of {sorted(CODECS)}")
     out = Path(out_dir)
@@ -355,7 +425,8 @@ def export_lerobot(src: str | Path, out_dir: str | Path, task: str | None = None
         features = _export_features(spec, first, src)
         tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", dir=out.parent if out.parent.exists() else None))
         try:
-            summary = _write_export(f, names, spec, features, tmp, fps, codec, instruction, robot_type)
+            summary = _write_export(f, names, spec, features, tmp, fps, codec, instruction, robot_type,
+                                    encoder_timeout_s)
             if out.exists():
                 out.rmdir()
             tmp.rename(out)
@@ -399,10 +470,11 @@ def _arrow_type(ft: dict):
     return dtype if ft["shape"] == [1] else pa.list_(dtype, ft["shape"][0])   # datasets' Sequence(length=D)
 
 
-def _write_export(f, names, spec, features, root: Path, fps: int, codec: str, instruction, robot_type) -> dict:
+def _write_export(f, names, spec, features, root: Path, fps: int, codec: str, instruction, robot_type,
+                  encoder_timeout_s: float) -> dict:
     vectors = {k: ft for k, ft in features.items() if ft["dtype"] != "video"}
     schema = pa.schema([(k, _arrow_type(ft)) for k, ft in vectors.items()])
-    videos = {k: VideoWriter(root, k, fps, codec, ft["shape"][0], ft["shape"][1])
+    videos = {k: VideoWriter(root, k, fps, codec, ft["shape"][0], ft["shape"][1], encoder_timeout_s)
               for k, ft in features.items() if ft["dtype"] == "video"}
     stats = {k: RunningStats(image=ft["dtype"] == "video") for k, ft in features.items()}
     tasks: dict[str, int] = {}
@@ -460,18 +532,20 @@ def _write_export(f, names, spec, features, root: Path, fps: int, codec: str, in
                 if frames.shape[0] != n or frames.dtype != np.uint8:
                     raise LeRobotError(f"data/{name}/obs/{key[len(IMAGES):]}_image has shape {frames.shape} "
                                        f"{frames.dtype}; it needs {n} uint8 frames")
-                row.update(video.add_episode(frames))
+                row.update(video.add_episode(frames, e))
                 row.update(_episode_stats(key, stats[key].add(frames)))
             for key in vectors:   # LeRobot keeps statistics of every feature, the frame counters included
                 row.update(_episode_stats(key, stats[key].add(columns[key].reshape(n, -1))))
             row["meta/episodes/chunk_index"], row["meta/episodes/file_index"] = 0, 0
             episodes.append(row)
             index += n
+        for video in videos.values():
+            video.close()
     finally:
         if writer is not None:
             writer.close()
         for video in videos.values():
-            video.close()
+            video.discard()
     for key, video in videos.items():
         features[key]["info"] = video.info()
     _write_meta(root, features, episodes, tasks, stats, fps, robot_type or f"jepa/{spec.name}")
