@@ -195,7 +195,7 @@ def _lerobot_args(p: argparse.ArgumentParser) -> None:
 
 @subcommand("lerobot", "LeRobotDataset v3.0: export our demos, import a LeRobot dataset", _lerobot_args)
 def lerobot(args: argparse.Namespace) -> int:
-    from jepa_envs.datasets import lerobot_format as lr
+    from jepa_envs.datasets import lerobot as lr
 
     if args.action == "bench":
         result = lr.bench_lerobot(args.src, args.codec)

@@ -177,7 +177,7 @@ def cmd_protocols(args) -> int:
 
 def cmd_audit(args) -> int:
     from jepa_envs.datasets.hdf5 import load_dataset
-    from jepa_envs.datasets.lerobot_format import resolve_dataset
+    from jepa_envs.datasets.lerobot import resolve_dataset
     from jepa_policy.audit import audit_checkpoint, gradient_audit, retrieval_audit
     from jepa_policy.policy import Policy
     from jepa_policy.train import resolve_device

@@ -29,7 +29,7 @@ from torch.utils.tensorboard import SummaryWriter
 from tqdm import tqdm
 
 from jepa_envs.datasets.hdf5 import load_dataset
-from jepa_envs.datasets.lerobot_format import resolve_dataset
+from jepa_envs.datasets.lerobot import resolve_dataset
 from jepa_envs.rollouts.pool import available_cores
 from jepa_envs.tasks.spec import get_task_spec
 from jepa_policy.audit import gradient_interaction
@@ -50,7 +50,7 @@ class TrainConfig:
     task: str = "PushT"
     arm: str = "jepa"                 # jepa | mip | dual_independent | dual_cross | backcut | fwdcut | sigreg | lambda_a0 | diffusion
     dataset: str = ""                 # demonstration file (jepa_envs.datasets.hdf5.load_dataset) or LeRobot v3.0 root
-    dataset_map: dict = field(default_factory=dict)   # LeRobot feature -> our key (jepa_envs.datasets.lerobot_format)
+    dataset_map: dict = field(default_factory=dict)   # LeRobot feature -> our key (jepa_envs.datasets.lerobot)
     out_dir: str = "runs/jepa"
     resume: str = ""                  # checkpoint to continue from ("" = fresh run)
     steps: int = 300_000

@@ -305,7 +305,7 @@ def test_saved_rollouts_carry_frames_actions_and_outcomes_into_a_lerobot_dataset
     import h5py
     import pyarrow.parquet as pq
 
-    from jepa_envs.datasets.lerobot_format import export_lerobot, import_lerobot
+    from jepa_envs.datasets.lerobot import export_lerobot, import_lerobot
     from jepa_policy.evaluate import evaluate
     from jepa_policy.policy import Policy
 

@@ -1,0 +1,57 @@
+"""Import: a LeRobotDataset v3.0 root -> a robomimic-layout HDF5 file the loader and trainer read (also made on
+demand, once, for `jepa-policy train --dataset ROOT`)."""
+from __future__ import annotations
+
+import hashlib
+import json
+from pathlib import Path
+
+from jepa_envs.datasets.hdf5 import DemoWriter, default_cache_dir
+from jepa_envs.datasets.lerobot.checks import check_features
+from jepa_envs.datasets.lerobot.format import INFO_PATH, KeyMap, LeRobotError, jsonable
+from jepa_envs.datasets.lerobot.reader import is_lerobot_root, iter_episodes, open_lerobot
+from jepa_envs.tasks.spec import get_task_spec
+
+
+def import_lerobot(root: str | Path, out: str | Path, task: str, key_map: list[str] | tuple[str, ...] = (),
+                   fps: int | None = None) -> dict:
+    """Convert a LeRobot v3.0 dataset into a robomimic-layout HDF5 file the loader reads; returns a summary."""
+    try:
+        spec = get_task_spec(task)
+    except KeyError as exc:
+        raise LeRobotError(exc.args[0]) from None
+    ds = open_lerobot(root)
+    km = KeyMap.parse(spec, key_map)
+    check_features(ds, spec, km, fps)
+    env_args = {"env_name": spec.name, "type": "lerobot",
+                "env_kwargs": {"image_size": int(ds.features[next(iter(km.images))]["shape"][0])},
+                "lerobot": {"root": str(Path(root).resolve()), "fps": ds.fps,
+                            "robot_type": ds.info.get("robot_type"), "map": jsonable(km.__dict__)}}
+    frames = 0
+    with DemoWriter(out, env_args) as writer:   # an error anywhere leaves no file at ``out``
+        for episode in iter_episodes(ds, spec, km):
+            writer.add(episode)
+            frames += len(episode["actions"])
+        if frames != ds.info["total_frames"]:
+            raise LeRobotError(f"info.json says {ds.info['total_frames']} frames, the episodes hold {frames}; "
+                               "re-download the dataset")
+    return {"episodes": len(ds.episodes), "frames": frames, "task": spec.name, "fps": ds.fps, "out": str(out)}
+
+
+
+def resolve_dataset(path: str | Path, task: str, key_map: list[str] | tuple[str, ...] = ()) -> Path:
+    """The HDF5 file to train from: ``path`` itself, or for a LeRobot v3.0 root its import, made once and kept
+    in the dataset cache (keyed by the root, its files' sizes and times, the task and the map)."""
+    path = Path(path).expanduser()
+    if not is_lerobot_root(path):
+        if key_map:
+            raise LeRobotError(f"a dataset map applies to LeRobot datasets; {path} is not one (no {INFO_PATH})")
+        return path
+    root = path.resolve()
+    files = sorted(p for p in root.rglob("*") if p.is_file())
+    digest = hashlib.sha1(json.dumps([str(root), task, sorted(key_map)] + [
+        [str(p.relative_to(root)), p.stat().st_size, p.stat().st_mtime_ns] for p in files]).encode()).hexdigest()[:16]
+    out = default_cache_dir() / "lerobot" / f"{root.name}-{task}-{digest}.hdf5"
+    if not out.is_file():
+        import_lerobot(root, out, task, key_map)
+    return out
