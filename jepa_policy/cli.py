@@ -1,4 +1,5 @@
-"""``jepa-policy``: train, eval, describe, bench latency, bench train, audit, protocols, robot, serve."""
+"""``jepa-policy``: train, eval, fit-detectors, describe, bench latency, bench train, audit, protocols, robot,
+serve."""
 from __future__ import annotations
 
 import argparse
@@ -81,11 +82,79 @@ def cmd_eval(args) -> int:
                                     "--out calib.jsonl` on other seeds (e.g. --seed 300000)")
         calibration = [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
     policy = Policy.from_checkpoint(args.checkpoint, device=resolve_device(args.device), ema=not args.no_ema)
+    if args.faults:
+        return _eval_regimes(args, policy, calibration)
     report = evaluate(policy, episodes=args.episodes, seed=args.seed, num_envs=args.num_envs,
                       max_steps=args.max_steps, video_dir=args.video, out=args.out, workers=args.workers,
                       save_rollouts=args.save_rollouts, residual_calibration=calibration)
     summary = {k: v for k, v in report.items() if k != "records"}
     print(json.dumps(summary))
+    return 0
+
+
+def _fault_spec(text: str) -> dict:
+    """``NAME`` or ``NAME:key=value,key=value`` (values as JSON, e.g. onset=[20,60]) -> {"name", options}."""
+    name, _, rest = text.partition(":")
+    spec: dict = {"name": name.strip()}
+    for item in filter(None, (x.strip() for x in rest.split(","))):
+        key, eq, value = item.partition("=")
+        if not eq:
+            raise ValueError(f"fault option {item!r} needs key=value, e.g. {name}:onset=30")
+        try:
+            spec[key.strip()] = json.loads(value)
+        except json.JSONDecodeError:
+            raise ValueError(f"fault option {key}={value!r} is not a number or JSON list") from None
+    return spec
+
+
+def _eval_regimes(args, policy, calibration) -> int:
+    """``eval --faults``: the natural episodes and each fault's, one records file (every record tagged with its
+    ``regime``, ``arm`` and ``checkpoint``); a fault runs on the first ``--fault-episodes`` seeds of the natural
+    block, so each faulted episode has a natural twin up to its onset."""
+    import time
+
+    from jepa_envs.tasks.faults import FAULTS
+    from jepa_policy.evaluate import evaluate
+
+    if args.video or args.save_rollouts:
+        raise ValueError("--faults writes records only; drop --video / --save-rollouts (or run one fault at a time)")
+    names = sorted(FAULTS) if args.faults.strip() == "all" else [x for x in args.faults.split(";") if x.strip()]
+    regimes = [None] + [_fault_spec(x) for x in names]
+    records, summary = [], {"checkpoint": str(args.checkpoint), "regimes": {}}
+    for fault in regimes:
+        t0 = time.perf_counter()
+        episodes = args.episodes if fault is None else min(args.fault_episodes, args.episodes)
+        report = evaluate(policy, episodes=episodes, seed=args.seed, num_envs=args.num_envs,
+                          max_steps=args.max_steps, workers=args.workers, residual_calibration=calibration,
+                          fault=fault)
+        label = "natural" if fault is None else fault["name"]
+        for rec in report["records"]:
+            rec.update(regime=label, arm=policy.model.cfg.arm, checkpoint=str(args.checkpoint))
+        records += report["records"]
+        summary["regimes"][label] = {"episodes": episodes, "success_rate": report["success_rate"],
+                                     "seconds": round(time.perf_counter() - t0, 1)}
+        print(f"[eval] {label}: {episodes} episodes, success {report['success_rate']:.3f}, "
+              f"{time.perf_counter() - t0:.0f} s", file=sys.stderr, flush=True)
+    if args.out:
+        Path(args.out).parent.mkdir(parents=True, exist_ok=True)
+        Path(args.out).write_text("".join(json.dumps(r) + "\n" for r in records))
+    print(json.dumps(summary))
+    return 0
+
+
+def cmd_fit_detectors(args) -> int:
+    from jepa_envs.datasets.hdf5 import load_dataset
+    from jepa_policy.detectors import fit_detectors
+    from jepa_policy.policy import Policy
+    from jepa_policy.train import resolve_device
+
+    policy = Policy.from_checkpoint(args.checkpoint, device=resolve_device(args.device), detectors=False)
+    if not Path(args.dataset).is_file():
+        raise FileNotFoundError(f"--dataset {args.dataset} does not exist; pass the demonstrations the checkpoint "
+                                "was trained on")
+    demos = load_dataset(args.dataset, task=policy.spec.name, image_size=policy.spec.image_size)
+    path = fit_detectors(policy, args.checkpoint, demos, samples=args.samples, seed=args.seed, out=args.out)
+    print(json.dumps({"detectors": str(path), "checkpoint": str(args.checkpoint), "samples": args.samples}))
     return 0
 
 
@@ -263,9 +332,25 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--residual-calibration", metavar="RECORDS.jsonl",
                    help="records of a calibration split (`--out` of an eval on other seeds): nmse_residualised is "
                         "taken against the line fitted there (default: cross-fitted over this run's episodes)")
+    p.add_argument("--faults", metavar="all|NAME[:k=v,...][;NAME...]",
+                   help="also run the episodes under faults with a known onset (jepa_envs/tasks/faults.py), e.g. "
+                        "all, or 'block_displaced:onset=30;action_noise:std=40'; --out then holds every regime's "
+                        "records, tagged (for jepa-monitor compare)")
+    p.add_argument("--fault-episodes", type=int, default=100,
+                   help="--faults: episodes per fault, on the first seeds of the natural block (default 100)")
     p.add_argument("--device", default="auto", help="auto (CUDA when present) | cpu | cuda | cuda:N")
     p.add_argument("--no-ema", action="store_true", help="act with the raw instead of the EMA weights")
     p.set_defaults(func=cmd_eval)
+
+    p = sub.add_parser("fit-detectors", help="fit the embedding failure detectors (RND, PCA-kmeans, Mahalanobis) of "
+                                             "a checkpoint on its training set; written beside it")
+    p.add_argument("--checkpoint", required=True, help="a `jepa-policy train` checkpoint (.pt)")
+    p.add_argument("--dataset", required=True, help="the demonstrations (HDF5) the checkpoint was trained on")
+    p.add_argument("--samples", type=int, default=8192, help="training windows embedded (a seeded sample)")
+    p.add_argument("--seed", type=int, default=0, help="seed of the sample, k-means and RND")
+    p.add_argument("--out", help="where to write (default: <checkpoint stem>.detectors.npz beside it)")
+    p.add_argument("--device", default="auto", help="auto | cpu | cuda | cuda:N")
+    p.set_defaults(func=cmd_fit_detectors)
 
     p = sub.add_parser("describe", help="parameter counts of an arm, total and per part")
     p.add_argument("--task", default="ToolHang", help="task whose shapes to use")

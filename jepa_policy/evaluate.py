@@ -21,6 +21,8 @@ import torch.distributed as dist
 import jepa_envs  # noqa: F401  (registers the JEPA/* ids)
 from jepa_envs.datasets.hdf5 import DemoWriter
 from jepa_envs.rollouts.pool import EnvPool, WorkerFailure
+from jepa_envs.tasks.faults import FAULTED_ENV, FAULTS
+from jepa_policy.detectors import whitened_error
 from monitor_service.scoring import nmse_rows
 
 
@@ -140,13 +142,28 @@ def env_kwargs_for(spec, env_args: dict | None) -> dict:
     return kwargs
 
 
-def make_pool(policy, num_envs: int, workers: int | None = 0, max_steps: int | None = None,
-              timeout_s: float = 300.0) -> EnvPool:
-    """A persistent rollout pool for ``policy``'s task (its image size, its demonstrations' env settings);
-    pass it to ``evaluate`` again and again. ``workers=None``: one worker per available core; 0: in-process."""
+def pool_env(policy, fault: dict | None = None) -> tuple[str, dict]:
+    """The env id and constructor kwargs a rollout pool of ``policy`` builds; with ``fault`` ({"name": one of
+    ``jepa_envs.tasks.faults.FAULTS``, "onset": step or [low, high], the fault's own options}) the task's env
+    wrapped in that fault."""
     spec = policy.spec
-    return EnvPool(spec.env_id, num_envs, workers=workers,
-                   env_kwargs=env_kwargs_for(spec, getattr(policy, "env_args", None)), max_steps=max_steps,
+    kwargs = env_kwargs_for(spec, getattr(policy, "env_args", None))
+    if not fault:
+        return spec.env_id, kwargs
+    options = dict(fault)
+    name = options.pop("name", None)
+    if name not in FAULTS:
+        raise ValueError(f"unknown fault {name!r}; choose one of {sorted(FAULTS)}")
+    return FAULTED_ENV, {**kwargs, "base": spec.env_id, "fault": name, "fault_kwargs": options}
+
+
+def make_pool(policy, num_envs: int, workers: int | None = 0, max_steps: int | None = None,
+              timeout_s: float = 300.0, fault: dict | None = None) -> EnvPool:
+    """A persistent rollout pool for ``policy``'s task (its image size, its demonstrations' env settings);
+    pass it to ``evaluate`` again and again. ``workers=None``: one worker per available core; 0: in-process.
+    ``fault``: every env wrapped in that fault (``pool_env``)."""
+    env_id, env_kwargs = pool_env(policy, fault)
+    return EnvPool(env_id, num_envs, workers=workers, env_kwargs=env_kwargs, max_steps=max_steps,
                    timeout_s=timeout_s)
 
 
@@ -154,7 +171,8 @@ def evaluate(policy, episodes: int, seed: int, num_envs: int = 4, max_steps: int
              video_dir: str | Path | None = None, on_decision: Callable[[DecisionEvent], None] | None = None,
              keep_latents: bool = False, out: str | Path | None = None, pool: EnvPool | None = None,
              workers: int | None = 0, max_reruns: int = 2, shard: tuple[int, int] | None = None,
-             save_rollouts: str | Path | None = None, residual_calibration: list[dict] | dict | None = None) -> dict:
+             save_rollouts: str | Path | None = None, residual_calibration: list[dict] | dict | None = None,
+             fault: dict | None = None) -> dict:
     """Run ``episodes`` rollouts with seeds seed, seed+1, ... in rounds of ``num_envs`` lockstep environments.
 
     The environments live in ``pool`` (a persistent ``EnvPool`` from ``make_pool``, reused across calls; its
@@ -178,17 +196,23 @@ def evaluate(policy, episodes: int, seed: int, num_envs: int = 4, max_steps: int
 
     ``save_rollouts``: also write every episode (all frames rendered, actions, rewards, its seed and outcome as
     ``success``) as a robomimic-layout HDF5 file, e.g. for ``jepa-envs lerobot export`` (its ``next.success``).
+
+    ``fault``: every episode runs under that fault (``pool_env``; a given ``pool`` must have been made with it);
+    each record then names it and its onset step (``fault``, ``fault_onset``). Every decision record carries the
+    policy's decision-time failure scores (``scores``: STAC, and the embedding scores when the policy has
+    fitted detectors; ``jepa_policy/detectors.py``), and ``nmse_white`` beside ``nmse`` when the detectors
+    hold the future-error scale.
     """
     if episodes < 1 or num_envs < 1:
         raise ValueError(f"need episodes >= 1 and num_envs >= 1, got {episodes}, {num_envs}")
     spec = policy.spec
     own_pool = pool is None
     if own_pool:
-        pool = make_pool(policy, min(num_envs, episodes), workers=workers, max_steps=max_steps)
+        pool = make_pool(policy, min(num_envs, episodes), workers=workers, max_steps=max_steps, fault=fault)
     else:
-        wanted = env_kwargs_for(spec, getattr(policy, "env_args", None))
-        if pool.env_id != spec.env_id or pool.env_kwargs != wanted:
-            raise ValueError(f"the pool runs {pool.env_id} with {pool.env_kwargs}, the policy acts on {spec.env_id} "
+        wanted_id, wanted = pool_env(policy, fault)
+        if pool.env_id != wanted_id or pool.env_kwargs != wanted:
+            raise ValueError(f"the pool runs {pool.env_id} with {pool.env_kwargs}, the policy acts on {wanted_id} "
                              f"with {wanted}; make a pool for it (jepa_policy.evaluate.make_pool)")
     n = pool.num_envs
     rank, world = shard if shard is not None else _process_group()
@@ -208,7 +232,8 @@ def evaluate(policy, episodes: int, seed: int, num_envs: int = 4, max_steps: int
                 steps: list | None = [] if writer is not None else None
                 try:
                     records += _run_round(pool, policy, ids, seed, video_dir,
-                                          events.append if on_decision else None, keep_latents, steps)
+                                          events.append if on_decision else None, keep_latents, steps,
+                                          None if not fault else fault["name"])
                     for episode in steps or []:
                         writer.add(episode)
                     break
@@ -266,9 +291,15 @@ def _process_group() -> tuple[int, int]:
     return 0, 1
 
 
-def _run_round(envs, policy, ids, seed, video_dir, on_decision, keep_latents, steps: list | None = None) -> list[dict]:
+def _scores_of(decision, j: int) -> dict:
+    """Env ``j``'s decision-time scores of a batched decision (NaN, e.g. STAC at the first decision, as None)."""
+    return {name: (float(v[j]) if np.isfinite(v[j]) else None) for name, v in decision.scores.items()}
+
+
+def _run_round(envs, policy, ids, seed, video_dir, on_decision, keep_latents, steps: list | None = None,
+               fault: str | None = None) -> list[dict]:
     """One round of lockstep episodes; ``steps`` (a list) receives each episode's frames, actions, rewards and
-    outcome, every frame rendered."""
+    outcome, every frame rendered; ``fault``: the name of the fault the pool's envs run under."""
     n = envs.num_envs
     seeds = [seed + i for i in ids] + [seed + ids[-1] + 1 + j for j in range(n - len(ids))]  # spares
     live = np.array([j < len(ids) for j in range(n)])
@@ -283,7 +314,8 @@ def _run_round(envs, policy, ids, seed, video_dir, on_decision, keep_latents, st
 
     policy.reset()
     envs.set_render_images(True)
-    obs, _ = envs.reset(seeds, active=list(live))   # spares keep the batch's shape and are never stepped
+    obs, reset_info = envs.reset(seeds, active=list(live))   # spares keep the batch's shape and are never stepped
+    future_scale = getattr(getattr(policy, "detectors", None), "future_scale", None)
     while live.any():
         if want_video:
             for j in np.flatnonzero(live):
@@ -304,7 +336,8 @@ def _run_round(envs, policy, ids, seed, video_dir, on_decision, keep_latents, st
                                               decision.target_step, decision.z_hat[j], z_now=z_now[j]))
         elif decision is not before:
             for j in np.flatnonzero(live):
-                decisions[j].append({"step": decision.step, "target_step": decision.target_step, "nmse": None})
+                decisions[j].append({"step": decision.step, "target_step": decision.target_step, "nmse": None,
+                                     "scores": _scores_of(decision, j)})
         envs.set_render_images(want_video or keep or policy.images_needed(policy.t + 1))
         obs, reward, terminated, truncated, infos = envs.step(action)
         t_new = policy.t + 1
@@ -321,9 +354,12 @@ def _run_round(envs, policy, ids, seed, video_dir, on_decision, keep_latents, st
             z_real = policy.encode_future(obs)
             for d, z_now in due:
                 err, err_persistence = nmse_rows(d.z_hat, z_real), nmse_rows(z_now, z_real)
+                white = None if future_scale is None else whitened_error(d.z_hat, z_real, future_scale)
                 for j in np.flatnonzero(live):
                     rec = {"step": d.step, "target_step": d.target_step, "nmse": float(err[j]),
-                           "nmse_persistence": float(err_persistence[j])}
+                           "nmse_persistence": float(err_persistence[j]), "scores": _scores_of(d, j)}
+                    if white is not None:
+                        rec["nmse_white"] = float(white[j])
                     if keep_latents:
                         rec.update(z_hat=d.z_hat[j].tolist(), z_real=z_real[j].tolist())
                     decisions[j].append(rec)
@@ -333,13 +369,16 @@ def _run_round(envs, policy, ids, seed, video_dir, on_decision, keep_latents, st
         ended = live & (np.asarray(terminated) | np.asarray(truncated))
         for j in np.flatnonzero(ended):  # decisions still waiting for a frame that never comes
             for d, _ in pending:
-                decisions[j].append({"step": d.step, "target_step": d.target_step, "nmse": None})
+                decisions[j].append({"step": d.step, "target_step": d.target_step, "nmse": None,
+                                     "scores": _scores_of(d, j)})
         live &= ~ended
 
     records = []
     for j, episode in enumerate(ids):
         records.append({"episode": episode, "seed": seeds[j], "success": bool(success[j]),
                         "length": int(length[j]), "max_reward": float(max_reward[j]), "decisions": sorted(decisions[j], key=lambda d: d["step"])})
+        if fault is not None:
+            records[-1].update(fault=fault, fault_onset=int(reset_info["fault_onset"][j]))
         if keep:
             ep = kept[j]
             steps.append({"obs": {k: np.stack([o[k] for o in ep["obs"]]) for k in ep["obs"][0]},

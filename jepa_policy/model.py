@@ -11,7 +11,7 @@ One family told apart by ``ModelConfig.arm``:
   dual_cross        dual_independent + a bidirectional cross-attention block at every layer
 
 The pieces every arm shares (ResNet-18 GN, the Transformer layer, crops, ``BasePolicyModel``) live in
-``blocks.py``; the Diffusion Policy arm is ``diffusion.py``; ``checkpoint.build_model`` picks by arm.
+``blocks.py``; the Diffusion Policy arm is ``diffusion.py``; ``build_model`` (the end of this file) picks by arm.
 
 Tensor conventions: images arrive as uint8 (B, T, H, W, 3) and become float [0, 1] (N, 3, h, w) inside;
 actions and low-dim inputs are mapped to [-1, 1] by ``model.normalizer``; c is (B, T_obs, width).
@@ -28,6 +28,7 @@ from torch import Tensor, nn
 from jepa_policy.blocks import (Attention, BasePolicyModel, ResNet18GN, SharedBlock, init_weights, reset_linears,
                                 sinusoid)
 from jepa_policy.config import ModelConfig
+from jepa_policy.diffusion import DiffusionPolicyModel
 from jepa_policy.losses import sigreg, two_step_terms
 
 # ----------------------------------------------------------------------------------------------------------
@@ -308,8 +309,16 @@ class PolicyModel(BasePolicyModel):
     def predict(self, obs: Mapping, want_future: bool = True) -> tuple[Tensor, Tensor | None]:
         """Two passes from one encoding: step 1 from zeros at (0, tau), step 2 fed step 1's outputs at (tau, 1),
         no noise, centre crop. -> (actions (B, H, A) unnormalised float32, z_hat (B, d_z) or None)."""
+        actions, z_hat, _ = self.predict_embedded(obs, want_future)
+        return actions, z_hat
+
+    @torch.no_grad()
+    def predict_embedded(self, obs: Mapping, want_future: bool = True) -> tuple[Tensor, Tensor | None, Tensor]:
+        """``predict`` and the newest frame's fused embedding c_t (B, width), which the runtime's embedding
+        scores read (``jepa_policy/detectors.py``) at no extra network pass."""
         c, _ = self._encode(obs)
-        return self._two_steps(c, want_future)
+        actions, z_hat = self._two_steps(c, want_future)
+        return actions, z_hat, c[:, -1].float()
 
     def _encode(self, obs: Mapping) -> tuple[Tensor, Tensor]:
         """Centre-cropped encoding of an observation history: (c (B, T, width), E_rgb (B, T, d_z))."""
@@ -358,3 +367,10 @@ class PolicyModel(BasePolicyModel):
     def encode_future(self, future_obs: Mapping) -> Tensor:
         """z = E_rgb(o_{t+k}) with centre crop: {image_key: uint8 (B, H, W, 3)} -> (B, d_z)."""
         return self.encoder.rgb(self._crop_future(future_obs)).float()
+
+
+def build_model(cfg: ModelConfig) -> BasePolicyModel:
+    """The model of ``cfg.arm``: PolicyModel for the two-step arms, DiffusionPolicyModel for ``diffusion``."""
+    if cfg.arm == "diffusion":
+        return DiffusionPolicyModel(cfg)
+    return PolicyModel(cfg)

@@ -11,7 +11,7 @@ batch of them with a leading env axis (vector envs, all stepping in lockstep).
 from __future__ import annotations
 
 from collections import deque
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -20,6 +20,7 @@ import torch
 from jepa_envs.tasks.spec import TaskSpec, get_task_spec
 from jepa_envs.tasks.wrappers import frames_to_render
 from jepa_policy.checkpoint import load_checkpoint, load_model
+from jepa_policy.detectors import EmbeddingDetectors, detector_path, load_detectors, stac
 
 
 @dataclass
@@ -30,6 +31,10 @@ class Decision:
     k: int                    # future horizon in env steps
     actions: np.ndarray       # (H, A) or (B, H, A), unnormalised
     z_hat: np.ndarray | None  # (D,) or (B, D): predicted E_rgb(o_{t+k}); None for arms without a future head
+    # per-decision failure scores known at the decision (jepa_policy/detectors.py): "stac" always (NaN at an
+    # episode's first decision), "rnd", "pca_kmeans", "mahalanobis" with fitted detectors; float or (B,)
+    scores: dict = field(default_factory=dict)
+    embedding: np.ndarray | None = None   # c_t (width,) or (B, width); None for arms without one
 
     @property
     def target_step(self) -> int:
@@ -37,12 +42,20 @@ class Decision:
 
 
 class Policy:
-    """Acts with a trained model (EMA weights when loaded from a checkpoint)."""
+    """Acts with a trained model (EMA weights when loaded from a checkpoint); ``detectors`` (fitted after the
+    policy, ``jepa-policy fit-detectors``) add the embedding scores to every decision."""
 
-    def __init__(self, model: torch.nn.Module, spec: TaskSpec, device: str | torch.device = "cpu"):
+    def __init__(self, model: torch.nn.Module, spec: TaskSpec, device: str | torch.device = "cpu",
+                 detectors: EmbeddingDetectors | None = None):
         self.device = torch.device(device)
         self.model = model.to(self.device).eval()
         self.spec = spec
+        self.detectors = detectors
+        # the policy's own action scaling to [-1, 1]: STAC compares chunks in these units
+        fields = getattr(getattr(model, "normalizer", None), "fields", {})
+        self._action_affine = ((fields["action"].scale.cpu().numpy().astype(np.float64),
+                                fields["action"].offset.cpu().numpy().astype(np.float64))
+                               if "action" in fields else None)
         self.env_args: dict | None = None   # the dataset's env_args, so evaluation rebuilds the same env
         self.checkpoint_step: int | None = None
         self.obs_steps, self.n_action_steps, self.k = spec.obs_steps, spec.n_action_steps, spec.future_k
@@ -51,12 +64,19 @@ class Policy:
         self.reset()
 
     @classmethod
-    def from_checkpoint(cls, path: str | Path, device: str | torch.device = "cpu", ema: bool = True) -> "Policy":
-        """Load a ``jepa-policy train`` checkpoint; acts with the EMA weights unless ``ema=False``."""
+    def from_checkpoint(cls, path: str | Path, device: str | torch.device = "cpu", ema: bool = True,
+                        detectors: bool | None = None) -> "Policy":
+        """Load a ``jepa-policy train`` checkpoint; acts with the EMA weights unless ``ema=False``.
+
+        ``detectors``: None loads the fitted detectors beside the checkpoint when that file exists (a file that
+        exists but is refused raises), True requires them, False loads none."""
         ckpt = load_checkpoint(path, map_location="cpu")
         model = load_model(ckpt, ema=ema)
         spec = get_task_spec(ckpt["task"]).with_image_size(ckpt["image_size"])
-        policy = cls(model, spec, device)
+        fitted = None
+        if detectors or (detectors is None and detector_path(path).is_file()):
+            fitted = load_detectors(detector_path(path), checkpoint=path)
+        policy = cls(model, spec, device, detectors=fitted)
         policy.checkpoint_step = int(ckpt["step"])
         policy.env_args = ckpt.get("env_args")
         return policy
@@ -69,6 +89,7 @@ class Policy:
         self.t = -1                       # episode step of the newest observation seen
         self.last_decision: Decision | None = None
         self._batched: bool | None = None
+        self._previous_chunk: tuple[int, np.ndarray] | None = None   # (step, normalised actions) for STAC
 
     def images_needed(self, step: int) -> bool:
         """Whether the frame of episode step ``step`` is used: the history of a decision or its future target.
@@ -151,11 +172,28 @@ class Policy:
 
     @torch.inference_mode()
     def _decide(self, want_future: bool) -> Decision:
-        actions, z = predict_frames(self.model, self.spec, list(self._history), self.device, want_future)
+        actions, z, c = decide_frames(self.model, self.spec, list(self._history), self.device, want_future)
+        scores = self._scores(actions, c)
         if not self._batched:
             actions, z = actions[0], (None if z is None else z[0])
-        self.last_decision = Decision(step=self.t, k=self.k, actions=actions, z_hat=z)
+            c = None if c is None else c[0]
+            scores = {name: float(v[0]) for name, v in scores.items()}
+        self.last_decision = Decision(step=self.t, k=self.k, actions=actions, z_hat=z, scores=scores, embedding=c)
         return self.last_decision
+
+    def _scores(self, actions: np.ndarray, c: np.ndarray | None) -> dict[str, np.ndarray]:
+        """The decision-time failure scores of a batch of chunks (B, H, A) and embeddings (B, width)."""
+        scores = {}
+        if self._action_affine is not None:
+            scale, offset = self._action_affine
+            chunk = actions * scale + offset
+            previous = self._previous_chunk
+            scores["stac"] = (stac(chunk, None, 0) if previous is None or previous[1].shape != chunk.shape
+                              else stac(chunk, previous[1], self.t - previous[0]))
+            self._previous_chunk = (self.t, chunk)
+        if self.detectors is not None and c is not None:
+            scores.update(self.detectors.score(c))
+        return scores
 
 
 @torch.inference_mode()
@@ -164,6 +202,15 @@ def predict_frames(model: torch.nn.Module, spec: TaskSpec, frames: list[dict], d
     """One forward pass over a history: ``frames`` oldest first, each key batched (B, ...); returns the
     unnormalised action chunks (B, H, A) and z_hat (B, D) (None for arms without a future head). Shared by the
     acting runtime and the policy server, which stacks several clients' histories into one batch."""
+    actions, z_hat, _ = decide_frames(model, spec, frames, device, want_future)
+    return actions, z_hat
+
+
+@torch.inference_mode()
+def decide_frames(model: torch.nn.Module, spec: TaskSpec, frames: list[dict], device: torch.device,
+                  want_future: bool = True) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
+    """``predict_frames`` and the newest frame's fused embedding c_t (B, width) of the same pass (None for arms
+    without one, e.g. the diffusion arm)."""
     obs = {}
     for key in spec.image_keys:
         stacked = np.stack([f[key] for f in frames], axis=1)
@@ -171,5 +218,9 @@ def predict_frames(model: torch.nn.Module, spec: TaskSpec, frames: list[dict], d
     for key in spec.lowdim_keys:
         stacked = np.stack([f[key] for f in frames], axis=1).astype(np.float32)
         obs[key] = torch.from_numpy(stacked).to(device)
-    actions, z_hat = model.predict(obs, want_future=want_future)
-    return actions.float().cpu().numpy(), None if z_hat is None else z_hat.float().cpu().numpy()
+    if hasattr(model, "predict_embedded"):
+        actions, z_hat, c = model.predict_embedded(obs, want_future=want_future)
+    else:
+        (actions, z_hat), c = model.predict(obs, want_future=want_future), None
+    return (actions.float().cpu().numpy(), None if z_hat is None else z_hat.float().cpu().numpy(),
+            None if c is None else c.cpu().numpy())
