@@ -171,7 +171,8 @@ def _lerobot_args(p: argparse.ArgumentParser) -> None:
     e.add_argument("src", help="robomimic-layout HDF5 (jepa-envs make-demos, jepa-envs lerobot import ...)")
     e.add_argument("out", help="new folder for the dataset (must not exist or be empty)")
     e.add_argument("--task", help="task name (default: the file's env_name)")
-    e.add_argument("--fps", type=int, help="frame rate (default: the task's control rate)")
+    e.add_argument("--fps", type=int, help="frame rate (default: the rate the file was recorded at, else the task's "
+                                           "control rate; another rate than the recorded one is refused)")
     e.add_argument("--codec", default="lossless", choices=("lossless", "av1", "h264"),
                    help="video codec: lossless H.264 RGB (default; bit-identical frames), av1 (LeRobot's "
                         "default, lossy), h264 (yuv420p, lossy)")
@@ -182,11 +183,14 @@ def _lerobot_args(p: argparse.ArgumentParser) -> None:
     i = sub.add_parser("import", help="a LeRobotDataset v3.0 folder -> an HDF5 file the loader and trainer read")
     i.add_argument("src", help="the dataset's root folder (the one holding meta/info.json)")
     i.add_argument("out", help="HDF5 file to write")
-    i.add_argument("--task", required=True, help="our task the data is for (its spec names the keys)")
+    i.add_argument("--task", help="our task the data is for (its spec names the keys; default: the task the dataset "
+                                  "names, as our exports do in robot_type jepa/<task>)")
     i.add_argument("--map", action="append", default=[], metavar="LEROBOT_KEY=SPEC_KEY",
                    help="feature -> spec key, e.g. observation.images.front=agentview_image, "
                         "observation.state=robot0_eef_pos,robot0_eef_quat,robot0_gripper_qpos (repeat)")
-    i.add_argument("--fps", type=int, help="accept a dataset recorded at this rate when it differs from the task's")
+    i.add_argument("--fps", type=int, help="accept a dataset recorded at this rate when it differs from the task's "
+                                           "(it must be the dataset's own rate; its timestamps are checked)")
+    i.add_argument("--overwrite", action="store_true", help="replace OUT when it exists (refused otherwise)")
     b = sub.add_parser("bench", help="export and import frames/s and peak memory beside an h5py read of the same "
                                      "frames, each phase in a fresh process")
     b.add_argument("src", help="a demos HDF5 file (e.g. the main job's demo_out/default/data/*.hdf5)")
@@ -210,7 +214,11 @@ def lerobot(args: argparse.Namespace) -> int:
         summary = lr.export_lerobot(args.src, args.out, task=args.task, fps=args.fps, codec=args.codec,
                                     instruction=args.instruction, encoder_timeout_s=args.encoder_timeout)
     else:
-        summary = lr.import_lerobot(args.src, args.out, args.task, args.map, fps=args.fps)
+        summary = lr.import_lerobot(args.src, args.out, args.task, args.map, fps=args.fps, overwrite=args.overwrite)
+        for key, what in summary["unmapped"].items():
+            print(f"jepa-envs lerobot import: note: feature {key!r} ({what}) was not imported: no key of task "
+                  f"{summary['task']} takes it; to bring it in as one of the task's keys, pass "
+                  f"--map {key}=SPEC_KEY (jepa-envs info {summary['task']} lists them)", file=sys.stderr)
     seconds = time.perf_counter() - t0
     print(json.dumps({**summary, "seconds": round(seconds, 2),
                       "frames_per_s": round(summary["frames"] / max(seconds, 1e-9), 1)}))

@@ -75,7 +75,7 @@ BAD_INVOCATIONS = [
     ("jepa-policy", ["serve", "--checkpoint", "{d}/missing.pt"], "train one with"),
     ("jepa-policy", ["serve", "--checkpoint", "{d}/crafted.pt"], "could run code"),
     ("jepa-policy", ["serve", "--checkpoint", "{d}/good.pt", "--host", "0.0.0.0"], "pass --api-key KEY"),
-    ("jepa-envs", ["lerobot", "import", "{d}/no-root", "{d}/x.hdf5", "--task", "PushT"], "has no meta/info.json"),
+    ("jepa-envs", ["lerobot", "import", "{d}/no-root", "{d}/x.hdf5", "--task", "PushT"], "no-root does not exist"),
     ("jepa-envs", ["lerobot", "export", "{d}/junk.hdf5", "{d}/out"], "not a readable HDF5 file"),
     ("jepa-envs", ["render-dataset", "{d}/junk.hdf5", "{d}/out.hdf5"], "not a readable HDF5 file"),
     ("jepa-demo", ["ceiling", "--dataset", "{d}/missing.hdf5"], "make-demos"),

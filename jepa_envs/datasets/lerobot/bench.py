@@ -22,9 +22,8 @@ def bench_lerobot(src: str | Path, codec: str = "lossless") -> dict:
                      "frames = n",
         "export": f"from jepa_envs.datasets.lerobot import export_lerobot\n"
                   f"frames = export_lerobot({str(src)!r}, {str(work / 'ds')!r}, codec={codec!r})['frames']",
-        "import": f"from jepa_envs.datasets.lerobot import import_lerobot, open_lerobot\n"
-                  f"task = open_lerobot({str(work / 'ds')!r}).info['robot_type'].split('/')[-1]\n"
-                  f"frames = import_lerobot({str(work / 'ds')!r}, {str(work / 'back.hdf5')!r}, task)['frames']",
+        "import": f"from jepa_envs.datasets.lerobot import import_lerobot\n"
+                  f"frames = import_lerobot({str(work / 'ds')!r}, {str(work / 'back.hdf5')!r})['frames']",
     }
     out = {"src": str(src), "codec": codec, "load_average": os.getloadavg()[0], "phases": {}}
     try:

@@ -1,40 +1,66 @@
-"""Whether a LeRobot dataset can fill a task spec's keys through a key map (features, shapes, rate)."""
+"""Whether a LeRobot dataset can fill a task spec's keys through a key map (features, shapes, rate), every
+problem found at once, and which of its features the map leaves out."""
 from __future__ import annotations
 
-from jepa_envs.datasets.lerobot.format import DEFAULT_FEATURES, KeyMap, LeRobotError
+from jepa_envs.datasets.lerobot.format import DEFAULT_FEATURES, DONE, REWARD, SUCCESS, KeyMap, LeRobotError
 from jepa_envs.datasets.lerobot.reader import LeRobotDataset
 from jepa_envs.tasks.spec import TaskSpec
 
 
-def check_features(ds: LeRobotDataset, spec: TaskSpec, km: KeyMap, fps: int | None) -> None:
+def check_features(ds: LeRobotDataset, spec: TaskSpec, km: KeyMap, fps: int | None,
+                   fps_fix: str | None = None) -> None:
+    """Raise one LeRobotError naming every way the dataset does not fit the task (each with its fix).
+
+    ``fps`` is the rate the user accepted (it must be the dataset's own); ``fps_fix`` words the fix for a rate
+    other than the task's where ``--fps`` is not the caller's option (``{fps}`` in it: the dataset's rate)."""
+    problems = []
+    if fps is not None and fps != ds.fps:
+        problems.append(f"--fps {fps} is not the dataset's rate ({ds.fps} fps in info.json); pass --fps {ds.fps} "
+                        "or leave it out")
+    elif fps is None and ds.fps != round(spec.control_hz):
+        fix = (fps_fix or "pass --fps {fps} to accept it (the policy's timing follows the data)").replace(
+            "{fps}", str(ds.fps))
+        problems.append(f"the dataset records at {ds.fps} fps, task {spec.name} acts at {spec.control_hz:g} Hz; {fix}")
     feats = ds.features
-    if fps is None and ds.fps != round(spec.control_hz):
-        raise LeRobotError(f"the dataset records at {ds.fps} fps, task {spec.name} acts at {spec.control_hz:g} Hz; "
-                           f"pass --fps {ds.fps} to accept it (the policy's timing follows the data)")
+    have = ", ".join(sorted(k for k in feats if k not in DEFAULT_FEATURES))
     needed = {**{k: "image" for k in km.images}, km.state[0]: "state", km.action: "action"}
-    for key, what in needed.items():
-        if key not in feats:
-            have = ", ".join(sorted(k for k in feats if k not in DEFAULT_FEATURES))
-            raise LeRobotError(f"the dataset has no feature {key!r} ({what} of task {spec.name}); it has: {have}. "
-                               f"Map one with --map {'FEATURE=' + (km.images.get(key) or 'KEY')}")
+    absent = [key for key in needed if key not in feats]
+    for key in absent:
+        problems.append(f"the dataset has no feature {key!r} ({needed[key]} of task {spec.name}); map one of its "
+                        f"features with --map {'FEATURE=' + (km.images.get(key) or _target(km, key))}")
+    if absent:
+        problems[-1] += f" (the dataset's features: {have})"
     for key, target in km.images.items():
-        ft = feats[key]
-        if ft.get("dtype") not in ("video", "image") or len(ft.get("shape", [])) != 3 or ft["shape"][-1] != 3:
-            raise LeRobotError(f"feature {key!r} is {ft.get('dtype')} {ft.get('shape')}; {target} needs RGB images "
-                               "(video or image, shape [H, W, 3])")
+        ft = feats.get(key)
+        if ft is not None and (ft.get("dtype") not in ("video", "image") or len(ft.get("shape", [])) != 3
+                               or ft["shape"][-1] != 3):
+            problems.append(f"feature {key!r} is {ft.get('dtype')} {ft.get('shape')}; {target} needs RGB images "
+                            "(video or image, shape [H, W, 3])")
     missing = set(spec.image_keys) - set(km.images.values())
     if missing:
-        raise LeRobotError(f"task {spec.name} needs camera key(s) {sorted(missing)} and no feature maps to them; "
-                           f"pass --map observation.images.NAME={sorted(missing)[0]}")
+        problems.append(f"task {spec.name} needs camera key(s) {sorted(missing)} and no feature maps to them; "
+                        f"pass --map observation.images.NAME={sorted(missing)[0]}")
     state_dim = sum(dict(spec.lowdim)[k] for k in km.state[1])
-    if list(feats[km.state[0]].get("shape", [])) != [state_dim]:
-        raise LeRobotError(f"feature {km.state[0]!r} has shape {feats[km.state[0]].get('shape')}; task {spec.name}'s "
-                           f"{list(km.state[1])} need [{state_dim}]; map the right feature with --map "
-                           f"FEATURE={','.join(km.state[1])}")
+    if km.state[0] in feats and list(feats[km.state[0]].get("shape", [])) != [state_dim]:
+        problems.append(f"feature {km.state[0]!r} has shape {feats[km.state[0]].get('shape')}; task {spec.name}'s "
+                        f"{list(km.state[1])} need [{state_dim}]; map the right feature with --map "
+                        f"FEATURE={','.join(km.state[1])}")
     if set(km.state[1]) != set(spec.lowdim_keys):
-        raise LeRobotError(f"the state map gives {list(km.state[1])}; task {spec.name} needs all of "
-                           f"{list(spec.lowdim_keys)}")
-    action_dim = feats[km.action].get("shape")
-    if list(action_dim or []) != [spec.action_dim]:
-        raise LeRobotError(f"feature {km.action!r} has shape {action_dim}; task {spec.name} acts with "
-                           f"{spec.action_dim}-D absolute actions")
+        problems.append(f"the state map gives {list(km.state[1])}; task {spec.name} needs all of "
+                        f"{list(spec.lowdim_keys)}")
+    if km.action in feats and list(feats[km.action].get("shape") or []) != [spec.action_dim]:
+        problems.append(f"feature {km.action!r} has shape {feats[km.action].get('shape')}; task {spec.name} acts "
+                        f"with {spec.action_dim}-D absolute actions")
+    if problems:
+        count = f"{len(problems)} problems" if len(problems) > 1 else "1 problem"
+        raise LeRobotError(f"{ds.root} does not fit task {spec.name} ({count}): " + "; ".join(problems))
+
+
+def _target(km: KeyMap, key: str) -> str:
+    return ",".join(km.state[1]) if key == km.state[0] else "action"
+
+
+def unmapped_features(ds: LeRobotDataset, km: KeyMap) -> dict[str, str]:
+    """The dataset's features an import leaves out (no spec key takes them), each as ``dtype [shape]``."""
+    used = {*km.images, km.state[0], km.action, km.env_state, REWARD, DONE, SUCCESS, *DEFAULT_FEATURES}
+    return {key: f"{ft.get('dtype')} {ft.get('shape')}" for key, ft in ds.features.items() if key not in used}

@@ -34,6 +34,7 @@ ACTION = "action"
 REWARD = "next.reward"
 DONE = "next.done"
 SUCCESS = "next.success"
+ROBOT_TYPE_PREFIX = "jepa/"    # our exports' robot_type is jepa/<task>: import finds the task from it
 CODECS = {   # name: (FFmpeg encoder, pixel format, options)
     "lossless": ("libx264rgb", "rgb24", {"crf": "0", "preset": "veryfast", "g": "2", "bf": "0"}),
     # lp=1: one thread per SVT-AV1 stage. With more (its default: one per core), SVT-AV1 4.1 now and then hands

@@ -11,8 +11,8 @@ from typing import Iterator
 import numpy as np
 import pyarrow.parquet as pq
 
-from jepa_envs.datasets.lerobot.format import (CODEBASE_VERSION, DONE, INFO_PATH, REWARD, SUCCESS, TASKS_PATH, KeyMap,
-                                               LeRobotError, short_error)
+from jepa_envs.datasets.lerobot.format import (CODEBASE_VERSION, DONE, INFO_PATH, REWARD, SUCCESS, TASKS_PATH,
+                                               TOLERANCE_S, KeyMap, LeRobotError, short_error)
 from jepa_envs.datasets.lerobot.video import VideoReader
 from jepa_envs.tasks.spec import TaskSpec
 
@@ -33,6 +33,7 @@ class LeRobotDataset:
 
 
 def is_lerobot_root(path: str | Path) -> bool:
+    """Whether ``path`` is a LeRobot dataset's root folder (it holds meta/info.json)."""
     return (Path(path) / INFO_PATH).is_file()
 
 
@@ -40,6 +41,9 @@ def open_lerobot(root: str | Path) -> LeRobotDataset:
     """Read and check a LeRobot dataset's metadata (codebase version, files, totals)."""
     root = Path(root)
     info_path = root / INFO_PATH
+    if not root.exists():
+        raise LeRobotError(f"{root} does not exist; pass the root folder of a LeRobotDataset v3.0 (the one holding "
+                           f"{INFO_PATH})")
     if not info_path.is_file():
         raise LeRobotError(f"{root} has no {INFO_PATH}; pass the root folder of a LeRobotDataset v3.0")
     try:
@@ -100,6 +104,7 @@ def iter_episodes(ds: LeRobotDataset, spec: TaskSpec, km: KeyMap) -> Iterator[di
     for ep in ds.episodes:
         e, n = int(ep["episode_index"]), int(ep["length"])
         data = rows.take(e, n)
+        _check_timestamps(data, ds.fps, e)
         obs = {}
         offset = 0
         state = np.asarray(data[state_key], np.float32).reshape(n, -1)
@@ -129,6 +134,23 @@ def iter_episodes(ds: LeRobotDataset, spec: TaskSpec, km: KeyMap) -> Iterator[di
         if SUCCESS in ds.features:
             episode["attrs"]["success"] = bool(np.asarray(data[SUCCESS]).reshape(n)[-1])
         yield episode
+
+
+def _check_timestamps(data: dict, fps: int, episode: int) -> None:
+    """The rows' timestamps step 1/fps from the episode's first (LeRobot's own loader checks the same, within
+    the same tolerance): a dataset whose info.json names another rate than its data cannot be timed."""
+    if "timestamp" not in data:
+        raise LeRobotError(f"the data files have no 'timestamp' column (episode {episode}); LeRobot writes one per "
+                           "row: re-download the data folder")
+    ts = np.asarray(data["timestamp"], np.float64).reshape(-1)
+    off = np.abs(ts - ts[0] - np.arange(len(ts)) / fps)
+    if len(ts) and off.max() > TOLERANCE_S:
+        row = int(np.argmax(off > TOLERANCE_S))
+        step = float(np.median(np.diff(ts))) if len(ts) > 1 else float("nan")
+        raise LeRobotError(f"episode {episode}'s timestamps do not follow info.json's {fps} fps (row {row} is at "
+                           f"{ts[row]:.4f} s, {fps} fps puts it at {ts[0] + row / fps:.4f} s; its rows step "
+                           f"{step:.4f} s = {1 / step if step > 0 else float('nan'):.3g} fps); the data and its "
+                           "fps disagree: fix info.json's fps or re-record the dataset")
 
 
 def _png(cell, key: str, episode: int) -> np.ndarray:

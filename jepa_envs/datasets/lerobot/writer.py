@@ -14,9 +14,9 @@ import pyarrow.parquet as pq
 from jepa_envs.datasets.hdf5 import demo_names, open_hdf5, resolve_task
 from jepa_envs.datasets.lerobot.format import (ACTION, CHUNKS_SIZE, CODEBASE_VERSION, CODECS, DATA_FILE_MB, DATA_PATH,
                                                DEFAULT_FEATURES, DONE, ENCODER_TIMEOUT_S, ENV_STATE, EPISODES_PATH,
-                                               IMAGES, INFO_PATH, REWARD, STATE, STATS_PATH, SUCCESS, TASKS_PATH,
-                                               VIDEO_FILE_MB, VIDEO_PATH, LeRobotError, instruction_for, jsonable,
-                                               next_file)
+                                               IMAGES, INFO_PATH, REWARD, ROBOT_TYPE_PREFIX, STATE, STATS_PATH,
+                                               SUCCESS, TASKS_PATH, VIDEO_FILE_MB, VIDEO_PATH, LeRobotError,
+                                               instruction_for, jsonable, next_file)
 from jepa_envs.datasets.lerobot.stats import RunningStats, episode_stats
 from jepa_envs.datasets.lerobot.video import VideoWriter
 from jepa_envs.tasks.spec import TaskSpec
@@ -26,24 +26,30 @@ def export_lerobot(src: str | Path, out_dir: str | Path, task: str | None = None
                    codec: str = "lossless", instruction: str | None = None, robot_type: str | None = None,
                    encoder_timeout_s: float = ENCODER_TIMEOUT_S) -> dict:
     """Write a robomimic-layout demos (or rollouts) file as a LeRobotDataset v3.0 folder; returns a summary.
-    An encoder that makes no progress for ``encoder_timeout_s`` stops the export with the episode it was on."""
+
+    ``fps`` defaults to the rate the file was recorded at (a LeRobot import keeps it), else the task's control
+    rate; another rate than the recorded one is refused (it would re-time the frames, not resample them). An
+    encoder that makes no progress for ``encoder_timeout_s`` stops the export with the episode it was on."""
     if codec not in CODECS:
         raise LeRobotError(f"codec {codec!r} is not one of {sorted(CODECS)}")
     out = Path(out_dir)
-    if out.exists() and any(out.iterdir()):
-        raise LeRobotError(f"{out} exists and is not empty; pass a new folder (nothing was written)")
+    if out.exists() and (not out.is_dir() or any(out.iterdir())):
+        what = "is not empty" if out.is_dir() else "is not a folder"
+        raise LeRobotError(f"{out} exists and {what}; pass a new folder (nothing was written)")
+    if not out.parent.is_dir():
+        raise LeRobotError(f"{out.parent} does not exist; create it first, the export goes into a new folder inside "
+                           "it (nothing was written)")
     with open_hdf5(src) as f:
         if "data" not in f or not demo_names(f["data"]):
             raise LeRobotError(f"{src} holds no data/demo_N episodes; write demos with `jepa-envs make-demos`")
         env_args = json.loads(f["data"].attrs.get("env_args", "{}"))
         spec = resolve_task(task, env_args, src)
-        fps = int(fps or round(spec.control_hz))
-        if fps <= 0:
-            raise LeRobotError(f"--fps must be a positive number of frames per second, got {fps}")
+        fps = _export_fps(fps, env_args, spec, src)
         names = demo_names(f["data"])
         first = f["data"][names[0]]
         features = _export_features(spec, first, src)
-        tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", dir=out.parent if out.parent.exists() else None))
+        # beside the target: the final rename stays on one file system, and a bad target fails before any work
+        tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", dir=out.parent))
         try:
             summary = _write_export(f, names, spec, features, tmp, fps, codec, instruction, robot_type,
                                     encoder_timeout_s)
@@ -54,6 +60,16 @@ def export_lerobot(src: str | Path, out_dir: str | Path, task: str | None = None
             shutil.rmtree(tmp, ignore_errors=True)
             raise
     return {**summary, "out": str(out)}
+
+
+def _export_fps(fps: int | None, env_args: dict, spec: TaskSpec, src) -> int:
+    recorded = (env_args.get("lerobot") or {}).get("fps")
+    if fps is not None and fps <= 0:
+        raise LeRobotError(f"--fps must be a positive number of frames per second, got {fps}")
+    if recorded is not None and fps is not None and fps != recorded:
+        raise LeRobotError(f"{src} was recorded at {recorded} fps (imported from {env_args['lerobot'].get('root')}); "
+                           f"--fps {fps} would re-time its frames, not resample them: leave --fps out")
+    return int(fps or recorded or round(spec.control_hz))
 
 
 def _export_features(spec: TaskSpec, demo, src) -> dict:
@@ -168,7 +184,7 @@ def _write_export(f, names, spec, features, root: Path, fps: int, codec: str, in
             video.discard()
     for key, video in videos.items():
         features[key]["info"] = video.info()
-    _write_meta(root, features, episodes, tasks, stats, fps, robot_type or f"jepa/{spec.name}")
+    _write_meta(root, features, episodes, tasks, stats, fps, robot_type or f"{ROBOT_TYPE_PREFIX}{spec.name}")
     return {"episodes": len(episodes), "frames": index, "tasks": list(tasks), "fps": fps, "codec": codec,
             "task": spec.name}
 

@@ -112,3 +112,101 @@ def test_a_dataset_with_embedded_png_images_imports(exported, tmp_path):
     import_lerobot(root, tmp_path / "png.hdf5", "PushT")
     assert np.array_equal(np.concatenate([ep["obs/top_image"] for ep in arrays(tmp_path / "png.hdf5")]), frames)
     assert ds.fps == 10
+
+
+# ----------------------------------------------------------------------------- issue 36.2: what import says
+
+
+def _add_feature(root, key, values, ft):
+    import pyarrow as pa
+
+    table = pq.read_table(root / "data/chunk-000/file-000.parquet")
+    column = pa.FixedSizeListArray.from_arrays(pa.array(values.reshape(-1)), values.shape[1])
+    pq.write_table(table.append_column(key, column), root / "data/chunk-000/file-000.parquet")
+    info = json.loads((root / "meta/info.json").read_text())
+    info["features"][key] = ft
+    (root / "meta/info.json").write_text(json.dumps(info))
+
+
+def test_unmapped_features_are_listed_with_how_to_map_them(exported, tmp_path, capsys):
+    from jepa_envs.cli import main
+
+    root = copy(exported[0], tmp_path)
+    frames = exported[1]["frames"]
+    _add_feature(root, "observation.effort", np.ones((frames, 3), np.float32),
+                 {"dtype": "float32", "shape": [3], "names": None})
+    summary = import_lerobot(root, tmp_path / "a.hdf5", "PushT")
+    assert summary["unmapped"] == {"observation.effort": "float32 [3]"}
+    assert main(["lerobot", "import", str(root), str(tmp_path / "b.hdf5"), "--task", "PushT"]) == 0
+    err = capsys.readouterr().err
+    assert "'observation.effort' (float32 [3]) was not imported" in err and "--map observation.effort=" in err
+
+
+def test_every_mismatch_is_reported_at_once(exported, tmp_path):
+    message = refused(exported[0], tmp_path, "does not fit task Square", task="Square")
+    assert "(5 problems)" in message
+    for part in ("records at 10 fps, task Square acts at 20 Hz", "no feature 'observation.images.agentview'",
+                 "no feature 'observation.images.robot0_eye_in_hand'", "'observation.state' has shape [2]",
+                 "'action' has shape [2]; task Square acts with 10-D"):
+        assert part in message, part
+
+
+def test_fps_must_be_the_datasets_own_and_its_timestamps_follow_it(exported, tmp_path):
+    refused(exported[0], tmp_path, r"--fps 20 is not the dataset's rate \(10 fps in info.json\)", fps=20)
+    root = copy(exported[0], tmp_path)
+    table = pq.read_table(root / "data/chunk-000/file-000.parquet")
+    timestamps = (np.asarray(table.column("frame_index")) / 20).astype(np.float32)   # recorded at 20 fps
+    table = table.set_column(table.schema.get_field_index("timestamp"), "timestamp", pa_array(timestamps))
+    pq.write_table(table, root / "data/chunk-000/file-000.parquet")
+    refused(root, tmp_path, r"episode 0's timestamps do not follow info.json's 10 fps .* step 0.0500 s = 20 fps")
+
+
+def pa_array(values):
+    import pyarrow as pa
+
+    return pa.array(values)
+
+
+def test_import_refuses_an_existing_file_unless_told(exported, tmp_path):
+    out = tmp_path / "mine.hdf5"
+    out.write_text("keep me")
+    with pytest.raises(LeRobotError, match="mine.hdf5 exists; pass another path, or --overwrite"):
+        import_lerobot(exported[0], out, "PushT")
+    assert out.read_text() == "keep me"
+    import_lerobot(exported[0], out, "PushT", overwrite=True)
+    assert len(load_dataset(out, task="PushT", cache_dir=False).episode_ends) == 4
+
+
+def test_a_missing_path_is_named_as_missing(tmp_path):
+    with pytest.raises(LeRobotError, match=r"nope does not exist; pass the root folder"):
+        import_lerobot(tmp_path / "nope", tmp_path / "out.hdf5", "PushT")
+
+
+def test_import_finds_the_task_the_dataset_names(exported, tmp_path):
+    """README's `jepa-envs lerobot import DIR OUT.hdf5` works on our exports without --task."""
+    from jepa_envs.cli import main
+
+    assert import_lerobot(exported[0], tmp_path / "a.hdf5")["task"] == "PushT"
+    assert main(["lerobot", "import", str(exported[0]), str(tmp_path / "b.hdf5")]) == 0
+    root = copy(exported[0], tmp_path)
+    edit_info(root, robot_type="koch")
+    refused(root, tmp_path, r"names no task of ours \(robot_type 'koch'\); pass --task", task=None)
+
+
+def test_train_on_a_root_at_another_rate_advises_what_train_can_do(pusht_demo_file, tmp_path, monkeypatch):
+    """`jepa-policy train --dataset ROOT` has no --fps: the fix it names is an import that accepts the rate, and
+    following it gives a file train reads."""
+    from jepa_envs.cli import main
+    from jepa_envs.datasets.lerobot import export_lerobot
+
+    monkeypatch.setenv("JEPA_DATA_CACHE", str(tmp_path / "cache"))
+    root = tmp_path / "at20"
+    export_lerobot(pusht_demo_file, root, fps=20)
+    with pytest.raises(LeRobotError) as err:
+        resolve_dataset(root, "PushT")
+    message = str(err.value)
+    assert "pass --fps" not in message and "train with --dataset OUT.hdf5" in message
+    command = message.split("(jepa-envs ", 1)[1].split(")", 1)[0].replace("OUT.hdf5", str(tmp_path / "out.hdf5"))
+    assert command.endswith("--fps 20")
+    assert main(command.split()) == 0
+    assert resolve_dataset(tmp_path / "out.hdf5", "PushT") == tmp_path / "out.hdf5"

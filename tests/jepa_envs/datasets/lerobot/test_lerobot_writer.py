@@ -11,7 +11,7 @@ import pyarrow.parquet as pq
 import pytest
 
 from jepa_envs.datasets.hdf5 import demo_names
-from jepa_envs.datasets.lerobot import CODEBASE_VERSION, LeRobotError, export_lerobot
+from jepa_envs.datasets.lerobot import CODEBASE_VERSION, LeRobotError, export_lerobot, import_lerobot
 
 
 def test_export_writes_lerobots_v3_layout(exported, pusht_demo_file):
@@ -58,3 +58,21 @@ def test_export_refuses_a_file_without_images_or_an_existing_folder(pusht_demo_f
     with pytest.raises(LeRobotError, match="exists and is not empty"):
         export_lerobot(pusht_demo_file, tmp_path / "full")
     assert (tmp_path / "full" / "keep.txt").read_text() == "mine"
+
+
+def test_export_into_a_missing_parent_is_refused_before_any_work(pusht_demo_file, tmp_path):
+    with pytest.raises(LeRobotError, match=r"a/b does not exist; create it first"):
+        export_lerobot(pusht_demo_file, tmp_path / "a" / "b" / "out")
+    assert not (tmp_path / "a").exists()
+
+
+def test_a_reimported_dataset_keeps_its_rate_on_export(pusht_demo_file, tmp_path):
+    """A 20 fps LeRobot root of a 10 Hz task, imported with its rate accepted, exports at 20 fps again (it was
+    re-timed to the task's 10 silently), and another --fps is refused."""
+    export_lerobot(pusht_demo_file, tmp_path / "at20", fps=20)
+    import_lerobot(tmp_path / "at20", tmp_path / "back.hdf5", "PushT", fps=20)
+    export_lerobot(tmp_path / "back.hdf5", tmp_path / "again")
+    assert json.loads((tmp_path / "again/meta/info.json").read_text())["fps"] == 20
+    with pytest.raises(LeRobotError, match=r"was recorded at 20 fps .* --fps 10 would re-time its frames"):
+        export_lerobot(tmp_path / "back.hdf5", tmp_path / "at10", fps=10)
+    assert not (tmp_path / "at10").exists()
