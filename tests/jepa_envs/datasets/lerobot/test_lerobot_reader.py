@@ -7,6 +7,7 @@ import json
 import shutil
 
 import numpy as np
+import pyarrow as pa
 import pyarrow.parquet as pq
 import pytest
 from _lerobot_helpers import arrays, copy, edit_info, refused
@@ -86,7 +87,6 @@ def test_a_dataset_with_embedded_png_images_imports(exported, tmp_path):
     """LeRobot's `image` features (PNG bytes in the data parquet) read as well as videos."""
     import io
 
-    import pyarrow as pa
     from PIL import Image
 
     root = copy(exported[0], tmp_path)
@@ -118,8 +118,6 @@ def test_a_dataset_with_embedded_png_images_imports(exported, tmp_path):
 
 
 def _add_feature(root, key, values, ft):
-    import pyarrow as pa
-
     table = pq.read_table(root / "data/chunk-000/file-000.parquet")
     column = pa.FixedSizeListArray.from_arrays(pa.array(values.reshape(-1)), values.shape[1])
     pq.write_table(table.append_column(key, column), root / "data/chunk-000/file-000.parquet")
@@ -156,15 +154,9 @@ def test_fps_must_be_the_datasets_own_and_its_timestamps_follow_it(exported, tmp
     root = copy(exported[0], tmp_path)
     table = pq.read_table(root / "data/chunk-000/file-000.parquet")
     timestamps = (np.asarray(table.column("frame_index")) / 20).astype(np.float32)   # recorded at 20 fps
-    table = table.set_column(table.schema.get_field_index("timestamp"), "timestamp", pa_array(timestamps))
+    table = table.set_column(table.schema.get_field_index("timestamp"), "timestamp", pa.array(timestamps))
     pq.write_table(table, root / "data/chunk-000/file-000.parquet")
     refused(root, tmp_path, r"episode 0's timestamps do not follow info.json's 10 fps .* step 0.0500 s = 20 fps")
-
-
-def pa_array(values):
-    import pyarrow as pa
-
-    return pa.array(values)
 
 
 def test_import_refuses_an_existing_file_unless_told(exported, tmp_path):
