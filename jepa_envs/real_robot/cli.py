@@ -2,12 +2,14 @@
 
     jepa-robot-bridge --backend sim --task PushT                 # simulated robot on tcp://127.0.0.1:5555
     jepa-robot-bridge --backend arx5 --config deploy/robot/arx5_cabinet.toml
+    jepa-robot-bridge supervise --state-file STATE.json --backend arx5 --config ...   # restarts latched after a crash
     jepa-robot-bridge check deploy/robot/arx5_cabinet.toml      # every length and bound, no hardware touched
     jepa-robot-bridge --backend replay --episode EP.json [--config SETUP.toml]   # dry run of a recording
     jepa-robot-bridge --backend arx5 --config ... --observe-only   # cameras and proprioception, no motion
     jepa-robot-bridge observe --address tcp://robot-pc:5555       # watch what an observe-only bridge serves
     jepa-robot-bridge keys DIR --client policy-pc                  # CurveZMQ keys for a network link
     jepa-robot-bridge bench                                      # loopback latency, three 128x128 cameras
+    jepa-robot-bridge bench --load flood,operators,big,aborts    # e-stop latency and aborts under local load
     jepa-robot-bridge estop | clear-estop | home | status | shutdown [--operator tcp://host:5556]
     jepa-robot-bridge confirm success|failure [--operator ...]
 
@@ -27,7 +29,7 @@ from pathlib import Path
 from jepa_operator import DEFAULT_OPERATOR
 from jepa_operator.cli import OPERATOR_COMMANDS, run_operator_command
 
-SUBCOMMANDS = ("serve", "bench", "check", "observe", "keys") + OPERATOR_COMMANDS
+SUBCOMMANDS = ("serve", "supervise", "bench", "check", "observe", "keys") + OPERATOR_COMMANDS
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -59,7 +61,16 @@ def _parser() -> argparse.ArgumentParser:
                        help="allow a control socket reachable from the network without CurveZMQ (only on a "
                             "dedicated, isolated robot-policy link)")
     serve.add_argument("--no-prompt", action="store_true", help="never prompt on stdin for confirmation")
+    serve.add_argument("--state-file", help="keep the e-stop latch here across restarts: a bridge started after "
+                                            "a crash (or with the e-stop still latched) starts latched")
     serve.add_argument("-v", "--verbose", action="store_true")
+
+    supervise = sub.add_parser("supervise", help="run `serve` and restart it with the e-stop latched after a crash; "
+                                                 "every argument it does not know goes to serve")
+    supervise.add_argument("--state-file", required=True,
+                           help="where the bridge keeps its e-stop latch and whether it stopped cleanly")
+    supervise.add_argument("--restart-delay", type=float, default=1.0,
+                           help="seconds before the first restart (doubling, up to 30 s, while it keeps crashing)")
 
     check = sub.add_parser("check", help="validate a set-up file without touching any hardware")
     check.add_argument("config", help="ARX-5 set-up TOML, or a TOML with a [safety] table for --task")
@@ -120,9 +131,14 @@ def _read_toml(path: str | None) -> dict:
 
 
 def _safety_from_toml(path: str | None):
-    from jepa_envs.real_robot.safety import SafetyConfig
+    """The [safety] table of a TOML file (defaults without one); SetupRefused with one line per bad field."""
+    from pydantic import ValidationError
 
-    return SafetyConfig.model_validate(_read_toml(path).get("safety", {}))
+    from jepa_envs.real_robot.safety import SafetyConfig, config_errors
+    try:
+        return SafetyConfig.model_validate(_read_toml(path).get("safety", {}))
+    except ValidationError as exc:
+        raise SetupRefused("\n".join(config_errors(exc))) from None
 
 
 def _prompt_operator(bridge):
@@ -153,7 +169,56 @@ def _curve(folder: str | None) -> dict:
     return {"curve_secret_key": str(secret), "curve_authorized_dir": str(authorized)}
 
 
+EXIT_REFUSED = 2   # serve refused its set-up before touching the robot (the supervisor does not restart it)
+
+
+class SetupRefused(Exception):
+    """``serve`` cannot start with this set-up; each line of the message is one problem and its fix."""
+
+
 def serve(args) -> int:
+    """Build the backend and the bridge, then serve until an operator shutdown, SIGINT or SIGTERM (exit 0). A
+    refused set-up prints one line per problem and exits 2; a crash while serving exits otherwise, and the
+    next start with the same ``--state-file`` is latched."""
+    import signal
+
+    import zmq
+    from pydantic import ValidationError
+
+    from jepa_envs.real_robot.backends.base import BackendUnavailable
+    from jepa_envs.real_robot.safety import config_errors
+
+    try:
+        bridge, backend = _build_bridge(args)
+    except SetupRefused as exc:
+        print("\n".join(f"error: {line}" for line in str(exc).splitlines()), file=sys.stderr)
+        return EXIT_REFUSED
+    except ValidationError as exc:
+        print("\n".join(f"error: {line}" for line in config_errors(exc, prefix="")), file=sys.stderr)
+        return EXIT_REFUSED
+    except (BackendUnavailable, FileNotFoundError, ValueError, zmq.ZMQError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return EXIT_REFUSED
+    if not args.no_prompt and backend.success_source == "operator" and sys.stdin.isatty():
+        bridge.on_confirmation_needed = _prompt_operator(bridge)
+    mode = " (observe-only: no motion)" if bridge.config.observe_only else ""
+    if bridge.estop.latched:
+        mode += f" (e-stop LATCHED: {bridge.estop.reason})"
+    print(f"robot bridge v{_version()} serving {backend.task_spec.name} ({type(backend).__name__}) on "
+          f"{bridge.control_endpoint}, operator socket {bridge.operator_endpoint}{mode}", flush=True)
+    signal.signal(signal.SIGTERM, lambda *_: bridge.stop())   # systemctl stop: a clean stop, as SIGINT
+    try:
+        bridge.serve_forever()
+    except KeyboardInterrupt:
+        pass
+    finally:
+        backend.close()
+    return 0
+
+
+def _build_bridge(args):
+    """The backend and the bound bridge of ``serve``; SetupRefused (or a pydantic ValidationError) before any
+    hardware moves."""
     import zmq
 
     from jepa_envs.real_robot.bridge import BridgeConfig, RobotBridge, network_bind_problem
@@ -162,17 +227,17 @@ def serve(args) -> int:
 
     def config_for(control: str, operator: str, record_dir: str | None, curve: dict) -> BridgeConfig:
         config = BridgeConfig(control, operator, record_dir, args.chunk_budget, args.observe_only,
-                              insecure_network=args.insecure_network, **curve)
+                              insecure_network=args.insecure_network, state_file=args.state_file, **curve)
         # refused before any hardware is opened (the bridge checks again before it binds)
         problem = network_bind_problem(config.control_address, config.curve_secret_key is not None,
                                        config.insecure_network)
         if problem:
-            raise SystemExit(f"error: {problem}")
+            raise SetupRefused(problem)
         return config
 
     if args.backend == "arx5":
         if not args.config:
-            raise SystemExit("--backend arx5 needs --config FILE (see deploy/robot/arx5_cabinet.toml)")
+            raise SetupRefused("--backend arx5 needs --config FILE (see deploy/robot/arx5_cabinet.toml)")
         from jepa_envs.real_robot.backends.arx5 import ARX5Backend, load_arx5_config
         setup = load_arx5_config(args.config)
         safety = setup.safety
@@ -183,7 +248,7 @@ def serve(args) -> int:
         backend = ARX5Backend(setup, image_size=args.image_size)
     elif args.backend == "replay":
         if not args.episode:
-            raise SystemExit("--backend replay needs --episode MANIFEST.json (an episode a bridge recorded)")
+            raise SetupRefused("--backend replay needs --episode MANIFEST.json (an episode a bridge recorded)")
         from jepa_envs.real_robot.backends.replay import ReplayBackend
         config = config_for(args.bind or "tcp://127.0.0.1:5555", args.operator_bind or _operator_default(),
                             args.record_dir, curve)
@@ -198,7 +263,7 @@ def serve(args) -> int:
         backend = ReplayBackend(args.episode, bounds=bounds, joint_count=joints, realtime=args.realtime)
     else:
         if not args.task:
-            raise SystemExit("--backend sim needs --task NAME (e.g. PushT)")
+            raise SetupRefused("--backend sim needs --task NAME (e.g. PushT)")
         import jepa_envs  # noqa: F401  (registers the tasks)
         from jepa_envs.real_robot.backends.sim import SimBackend
         config = config_for(args.bind or "tcp://127.0.0.1:5555", args.operator_bind or _operator_default(),
@@ -213,19 +278,8 @@ def serve(args) -> int:
         bridge.bind()
     except (ValueError, zmq.ZMQError) as exc:
         backend.close()
-        raise SystemExit(f"error: {exc}") from None
-    if not args.no_prompt and backend.success_source == "operator" and sys.stdin.isatty():
-        bridge.on_confirmation_needed = _prompt_operator(bridge)
-    mode = " (observe-only: no motion)" if config.observe_only else ""
-    print(f"robot bridge v{_version()} serving {backend.task_spec.name} ({type(backend).__name__}) on "
-          f"{bridge.control_endpoint}, operator socket {bridge.operator_endpoint}{mode}", flush=True)
-    try:
-        bridge.serve_forever()
-    except KeyboardInterrupt:
-        pass
-    finally:
-        backend.close()
-    return 0
+        raise SetupRefused(str(exc)) from None
+    return bridge, backend
 
 
 def _known_task(name: str) -> str:
@@ -256,7 +310,7 @@ def check(args) -> int:
     hardware."""
     from pydantic import ValidationError
 
-    from jepa_envs.real_robot.safety import SafetyConfig
+    from jepa_envs.real_robot.safety import SafetyConfig, config_errors
 
     raw = _read_toml(args.config)
     errors: list[str] = []
@@ -267,7 +321,7 @@ def check(args) -> int:
         try:
             setup = ARX5Config.model_validate(raw)
         except ValidationError as exc:
-            errors += [f"{'.'.join(map(str, e['loc'])) or 'config'}: {e['msg']}" for e in exc.errors()]
+            errors += config_errors(exc, prefix="")
         else:
             spec = get_task_spec(setup.task)
             notes.append(f"task {spec.name}: {spec.action_dim}-D actions, arms {list(spec.extra['arms'])}, "
@@ -278,6 +332,7 @@ def check(args) -> int:
             errors += _address_problems(setup.control_address, setup.operator_address, setup.curve_secret_key,
                                         args.insecure_network, notes)
             errors += _record_dir_problems(setup.record_dir)
+            notes += _rules_off(setup.safety, joints=True)
             for key in (setup.curve_secret_key, setup.curve_authorized_dir):
                 if key is not None and not Path(key).exists():
                     errors.append(f"{key} does not exist; make the keys with `jepa-robot-bridge keys`")
@@ -288,14 +343,16 @@ def check(args) -> int:
         try:
             safety = SafetyConfig.model_validate(raw.get("safety", {}))
         except ValidationError as exc:
-            errors += [f"safety.{'.'.join(map(str, e['loc']))}: {e['msg']}" for e in exc.errors()]
+            errors += config_errors(exc)
         else:
             from jepa_envs.real_robot.backends.sim import SimBackend
             backend = SimBackend(task)
             spec = backend.task_spec
             try:
-                errors += safety.problems(spec.action_dim, backend.joint_count, spec.control_hz)
+                errors += safety.problems(spec.action_dim, backend.joint_count, spec.control_hz,
+                                          action_range=(backend.action_low, backend.action_high))
                 notes.append(f"task {spec.name}: {spec.action_dim}-D actions, {backend.joint_count or 'no'} joints")
+                notes += _rules_off(safety, joints=backend.joint_count is not None)
             finally:
                 backend.close()
     for note in notes:
@@ -305,6 +362,16 @@ def check(args) -> int:
     print(f"{args.config}: " + ("OK, nothing touched" if not errors else f"{len(errors)} problem(s); fix them "
                                                                           "before starting the bridge"))
     return 0 if not errors else 1
+
+
+def _rules_off(safety, joints: bool) -> list[str]:
+    """The safety rules this set-up leaves off, said aloud (none is off without a line saying so)."""
+    notes = []
+    if safety.max_step_delta is None:
+        notes.append("WARNING safety.max_step_delta is not set: no per-step jump limit")
+    if joints and safety.joint_low is None and safety.joint_high is None:
+        notes.append("WARNING safety.joint_low/joint_high are not set: joints are not checked")
+    return notes
 
 
 def _address_problems(control: str, operator: str, curve: str | None, insecure_network: bool,
@@ -440,18 +507,21 @@ def main(argv: list[str] | None = None) -> int:
         return run_operator_command(argv)
     if not argv or argv[0] not in SUBCOMMANDS + ("-h", "--help"):
         argv = ["serve", *argv]
+    if argv[0] == "supervise":
+        args, serve_args = _parser().parse_known_args(argv)
+        from jepa_envs.real_robot.supervisor import supervise
+        return supervise(serve_args, args.state_file, args.restart_delay)
     args = _parser().parse_args(argv)
     if args.command == "serve":
         logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING,
                             format="%(asctime)s %(levelname)s %(name)s: %(message)s")
-        from pydantic import ValidationError
-
-        from jepa_envs.real_robot.backends.base import BackendUnavailable
         try:
             return serve(args)
-        except (BackendUnavailable, FileNotFoundError, ValidationError, ValueError) as exc:
-            print(f"error: {exc}", file=sys.stderr)
-            return 2
+        except SystemExit as exc:   # a refusal of the set-up helpers (unknown task, bad TOML ...)
+            if not isinstance(exc.code, str):
+                raise
+            print(exc.code if exc.code.startswith("error") else f"error: {exc.code}", file=sys.stderr)
+            return EXIT_REFUSED
     if args.command == "check":
         return check(args)
     if args.command == "observe":

@@ -36,6 +36,7 @@ from jepa_envs.real_robot.proxy import BridgeError, RealRobotEnv
 from jepa_operator import OperatorClient, OperatorError
 
 FLOOD_SOCKETS = 4
+FLOOD_HEARTBEATS = "JEPA_FLOOD_ZMTP_HEARTBEATS"   # set: the flood's sockets send ZMTP heartbeats of their own
 OPERATOR_CONNECTIONS = 50
 BIG_MESSAGE = msgpack.packb([1] * (16 * 1024 * 1024 - 16))   # 16 MiB of one-byte integers: slow to decode
 # each scenario's load processes (``aborts`` is its own loop of fresh bridges)
@@ -64,6 +65,10 @@ def run_flood(address: str, sockets: int = FLOOD_SOCKETS) -> None:
     for _ in range(sockets):
         sock = ctx.socket(zmq.DEALER)
         sock.setsockopt(zmq.LINGER, 0)
+        if os.environ.get(FLOOD_HEARTBEATS):   # the stranger's own ZMTP heartbeats: PINGs inside its flood
+            sock.setsockopt(zmq.HEARTBEAT_IVL, 10)
+            sock.setsockopt(zmq.HEARTBEAT_TTL, 1000)
+            sock.setsockopt(zmq.HEARTBEAT_TIMEOUT, 1000)
         sock.connect(address)
         socks.append(sock)
     sent = received = 0

@@ -148,18 +148,28 @@ class SafetyConfig(BaseModel):
 
 
 def config_errors(exc: ValidationError, prefix: str = "safety.") -> list[str]:
-    """One line per refused field of a pydantic ValidationError (a field typed ``list | float`` would otherwise
-    get one line per alternative), the finite-number reason first, with the value that was given."""
+    """One line per refused field of a pydantic ValidationError, naming the field, why and the value given. A
+    field typed ``list | float`` gets one error per alternative from pydantic; here it gets one line (the
+    finite-number reason first), and a list's entries are reported under the list's name."""
     by_field: dict[str, list[dict]] = {}
     for error in exc.errors():
-        by_field.setdefault(".".join(str(p) for p in error["loc"][:1]) or "config", []).append(error)
+        path = [str(p) for p in error["loc"] if isinstance(p, str) and "[" not in p and p not in _TYPE_TAGS]
+        by_field.setdefault(".".join(path) or "config", []).append(error)
     lines = []
     for name, errors in by_field.items():
         error = next((e for e in errors if "finite" in e["msg"]), errors[0])
+        reason = error["msg"].removeprefix("Value error, ")
+        if "finite" in reason:
+            reason += " (a NaN or infinite limit would switch its rule off)"
         given = error.get("input")
-        lines.append(f"{prefix}{name}: {error['msg'].removeprefix('Value error, ')}"
-                     + ("" if isinstance(given, dict) else f" (got {given!r:.60})"))
+        if "\n" in reason:   # a model-level check with several problems, each naming its field
+            lines += reason.splitlines()
+            continue
+        lines.append(f"{prefix}{name}: {reason}" + ("" if isinstance(given, dict) else f" (got {given!r:.60})"))
     return lines
+
+
+_TYPE_TAGS = {"float", "int", "str", "bool", "list", "none", "function-after", "function-before"}
 
 
 @dataclass

@@ -7,7 +7,6 @@ import sys
 
 import gymnasium as gym
 import numpy as np
-import pytest
 
 from jepa_envs.real_robot.cli import main
 from jepa_envs.tasks.spec import get_task_spec
@@ -56,11 +55,12 @@ def test_serve_is_default_and_operator_commands(capsys):
             server.wait()
 
 
-def test_serve_argument_errors():
-    with pytest.raises(SystemExit, match="needs --task"):
-        main(["--backend", "sim"])
-    with pytest.raises(SystemExit, match="needs --config"):
-        main(["serve", "--backend", "arx5"])
+def test_serve_argument_errors(capsys):
+    """A refused set-up exits 2 (the supervisor does not restart it) with one line naming the fix."""
+    assert main(["--backend", "sim"]) == 2
+    assert "needs --task" in capsys.readouterr().err
+    assert main(["serve", "--backend", "arx5"]) == 2
+    assert "needs --config" in capsys.readouterr().err
 
 
 def test_bench_prints_numbers(capsys, tmp_path):

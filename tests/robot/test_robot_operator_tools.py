@@ -1,4 +1,5 @@
-"""Operator tooling: set-up check, observe-only mode, dry run of a recording, asynchronous execution, e-stop."""
+"""Operator tooling: set-up check, observe-only mode, dry run of a recording, asynchronous execution, e-stop,
+a long-lived operator client, the e-stop latch across restarts."""
 from __future__ import annotations
 
 import json
@@ -9,16 +10,19 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from runbook_walker import free_port
 
 from jepa_envs.real_robot import protocol as P
 from jepa_envs.real_robot.backends.replay import ReplayBackend
+from jepa_envs.real_robot.backends.sim import SimBackend
 from jepa_envs.real_robot.bridge import BridgeConfig, RobotBridge
 from jepa_envs.real_robot.cli import main as bridge_main
 from jepa_envs.real_robot.episodes import load_episode
+from jepa_envs.real_robot.estop import EStop
 from jepa_envs.real_robot.executor import AsyncChunkExecutor
 from jepa_envs.real_robot.proxy import BridgeError
 from jepa_envs.real_robot.safety import SafetyConfig
-from jepa_operator import OperatorError
+from jepa_operator import OperatorClient, OperatorError
 
 ROOT = Path(__file__).resolve().parents[2]
 SETUP = ROOT / "deploy" / "robot" / "arx5_cabinet.toml"
@@ -213,3 +217,50 @@ def test_console_script_hands_other_commands_to_the_full_cli(tmp_path):
                          capture_output=True, text=True, timeout=120)
     assert out.returncode == 0 and "OK, nothing touched" in out.stdout
     assert P.PROTOCOL_VERSION == 3
+
+
+# ----------------------------------------------------------------------------- a long-lived operator client
+
+def test_operator_client_stays_usable_after_timeouts():
+    """Three calls in a row with no bridge each time out with TimeoutError (the REQ socket used to raise a raw
+    ZMQError from the second on); the same client then reaches a bridge started at that address, three calls in
+    a row, and none of the timed-out e-stops was delivered to it late."""
+    address = f"tcp://127.0.0.1:{free_port()}"
+    op = OperatorClient(address, timeout_s=0.3)
+    try:
+        for call in (op.estop, op.status, op.estop):
+            start = time.monotonic()
+            with pytest.raises(TimeoutError, match="no robot bridge answered"):
+                call()
+            assert time.monotonic() - start < 2.0
+        bridge = RobotBridge(SimBackend("PushT"), SafetyConfig(command_deadline_s=60.0),
+                             BridgeConfig("tcp://127.0.0.1:*", address)).start()
+        try:
+            op.timeout_ms = 5000
+            assert op.status()["estop"] is False, "a timed-out e-stop must never arrive late"
+            assert op.estop()["held"] is True
+            assert op.clear_estop()["estop"] is False
+        finally:
+            bridge.close()
+    finally:
+        op.close()
+
+
+def test_estop_latch_survives_a_crash_and_a_restart(tmp_path):
+    """The state file: a bridge that did not stop cleanly (or left the e-stop latched) restarts latched and stops
+    the robot at start; a clean stop with the e-stop clear restarts free; an unreadable file counts as a crash."""
+    state = tmp_path / "state.json"
+    stops = []
+    first = EStop(lambda: stops.append("stop"), str(state))
+    assert first.restore() is None and not first.latched and stops == []
+    # the process dies here without mark_clean_exit: the next start is latched and stops the robot
+    second = EStop(lambda: stops.append("stop"), str(state))
+    assert "unclean restart" in second.restore() and second.latched and stops == ["stop"]
+    second.mark_clean_exit()
+    third = EStop(lambda: stops.append("stop"), str(state))
+    assert "latched before the restart" in third.restore() and third.latched, "a clean stop keeps the latch"
+    third.clear()
+    third.mark_clean_exit()
+    assert EStop(lambda: None, str(state)).restore() is None
+    state.write_text("{half a fi")
+    assert "unclean restart" in EStop(lambda: None, str(state)).restore()

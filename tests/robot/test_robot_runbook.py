@@ -1,5 +1,6 @@
 """deploy/robot/RUNBOOK.md is walked as written, in its rehearsal set-up (the simulated backend, on free ports):
-keys, check, observe-only, start, e-stop, confirmation, status and stop. Between the blocks the test plays the
+keys, check, observe-only, start under the supervisor, e-stop, confirmation, a crash and the latched restart,
+status and stop. Between the blocks the test plays the
 policy computer (a real client over the control socket)."""
 from __future__ import annotations
 
@@ -22,8 +23,8 @@ RUNBOOK = ROOT / "deploy" / "robot" / "RUNBOOK.md"
 @pytest.mark.timeout(300)
 def test_robot_runbook_walks_in_rehearsal(tmp_path):
     blocks = [body for info, body in runbook_blocks(RUNBOOK.read_text()) if info == "sh"]
-    assert len(blocks) == 9, "the walk below follows the robot RUNBOOK's sh blocks one by one"
-    real, rehearsal, keys, check, observe_only, start, estop, confirm, stop = blocks
+    assert len(blocks) == 10, "the walk below follows the robot RUNBOOK's sh blocks one by one"
+    real, rehearsal, keys, check, observe_only, start, estop, confirm, crash, stop = blocks
     assert "--backend arx5" in real and "--backend sim" in rehearsal
     control, operator = free_port(), free_port()
     shell = Shell(tmp_path, {"5555": str(control), "5556": str(operator)})
@@ -59,6 +60,10 @@ def test_robot_runbook_walks_in_rehearsal(tmp_path):
         _, _, terminated, _, info = result["reply"]
         assert terminated and info["outcome"] == "success"
         env.close()
+        # a crash: the supervisor restarts the bridge, latched until the operator clears it
+        out = shell.run(crash)
+        assert "unclean restart" in out, out
+        assert "SIGABRT" in (tmp_path / "bridge.log").read_text(), "the supervisor says how the bridge ended"
         shell.run(stop)
         status = json.loads((tmp_path / "bridge-status.json").read_text())
         assert [e["kind"] for e in status["events"]].count("estop") == 1
@@ -75,6 +80,6 @@ def test_robot_runbook_console_blocks_name_real_files():
     for path in re.findall(r"deploy/robot/[\w./-]+", console):
         assert (ROOT / path).is_file(), path
     unit = (ROOT / "deploy/robot/jepa-robot-bridge.service").read_text()
-    assert ("ExecStart=/opt/jepa-policy/.venv/bin/jepa-robot-bridge serve --backend arx5 "
-            "--config /etc/jepa-robot/arx5.toml") in unit
+    assert ("ExecStart=/opt/jepa-policy/.venv/bin/jepa-robot-bridge supervise --state-file "
+            "/var/lib/jepa-robot/bridge-state.json --backend arx5 --config /etc/jepa-robot/arx5.toml") in unit
     assert "jepa-robot-bridge.service" in console

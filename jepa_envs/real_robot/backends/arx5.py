@@ -110,7 +110,7 @@ class ARX5Config(BaseModel):
         problems = self.safety.problems(spec.action_dim, JOINTS_PER_ARM * len(self.arms), spec.control_hz,
                                         action_range=arx5_action_bounds(self))
         if problems:
-            raise ValueError("; ".join(problems))
+            raise ValueError("\n".join(problems))   # one line each (safety.config_errors)
         if (self.curve_secret_key is None) != (self.curve_authorized_dir is None):
             raise ValueError("CurveZMQ needs both curve_secret_key and curve_authorized_dir (or neither)")
         return self

@@ -1,0 +1,146 @@
+"""The bridge under local load (issue 35): an e-stop no traffic delays, a bridge no flood kills or starves.
+
+Latencies are the benchmark's (``jepa-robot-bridge bench --load``); these tests check the behaviour that makes
+them: the e-stop is answered and the robot stopped while the event loop is stuck and 50 operators' commands
+wait for it; a flood of a stranger's frames (four full-speed sockets, closed mid-flood as the abort needed)
+leaves the bridge alive, the controller's link up and its chunks running; a stranger's big or fast messages are
+refused before they cost a decode; a client that falls silent is held, one that is busy in C is not.
+"""
+from __future__ import annotations
+
+import threading
+import time
+
+import numpy as np
+import pytest
+import zmq
+from robot_testkit import raw_socket, recv_reply, wait_for
+
+from jepa_envs.real_robot import protocol as P
+from jepa_envs.real_robot.load_bench import Bridge, Child
+from jepa_envs.real_robot.wire import STRANGER_BURST
+from jepa_operator import OperatorClient
+
+pytestmark = pytest.mark.timeout(180)
+
+
+@pytest.fixture
+def ctx():
+    context = zmq.Context()
+    yield context
+    context.destroy(linger=0)
+
+
+def test_estop_is_answered_while_the_loop_is_stuck_and_fifty_operators_wait(robot, ctx):
+    """The loop is inside a 2 s backend call and 50 operator connections each have a ``status`` waiting for it:
+    the e-stop from a 51st is still answered at once, by the operator thread, which also stopped the robot; no
+    action runs after it; the 50 statuses are answered once the loop is free. (Before: one operator request
+    at a time, each waiting up to 5 s for the loop, so the e-stop waited behind all of them.)"""
+    bridge = robot.bridge()
+    env = robot.client(bridge)
+    obs, _ = env.reset(seed=0)
+    backend, original_apply = bridge.backend, bridge.backend.apply
+    stops, applied_after, stuck = [], [], threading.Event()
+    backend.emergency_stop = lambda: stops.append(time.monotonic())
+
+    def slow_apply(action):
+        if bridge.estop.latched:
+            applied_after.append(action)
+        if not stuck.is_set():
+            stuck.set()
+            time.sleep(2.0)   # a long driver call: the event loop is busy
+        return original_apply(action)
+    backend.apply = slow_apply
+    chunk = threading.Thread(target=lambda: env.step_chunk(np.tile(obs["agent_pos"], (8, 1))))
+    chunk.start()
+    assert stuck.wait(10)
+    waiting = [raw_socket(ctx, zmq.REQ, bridge.operator_endpoint) for _ in range(50)]
+    for sock in waiting:
+        sock.send(P.encode({"type": P.OP_STATUS}))
+    time.sleep(0.3)   # every status is queued for the loop
+    start = time.monotonic()
+    with OperatorClient(bridge.operator_endpoint, timeout_s=1.5) as op:
+        status = op.estop()
+    answered = time.monotonic()
+    assert status["estop"] and status["held"] and bridge.estop.latched
+    assert len(stops) == 1 and start <= stops[0] <= answered
+    assert chunk.is_alive(), "answered while the loop was still inside the backend's call"
+    chunk.join(timeout=20)
+    replies = [recv_reply(sock) for sock in waiting]
+    assert all(r["type"] == P.RESULT and r["status"]["estop"] for r in replies)
+    assert applied_after == []
+    assert wait_for(lambda: (s := robot.operator(bridge).status())["episode"]["reason"] == "estop" and s)
+
+
+def test_a_flood_neither_kills_the_bridge_nor_starves_the_controller(tmp_path):
+    """A sim bridge in its own process with the default link timeout (one control period), a controller running
+    chunks back to back, and three bursts of a stranger's flood (four DEALER sockets, undecodable and tokenless
+    frames at full speed, closed while their pipes are full: what made libzmq 4.3.5 abort the bridge with ZMTP
+    heartbeats on, about one flood in two). The bridge lives, the controller keeps its link and runs chunks
+    during every burst, and an e-stop during a burst is answered."""
+    bridge = Bridge()
+    controller = Child("controller", bridge.control)
+    try:
+        controller.wait_ready()
+        bursts = []
+        for _ in range(3):
+            flood = Child("flood", bridge.control)
+            time.sleep(1.5)
+            bursts.append((time.time() - 1.2, time.time()))
+            if not bursts[1:]:   # the e-stop during the first burst
+                with OperatorClient(bridge.operator, timeout_s=5.0) as op:
+                    assert op.estop()["held"] is True
+                    assert op.clear_estop()["estop"] is False
+            flood.finish()
+            time.sleep(0.3)   # the flood's connections close: the abort came here
+            assert bridge.alive(), f"the bridge died: {bridge.abort_line()}"
+        status = bridge.status()
+        assert status["client"] == "controller" and status["link"] == "up"
+        assert not [e for e in status["events"] if e["kind"].startswith("link")], status["events"]
+        assert status["counters"].get("rate_limited", 0) > 0
+    finally:
+        chunks = np.asarray(controller.finish().get("chunks", []))
+        bridge.close()
+    for a, b in bursts:
+        assert ((chunks > a) & (chunks < b)).sum() > 0, "the controller ran no chunk during a flood"
+
+
+def test_strangers_are_limited_before_decoding_and_the_session_is_not(robot, ctx):
+    """A message above the stranger limit is refused unread; one above the socket's limit closes the sender's
+    connection inside libzmq; a stranger sending faster than it is answered gets the prepared refusal; the
+    session's own requests are served throughout."""
+    bridge = robot.bridge()
+    env = robot.client(bridge)
+    obs, _ = env.reset(seed=0)
+    stranger = raw_socket(ctx, zmq.DEALER, bridge.control_endpoint)
+    stranger.send(b"\x91" + b"\x00" * (P.MAX_STRANGER_MESSAGE_BYTES + 1))
+    reply = recv_reply(stranger)
+    assert reply["code"] == P.ERR_BAD_MESSAGE and "does not control the robot" in reply["message"]
+    giant = raw_socket(ctx, zmq.DEALER, bridge.control_endpoint, timeout_ms=500)
+    giant.send(b"\x00" * (P.MAX_CONTROL_MESSAGE_BYTES + 1))
+    with pytest.raises(zmq.Again):
+        giant.recv()
+    for i in range(3 * STRANGER_BURST):
+        stranger.send(P.encode({"type": P.STEP, "seq": i, "action": [1.0, 2.0]}))
+    codes = [recv_reply(stranger).get("code") for _ in range(3 * STRANGER_BURST)]
+    assert codes.count(P.ERR_RATE) > 0 and codes.count(P.ERR_NOT_CONTROLLING) >= STRANGER_BURST
+    assert env.step_chunk(np.tile(obs["agent_pos"], (8, 1)))[4]["executed"] == 8
+    counters = robot.operator(bridge).status()["counters"]
+    assert counters["oversized"] == 1 and counters["rate_limited"] == codes.count(P.ERR_RATE)
+    assert bridge._control.getsockopt(zmq.HEARTBEAT_IVL) == 0, "no ZMTP heartbeats: libzmq aborts with them"
+
+
+def test_a_silent_session_is_held_and_its_next_request_resumes_it(robot, ctx):
+    """A session without a link connection (a raw client) that sends nothing for the link timeout is held; its
+    next request resumes it. (A proxy env's link echoes the pings, so a quiet but live client is never held:
+    tests/robot/test_robot_link.py.)"""
+    bridge = robot.bridge(link_timeout_s=0.3, command_deadline_s=60.0)
+    raw = raw_socket(ctx, zmq.DEALER, bridge.control_endpoint)
+    raw.send(P.encode({"type": P.HELLO, "client": "raw", "seq": 1}))
+    token = recv_reply(raw)["session"]
+    op = robot.operator(bridge)
+    status = wait_for(lambda: (s := op.status())["link"] == "held" and s)
+    assert "no request and no echo" in [e for e in status["events"] if e["kind"] == "link_hold"][0]["message"]
+    raw.send(P.encode({"type": P.OBSERVE, "session": token, "seq": 2}))
+    assert recv_reply(raw)["type"] == P.RESULT
+    assert [e["kind"] for e in op.status()["events"]].count("link_resumed") == 1
