@@ -14,8 +14,7 @@ import numpy as np
 from monitor_service import scoring
 from monitor_service.ingest import sql as statements
 from monitor_service.ingest.sql import Sql
-from monitor_service.ingest.state import (Dec, EpisodeState, IngestError, Request, Tgt, decision_digest,
-                                          target_digest)
+from monitor_service.ingest.state import Dec, EpisodeState, IngestError, Request, Tgt
 from monitor_service.schemas import DecisionIn, OutcomeIn, TargetIn
 
 
@@ -84,6 +83,14 @@ def _target_z(store: Episodes, cur, ep: EpisodeState, step: int) -> bytes | None
     return statements.target_latent(store.sql, cur, ep.id, step)
 
 
+def _stored_as(store: Episodes, cur, ep: EpisodeState, step: int, d: Dec) -> tuple:
+    """(horizon, z_hat, z_now, scores) of an existing decision: from memory while its latents are kept (or it
+    sent none), else from its row."""
+    if d.z_hat is not None or d.horizon is None or not d.stored:
+        return d.horizon, d.z_hat, d.z_now, d.scores
+    return statements.stored_decision(store.sql, cur, ep.id, step)
+
+
 def _pair(req: Request, ep: EpisodeState, step: int, d: Dec, z: bytes) -> None:
     """Pair a decision with its realized latent; scored with the request's other pairs (``compute_scores``)."""
     ep.unscored.discard(step)
@@ -140,13 +147,13 @@ def apply_decision(store: Episodes, cur, req: Request, rec: DecisionIn) -> None:
             raise IngestError(409, f"episode {ep.id!r} has ended (outcome recorded); start a new episode id")
     z_hat = None if rec.z_hat is None else rec.z_hat.tobytes()   # validated as little-endian float32 (schemas.Latent)
     z_now = None if rec.z_now is None else rec.z_now.tobytes()
-    digest = decision_digest(rec.horizon, z_hat, z_now, rec.scores)
+    scores = rec.scores or None
     existing = ep.decisions.get(rec.step)
     if existing is not None:
-        if existing.digest == digest:
+        if _stored_as(store, cur, ep, rec.step, existing) == (rec.horizon, z_hat, z_now, scores):
             return   # the same record again: nothing to change, nothing double-counted
         raise IngestError(409, f"episode {ep.id!r} already has a different decision at step {rec.step}")
-    d = Dec(rec.horizon, digest, z_hat=z_hat, z_now=z_now, stored=False, scores=rec.scores or None)
+    d = Dec(rec.horizon, z_hat=z_hat, z_now=z_now, stored=False, scores=scores)
     ep.decisions[rec.step] = d
     for name, value in (rec.scores or {}).items():
         insort(ep.series.setdefault(name, []), (rec.step, float(value)))
@@ -173,17 +180,21 @@ def apply_target(store: Episodes, cur, req: Request, rec: TargetIn) -> None:
     ep = _known(store, cur, req, rec.episode, "targets")
     _check_dim(store, cur, req, ep.task, rec.z.shape[0], "z")
     z = rec.z.tobytes()
-    digest = target_digest(z)
     existing = ep.targets.get(rec.step)
     if existing is not None:
-        if existing.digest == digest:
+        known = existing.z
+        if known is None:   # used by a decision: its bytes are in this request or stored
+            known = next((t for e, s, t in req.new_targets if e == ep.id and s == rec.step), None) or \
+                statements.target_latent(store.sql, cur, ep.id, rec.step)
+        if known == z:
             return
         raise IngestError(409, f"episode {ep.id!r} already has a different realized latent at step {rec.step}")
     aimed = sorted(step for step in ep.unscored if step + ep.decisions[step].horizon == rec.step)
     for step in aimed:
-        _pair(req, ep, step, ep.changed_decision(step), z)
+        d = ep.decisions[step]   # a decision of this request is the draft's own; a stored one is shared: copy it
+        _pair(req, ep, step, ep.changed_decision(step) if d.stored else d, z)
     used = bool(aimed)
-    ep.targets[rec.step] = Tgt(digest, None if used else z)
+    ep.targets[rec.step] = Tgt(None if used else z)
     req.new_targets.append((ep.id, rec.step, z))
     req.counts["target"] += 1
     req.observations.append(("target", ep.task, ep.robot, 1.0))

@@ -8,7 +8,7 @@ from __future__ import annotations
 import json
 
 from monitor_service.db import utcnow
-from monitor_service.ingest.state import Dec, EpisodeState, Request, StaleState, Tgt, decision_digest, target_digest
+from monitor_service.ingest.state import Dec, EpisodeState, Request, StaleState, Tgt
 
 EPISODE_COLUMNS = ("id, task, robot, checkpoint, group_name, held_out, success, length, version, n_decisions, "
                    "n_scored, last_evaluated_step, over_count, under_count, open_alert_id, early_score, "
@@ -98,7 +98,7 @@ def load_episode(sql: Sql, cur, episode_id: str) -> EpisodeState | None:
     for step, horizon, nmse, pers, z_hat, z_now, scores in cur.fetchall():
         z_hat, z_now = None if z_hat is None else bytes(z_hat), None if z_now is None else bytes(z_now)
         scores = scores if scores is None or isinstance(scores, dict) else json.loads(scores)
-        d = Dec(horizon, decision_digest(horizon, z_hat, z_now, scores), nmse, pers, scores=scores)
+        d = Dec(horizon, nmse, pers, scores=scores)
         if z_hat is not None and nmse is None:
             d.z_hat, d.z_now = z_hat, z_now
             ep.unscored.add(step)
@@ -110,10 +110,21 @@ def load_episode(sql: Sql, cur, episode_id: str) -> EpisodeState | None:
     aimed = {s + d.horizon for s, d in ep.decisions.items() if d.horizon is not None}
     cur.execute(q("SELECT step, z FROM targets WHERE episode_id = ?"), (episode_id,))
     for step, z in cur.fetchall():
-        z = bytes(z)
-        ep.targets[step] = Tgt(target_digest(z), None if step in aimed else z)
+        ep.targets[step] = Tgt(None if step in aimed else bytes(z))
     ep.count_gaps()
     return ep
+
+
+def stored_decision(sql: Sql, cur, episode_id: str, step: int) -> tuple | None:
+    """(horizon, z_hat, z_now, scores) of a stored decision (to recognise a resend), or None."""
+    cur.execute(sql.q("SELECT horizon, z_hat, z_now, scores FROM decisions WHERE episode_id = ? AND step = ?"),
+                (episode_id, step))
+    row = cur.fetchone()
+    if row is None:
+        return None
+    horizon, z_hat, z_now, scores = row
+    return (horizon, None if z_hat is None else bytes(z_hat), None if z_now is None else bytes(z_now),
+            scores if scores is None or isinstance(scores, dict) else json.loads(scores))
 
 
 def target_latent(sql: Sql, cur, episode_id: str, step: int) -> bytes | None:

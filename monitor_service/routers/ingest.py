@@ -13,6 +13,7 @@ from monitor_service import metrics
 from monitor_service.auth import Principal, authenticate
 from monitor_service.encoding import MSGPACK_CONTENT_TYPE, BodyError, decode_body
 from monitor_service.ingest import IngestError, IngestStore, StaleState
+from monitor_service.ingest.validation import plain_records
 from monitor_service.schemas import BatchIn, DecisionIn, IngestResult, OutcomeIn, TargetIn, errors
 
 router = APIRouter(prefix="/v1", tags=["ingest"])
@@ -32,16 +33,21 @@ def _error(status: int, message: str) -> JSONResponse:
     return JSONResponse({"detail": message}, status_code=status)
 
 
-def _handle(request: Request, body: bytes, adapter: TypeAdapter, principal: Principal, locked: bool = False
-            ) -> JSONResponse:
-    """Validate and apply one ingest body under the process's write lock (``locked``: the caller holds it)."""
+def _handle(request: Request, body: bytes, route: tuple[TypeAdapter, str | None], principal: Principal,
+            locked: bool = False) -> JSONResponse:
+    """Validate and apply one ingest body under the process's write lock (``locked``: the caller holds it).
+    Plain valid records skip pydantic (``ingest/validation.py``); anything else gets its checks and words."""
+    adapter, kind = route
     try:
-        payload = adapter.validate_python(decode_body(body, request.headers.get("content-type")))
+        decoded = decode_body(body, request.headers.get("content-type"))
+        records = plain_records(decoded, kind)
+        if records is None:
+            payload = adapter.validate_python(decoded)
+            records = payload.records if isinstance(payload, BatchIn) else [payload]
     except BodyError as exc:
         return _error(400, str(exc))
     except ValidationError as exc:
         return _error(422, validation_message(exc))
-    records = payload.records if isinstance(payload, BatchIn) else [payload]
     key = request.headers.get("idempotency-key")
     if key is not None and not 1 <= len(key) <= 128:
         return _error(400, "Idempotency-Key must be 1 to 128 characters; use a UUID per logical request")
@@ -68,7 +74,7 @@ def _handle(request: Request, body: bytes, adapter: TypeAdapter, principal: Prin
     raise AssertionError("unreachable")
 
 
-async def ingest_response(request: Request, adapter: TypeAdapter) -> JSONResponse:
+async def ingest_response(request: Request, route: tuple[TypeAdapter, str | None]) -> JSONResponse:
     """Authenticate (robot keys only), read the body and apply it: the whole of an ingest request."""
     principal = authenticate(request, "robot", exact=True)
     body = await request.body()
@@ -77,15 +83,15 @@ async def ingest_response(request: Request, adapter: TypeAdapter) -> JSONRespons
     # its session's teardown, which the event loop must run, so waiting for it here would never end.
     if request.app.state.ingest.inline and lock.acquire(blocking=False):
         try:
-            return _handle(request, body, adapter, principal, locked=True)
+            return _handle(request, body, route, principal, locked=True)
         finally:
             lock.release()
-    return await run_in_threadpool(_handle, request, body, adapter, principal)
+    return await run_in_threadpool(_handle, request, body, route, principal)
 
 
-def _endpoint(adapter: TypeAdapter, summary: str):
+def _endpoint(route: tuple[TypeAdapter, str | None], summary: str):
     async def endpoint(request: Request) -> JSONResponse:
-        return await ingest_response(request, adapter)
+        return await ingest_response(request, route)
 
     endpoint.__doc__ = summary
     return endpoint
@@ -97,7 +103,9 @@ ROUTES = (
     ("/outcomes", OutcomeIn, "Record an episode's outcome (success or failure, held-out or not)."),
     ("/batch", BatchIn, "Apply a list of decision/target/outcome records in order, all or nothing."),
 )
-ADAPTERS = {"/v1" + path: TypeAdapter(model) for path, model, _ in ROUTES}
+# path -> (its validator, the record kind of a single-record route; None for a batch)
+ADAPTERS = {"/v1" + path: (TypeAdapter(model), None if model is BatchIn else model.model_fields["kind"].default)
+            for path, model, _ in ROUTES}
 
 for path, model, summary in ROUTES:
     router.add_api_route(
@@ -121,11 +129,11 @@ class IngestFastPath:
         self.app = app
 
     async def __call__(self, scope, receive, send):
-        adapter = ADAPTERS.get(scope["path"]) if scope["type"] == "http" and scope["method"] == "POST" else None
-        if adapter is None:
+        route = ADAPTERS.get(scope["path"]) if scope["type"] == "http" and scope["method"] == "POST" else None
+        if route is None:
             return await self.app(scope, receive, send)
         try:
-            response = await ingest_response(Request(scope, receive), adapter)
+            response = await ingest_response(Request(scope, receive), route)
         except HTTPException as exc:   # 401 / 403 from authenticate
             response = JSONResponse({"detail": exc.detail}, exc.status_code, headers=exc.headers)
         await response(scope, receive, send)
