@@ -27,9 +27,10 @@ from websockets.sync.client import connect
 
 from jepa_envs.rollouts.pool import available_cores
 from jepa_envs.tasks.spec import get_task_spec
-from jepa_policy.checkpoint import build_model, save_eval_snapshot
+from jepa_policy.checkpoint import save_eval_snapshot
 from jepa_policy.config import ModelConfig
 from jepa_policy.evaluate import evaluate, make_pool
+from jepa_policy.model import build_model
 from jepa_policy.policy import Policy
 from jepa_policy.serve import MAX_REQUEST_BYTES, pack, unpack
 from jepa_policy.train import load_config, resolve_device

@@ -7,8 +7,8 @@ from __future__ import annotations
 
 import torch
 
-from jepa_policy.checkpoint import build_model
 from jepa_policy.config import ModelConfig
+from jepa_policy.model import build_model
 
 # The paper's Tool Hang counts in millions (Sec. 4.2 "Compared Methods", Table 5).
 PAPER_TOOLHANG_M: dict[str, dict[str, float]] = {

@@ -5,7 +5,7 @@ import numpy as np
 import torch
 
 from jepa_policy.config import ModelConfig
-from jepa_policy.checkpoint import build_model
+from jepa_policy.model import build_model
 
 TINY = dict(image_size=24, encoder_width=8, width=32, layers=2, heads=2, time_emb_dim=8, dropout=0.0,
             dual_future_width=16, dual_future_layers=2, diffusion_keypoints=4, diffusion_feature_dim=8,

@@ -7,7 +7,8 @@ from jepa_envs.datasets.hdf5 import load_dataset
 from jepa_envs.tasks.spec import get_task_spec
 from jepa_policy.config import ModelConfig
 from jepa_policy.dataset import normalizer_stats
-from jepa_policy.checkpoint import build_model, load_checkpoint
+from jepa_policy.checkpoint import load_checkpoint
+from jepa_policy.model import build_model
 from jepa_policy.policy import Policy
 from jepa_policy.train import load_config, train
 
