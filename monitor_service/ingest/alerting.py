@@ -122,7 +122,8 @@ class Alerting:
         evaluated counts for the scores but is not evaluated for alerts."""
         self.early_score(ep)
         ep.n_scored += req.newly_scored.get(ep.id, 0)
-        running = scoring.running_score([v for _, v in ep.scored], self.settings.running_window)
+        window = self.settings.running_window
+        running = scoring.running_score([v for _, v in ep.scored[-window:]], window)
         if running is not None:
             ep.running_score = running
         state = dict(ep.signal_state or {})
