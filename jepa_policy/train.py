@@ -19,6 +19,7 @@ import random
 import shutil
 import sys
 import time
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -397,21 +398,32 @@ def resume(cfg: TrainConfig, learner: Learner, ranks: Ranks, selection: dict | N
 
     A best-of-K run continues with the seed it chose: from here that seed drives the batches and the noise."""
     ckpt = load_checkpoint(cfg.resume, map_location=ranks.device)
-    if cfg.stop_at and cfg.stop_at <= int(ckpt["step"]):
-        raise ValueError(f"stop_at {cfg.stop_at} is not after the checkpoint's step {int(ckpt['step'])}; pass "
+    step = int(ckpt["step"])
+    if cfg.stop_at and cfg.stop_at <= step:
+        raise ValueError(f"stop_at {cfg.stop_at} is not after the checkpoint's step {step}; pass "
                          f"--stop-at 0 to train to step {cfg.steps}, or a later --stop-at")
-    if ranks.is_main:
-        print(f"resuming {cfg.resume} at step {int(ckpt['step'])}: training to step {cfg.stop_at or cfg.steps}"
-              f" of {cfg.steps}", file=sys.stderr, flush=True)
+    if cfg.steps < step:
+        raise ValueError(f"--steps {cfg.steps} ends before the checkpoint's step {step}; pass --steps {step} or more")
     learner.model.load_state_dict(ckpt["model"])
     learner.ema.load_state_dict(ckpt["ema"])
     learner.optimizer.load_state_dict(ckpt["optimizer"])
     learner.scheduler.load_state_dict(ckpt["scheduler"])
+    planned = ckpt["train_config"]
+    note = ""
+    if (planned["steps"], planned["warmup_steps"]) != (cfg.steps, cfg.warmup_steps):
+        lr_before = learner.scheduler.get_last_lr()[0]
+        learner.scheduler = schedule_at(learner.optimizer, cfg, step)
+        note = (f"; its schedule was planned for {planned['steps']} steps ({planned['warmup_steps']} warm-up): one "
+                f"cosine schedule now ends at step {cfg.steps}, as in a run launched with --steps {cfg.steps} "
+                f"(lr at step {step}: {lr_before:.3g} -> {learner.scheduler.get_last_lr()[0]:.3g})")
+    if ranks.is_main:
+        print(f"resuming {cfg.resume} at step {step}: training to step {cfg.stop_at or cfg.steps} of {cfg.steps}"
+              f"{note}", file=sys.stderr, flush=True)
     set_rng_state(ckpt["rng"])
     selection = selection or ckpt.get("init_selection")
     if selection:
         cfg = dataclasses.replace(cfg, seed=int(selection["chosen_seed"]))
-    return cfg, int(ckpt["step"]), list(ckpt["eval_curve"]), selection
+    return cfg, step, list(ckpt["eval_curve"]), selection
 
 
 def batch_stream(cfg: TrainConfig, data: TrainingData, ranks: Ranks, step: int):
@@ -570,6 +582,21 @@ def cosine_with_warmup(optimizer: torch.optim.Optimizer, warmup_steps: int, tota
         return after
     warm = torch.optim.lr_scheduler.LinearLR(optimizer, start_factor=1.0 / warmup_steps, total_iters=warmup_steps)
     return torch.optim.lr_scheduler.SequentialLR(optimizer, [warm, after], milestones=[warmup_steps])
+
+
+def schedule_at(optimizer: torch.optim.Optimizer, cfg: TrainConfig, step: int):
+    """The schedule of a run launched with ``cfg.steps`` (and ``cfg.warmup_steps``), advanced to ``step``: a
+    resume that changes the length continues on it, so the learning rate follows one warm-up and one cosine to
+    the new end instead of the old cosine's, which reaches 0 at the old end and climbs back to the peak.
+    The steps are replayed, so every later lr equals that of the run launched with this length, bit for bit."""
+    for group in optimizer.param_groups:
+        group["lr"] = group["initial_lr"]    # the base lr the checkpoint's schedule started from
+    scheduler = cosine_with_warmup(optimizer, cfg.warmup_steps, cfg.steps)
+    with warnings.catch_warnings():   # replaying the schedule alone is what torch warns about here
+        warnings.filterwarnings("ignore", message=r"Detected call of `lr_scheduler\.step\(\)` before")
+        for _ in range(step):
+            scheduler.step()
+    return scheduler
 
 
 def resolve_device(name: str, local_rank: int = 0) -> torch.device:

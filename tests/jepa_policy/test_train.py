@@ -20,7 +20,7 @@ def demos(pusht_demo_file):
 
 def test_every_task_has_validated_presets():
     sim = [s for s in all_task_specs() if s.suite in ("embedded", "robomimic", "libero", "mimicgen")]
-    assert len(sim) == 12  # PushT + the paper's nine simulated tasks + robomimic's Lift and Can
+    assert len(sim) == 13  # PushT, PushTStandard + the paper's nine simulated tasks + robomimic's Lift and Can
     for spec in sim:
         paper = load_config(spec.name, "paper")
         assert (paper.steps, paper.batch_size, paper.lr, paper.ema_decay) == (300_000, 256, 1e-4, 0.995)
@@ -94,6 +94,28 @@ def test_resume_reproduces_the_uninterrupted_run_exactly(demos, tmp_path):
     assert [r["step"] for r in rows] == list(range(1, 9))
     assert list((tmp_path / "part" / "tensorboard").glob("events.out.tfevents.*"))
     assert json.loads((tmp_path / "part" / "train_config.json").read_text())["stop_at"] == 0
+
+
+def test_resume_with_more_steps_continues_one_cosine_to_the_new_end(demos, tmp_path, capsys):
+    """Issue 36.4: resuming a finished 6-step run with --steps 12 kept the 6-step cosine: lr 0 at step 6, then back
+    up to the peak at step 12. Now it follows the schedule of a run launched with 12 steps, bit for bit."""
+    opts = dict(log_every=1, warmup_steps=2, batch_size=8)
+    short = train(load_config("PushT", "quick", out_dir=str(tmp_path / "short"), steps=6, **opts), demos)
+    capsys.readouterr()
+    longer = train(load_config("PushT", "quick", out_dir=str(tmp_path / "short"), steps=12,
+                               resume=short["checkpoint"], **opts), demos)
+    assert "one cosine schedule now ends at step 12, as in a run launched with --steps 12" in capsys.readouterr().err
+    launched = train(load_config("PushT", "quick", out_dir=str(tmp_path / "long"), steps=12, **opts), demos)
+    resumed_lr = [h["lr"] for h in longer["history"]]
+    assert [h["step"] for h in longer["history"]] == list(range(7, 13))
+    assert resumed_lr == [h["lr"] for h in launched["history"][6:]]
+    after_warmup = [h["lr"] for h in launched["history"][1:]]
+    assert all(a >= b for a, b in zip(after_warmup, after_warmup[1:])) and resumed_lr[-1] == pytest.approx(0, abs=1e-12)
+    assert resumed_lr[0] > 0.4e-3        # the new schedule's lr at step 7, not the old one's 0 climbing back
+    # the same length keeps the checkpoint's own schedule (exact resume, tested above); a shorter one is refused
+    with pytest.raises(ValueError, match="--steps 4 ends before the checkpoint's step 12"):   # its latest.pt now
+        train(load_config("PushT", "quick", out_dir=str(tmp_path / "short"), steps=4, resume=short["checkpoint"],
+                          **opts), demos)
 
 
 def test_train_rejects_dataset_of_another_task(demos, tmp_path):
