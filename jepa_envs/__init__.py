@@ -15,7 +15,7 @@ from jepa_envs.tasks.entry import creator  # noqa: E402
 from jepa_envs.tasks.spec import TaskSpec, all_task_specs, get_task_spec, register_task  # noqa: E402
 
 _ENTRY_POINTS = {
-    "embedded": "jepa_envs.tasks.pusht:PushTEnv",
+    "embedded": "jepa_envs.tasks.pusht_variants:make_pusht",   # variant="embedded" (default) or "standard"
     "robomimic": "jepa_envs.tasks.robomimic_env:RobomimicEnv",
     "libero": "jepa_envs.tasks.libero_env:LiberoEnv",
     "mimicgen": "jepa_envs.tasks.mimicgen_env:MimicGenEnv",

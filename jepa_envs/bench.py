@@ -18,6 +18,7 @@ from typing import Callable
 import gymnasium as gym
 import numpy as np
 import jepa_envs  # noqa: F401  (registers the ids)
+from jepa_envs.tasks import pusht_standard
 from jepa_envs.tasks.pusht import coverage
 from jepa_envs.tasks.spec import TaskSpec, all_task_specs, backend_available, get_task_spec
 from jepa_envs.tasks.wrappers import RenderOnDemand, render_schedule
@@ -42,13 +43,16 @@ def _raw_step(env) -> Callable[[], None]:
     base = env.unwrapped
     native = base.native_zero_action()
     backend = base.backend
-    if type(backend).__name__ == "PushTSim":  # the pymunk sim renders and scores on request, not in step()
+    if type(backend).__name__ in ("PushTSim", "StandardPushTSim"):   # pymunk sims render and score on request
         size = base.task_spec.image_size
+        score = pusht_standard.coverage if type(backend).__name__ == "StandardPushTSim" else coverage
+        render = (lambda: backend.render(size, size)) if score is pusht_standard.coverage else (
+            lambda: backend.render(size))
 
         def step():
             backend.step(native)
-            backend.render(size)
-            coverage(backend.block_pose)
+            render()
+            score(backend.block_pose)
         return step
     return lambda: backend.step(native)
 

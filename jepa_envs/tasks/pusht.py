@@ -130,6 +130,18 @@ def coverage(block_pose, goal_pose=GOAL_POSE) -> float:
 _GOAL_EDGES = [_clip_edges(p) for p in _part_vertices(GOAL_POSE)]
 
 
+def clip_regions(parts) -> list:
+    """Convex polygons (vertex lists) in the half-plane form ``overlap_area`` clips with; precompute it for a
+    polygon used often (a goal)."""
+    return [_clip_edges(p) for p in parts]
+
+
+def overlap_area(parts, regions) -> float:
+    """Area of the union of disjoint convex ``parts`` (vertex lists) inside the union of disjoint convex
+    ``regions`` (from ``clip_regions``): the sum of the pairwise convex intersections, exact."""
+    return sum(_clipped_area(p, r) for p in parts for r in regions)
+
+
 def wrap_angle(a: float) -> float:
     return (a + math.pi) % (2 * math.pi) - math.pi
 
@@ -310,8 +322,9 @@ class PushTEnv(JEPAEnv):
     def __init__(self, task: str = "PushT", image_size: int | None = None, render_mode: str | None = None,
                  difficulty: str | PushTDifficulty = "easy", render_size: int = 256, **options):
         spec = get_task_spec(task)
-        if spec.suite != "embedded":
-            raise ValueError(f"PushTEnv builds the embedded PushT task, not {task!r} (suite {spec.suite})")
+        if spec.name != "PushT":
+            raise ValueError(f"PushTEnv builds the embedded PushT task, not {task!r} (the standard PushT is "
+                             "jepa_envs.tasks.pusht_standard.PushTStandardEnv)")
         if image_size is not None:
             if int(image_size) < 8:
                 raise ValueError(f"image_size must be >= 8 pixels, got {image_size}")
@@ -418,7 +431,12 @@ _T_BOXES = tuple((float(lo[0]), float(lo[1]), float(hi[0]), float(hi[1]))
 
 
 def point_t_distance(point, pose) -> float:
-    """Distance from a world point to the T at ``pose`` (0 inside).
+    """Distance from a world point to the T at ``pose`` (0 inside)."""
+    return point_boxes_distance(point, pose, _T_BOXES)
+
+
+def point_boxes_distance(point, pose, boxes) -> float:
+    """Distance from a world point to a union of body-frame boxes (x0, y0, x1, y1) at ``pose`` (0 inside).
 
     Scalar float arithmetic: the expert calls this tens of thousands of times per demonstration, where numpy's
     per-call overhead on 2-vectors dominated. ``np.hypot`` is kept where both gaps are non-zero, so results are
@@ -428,7 +446,7 @@ def point_t_distance(point, pose) -> float:
     dx, dy = float(point[0]) - x, float(point[1]) - y
     lx, ly = c * dx + s * dy, -s * dx + c * dy  # inverse of ``transform``
     best = math.inf
-    for x0, y0, x1, y1 in _T_BOXES:
+    for x0, y0, x1, y1 in boxes:
         gx, gy = max(x0 - lx, lx - x1, 0.0), max(y0 - ly, ly - y1, 0.0)
         best = min(best, gx if gy == 0.0 else gy if gx == 0.0 else float(np.hypot(gx, gy)))
     return best

@@ -1,4 +1,5 @@
-"""Scripted expert for JEPA/PushT-v0: push planning by simulation over a fixed grid of candidate pushes.
+"""Scripted expert for JEPA/PushT-v0 (both variants): push planning by simulation over a fixed grid of candidate
+pushes.
 
 Every time its queue of targets runs out the expert plans one *push*. Candidates form a fixed grid: every edge
 of the T's outline, three contact points per edge, three push directions around the inward normal and two push
@@ -7,7 +8,8 @@ the push start when clear, else around the block on a safe circle, then the push
 the pymunk space (``Space.copy``, rewound per candidate); the expert executes the one that brings the block
 closest to the goal pose (or reaches success) at the smallest number of steps. A fixed grid makes the choice a
 near-deterministic function of the state, which is what makes the demos imitable; the seeded jitter of the grid
-and of the speeds per push makes them vary.
+and of the speeds per push makes them vary. What it needs to know of a variant's T (outline, distance, coverage)
+is a ``TGeometry``; the simulator it plans on (``PushTSim`` or ``StandardPushTSim``) picks it.
 """
 from __future__ import annotations
 
@@ -17,12 +19,16 @@ import math
 import multiprocessing
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import asdict, dataclass
+from typing import Callable
 
 import numpy as np
 from tqdm import tqdm
 
+from jepa_envs.tasks import pusht_standard as standard
 from jepa_envs.tasks.pusht import (AGENT_RADIUS, GOAL_POSE, T_OUTLINE, T_RADIUS, WORLD_SIZE, PushTEnv, PushTSim,
-                             coverage, point_t_distance, transform, wrap_angle)
+                                   coverage, point_boxes_distance, point_t_distance, transform, wrap_angle)
+from jepa_envs.tasks.pusht_standard import PushTStandardEnv, StandardPushTSim
+from jepa_envs.tasks.pusht_variants import make_pusht
 
 ANGLE_WEIGHT = 60.0  # world units per radian in the pose cost (about the T's radius of gyration)
 
@@ -32,21 +38,44 @@ def pose_cost(pose, goal=GOAL_POSE) -> float:
     return math.hypot(pose[0] - goal[0], pose[1] - goal[1]) + ANGLE_WEIGHT * abs(wrap_angle(pose[2] - goal[2]))
 
 
-def _outline_edges() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Start points, end points and outward unit normals of the T's outline edges (block frame)."""
-    starts = T_OUTLINE
-    ends = np.roll(T_OUTLINE, -1, axis=0)
+@dataclass(frozen=True)
+class TGeometry:
+    """What the planner knows of a variant's T, in the frame its block pose is given in."""
+
+    starts: np.ndarray                 # outline edges: start points, end points, outward unit normals, lengths
+    ends: np.ndarray
+    normals: np.ndarray
+    lengths: np.ndarray
+    radius: float                      # circumradius about the centroid
+    centroid: np.ndarray | None        # None: the pose is the centroid's
+    distance: Callable                 # (world point, pose) -> distance to the T
+    coverage: Callable                 # pose -> coverage of the goal
+
+    def centre(self, pose) -> np.ndarray:
+        """The T's centroid in world coordinates."""
+        return np.array(pose[:2]) if self.centroid is None else transform(self.centroid[None], pose)[0]
+
+
+def _geometry(outline: np.ndarray, radius: float, centroid, distance, cover) -> TGeometry:
+    starts = outline
+    ends = np.roll(outline, -1, axis=0)
     d = ends - starts
     normals = np.stack([d[:, 1], -d[:, 0]], axis=1) / np.linalg.norm(d, axis=1, keepdims=True)
     for i in range(len(normals)):
         mid = (starts[i] + ends[i]) / 2
-        if point_t_distance(mid + normals[i], (0.0, 0.0, 0.0)) == 0.0:
+        if distance(mid + normals[i], (0.0, 0.0, 0.0)) == 0.0:
             normals[i] = -normals[i]
-    return starts, ends, normals
+    return TGeometry(starts, ends, normals, np.linalg.norm(ends - starts, axis=1), radius, centroid, distance, cover)
 
 
-_EDGE_START, _EDGE_END, _EDGE_NORMAL = _outline_edges()
-_EDGE_LEN = np.linalg.norm(_EDGE_END - _EDGE_START, axis=1)
+EMBEDDED = _geometry(T_OUTLINE, T_RADIUS, None, point_t_distance, coverage)
+STANDARD = _geometry(standard.T_OUTLINE, standard.T_RADIUS, standard.T_CENTROID,
+                     lambda point, pose: point_boxes_distance(point, pose, standard.T_BOXES), standard.coverage)
+
+
+def geometry_of(sim) -> TGeometry:
+    """The T the simulator ``sim`` simulates."""
+    return STANDARD if isinstance(sim, StandardPushTSim) else EMBEDDED
 
 
 @dataclass
@@ -78,15 +107,15 @@ class PushTExpert:
     def act(self, env) -> np.ndarray:
         """The next absolute agent target (float32 (2,)) for the env's current state."""
         base = env.unwrapped
-        if not isinstance(base, PushTEnv):
-            raise TypeError(f"PushTExpert drives JEPA/PushT-v0, got {type(base).__name__}")
+        if not isinstance(base, (PushTEnv, PushTStandardEnv)):
+            raise TypeError(f"PushTExpert drives JEPA/PushT-v0 (either variant), got {type(base).__name__}")
         if not self._queue:
             self._queue = self.plan(base.backend, base.success_threshold)
         return self._queue.pop(0).astype(np.float32)
 
-    def plan(self, sim: PushTSim, success_threshold: float) -> list[np.ndarray]:
+    def plan(self, sim: PushTSim | StandardPushTSim, success_threshold: float) -> list[np.ndarray]:
         """Targets of the best simulated push of the grid (re-jittered up to 3 times if none improves)."""
-        cfg, rng = self.config, self.rng
+        cfg, rng, geometry = self.config, self.rng, geometry_of(sim)
         current = pose_cost(sim.block_pose)
         best_targets, best_score, best_cost = None, math.inf, math.inf
         trial, start = sim.clone(), sim.snapshot()  # one copy of the space, rewound for every candidate
@@ -95,16 +124,16 @@ class PushTExpert:
                 speeds = (cfg.speed * rng.uniform(1 - cfg.speed_jitter, 1 + cfg.speed_jitter),
                           cfg.push_speed * rng.uniform(1 - cfg.speed_jitter, 1 + cfg.speed_jitter))
                 shift = rng.uniform(-cfg.jitter, cfg.jitter), rng.uniform(-cfg.jitter_angle_deg, cfg.jitter_angle_deg)
-                for approach, push, clear in self._candidates(sim, current, speeds, shift):
+                for approach, push, clear in self._candidates(sim, geometry, current, speeds, shift):
                     trial.restore(start)
                     if clear:  # the approach cannot touch the block: simulate the push from its start only
                         trial.agent.position = tuple(approach[-1])
                         trial.agent.velocity = (0.0, 0.0)
                         trial.space.reindex_shapes_for_body(trial.agent)
-                        cost, used = _simulate(trial, push, success_threshold)
+                        cost, used = _simulate(trial, geometry, push, success_threshold)
                         targets = approach + push[:used]
                     else:
-                        cost, used = _simulate(trial, approach + push, success_threshold)
+                        cost, used = _simulate(trial, geometry, approach + push, success_threshold)
                         targets = (approach + push)[:used]
                     # a small price per step prefers near contacts: shorter, more consistent demonstrations
                     score = cost + cfg.step_cost * len(targets)
@@ -116,17 +145,17 @@ class PushTExpert:
             trial.free()
         return best_targets
 
-    def _candidates(self, sim: PushTSim, current_cost: float, speeds, shift):
+    def _candidates(self, sim, geometry: TGeometry, current_cost: float, speeds, shift):
         """(approach targets, push targets, approach verified clear) for every push of the grid."""
         cfg = self.config
         pose = sim.block_pose
         agent = np.asarray(sim.agent.position, dtype=np.float64)
         max_len = float(np.clip(0.8 * current_cost + 5.0, 5.0, 80.0))
         lo, hi = AGENT_RADIUS + 6.0, WORLD_SIZE - AGENT_RADIUS - 6.0
-        for edge in range(len(_EDGE_LEN)):
-            normal = _EDGE_NORMAL[edge]
+        for edge in range(len(geometry.lengths)):
+            normal = geometry.normals[edge]
             for point in cfg.contact_points:
-                contact = _EDGE_START[edge] + (point + shift[0]) * (_EDGE_END[edge] - _EDGE_START[edge])
+                contact = geometry.starts[edge] + (point + shift[0]) * (geometry.ends[edge] - geometry.starts[edge])
                 start_local = contact + normal * (AGENT_RADIUS + cfg.standoff)
                 for angle in cfg.push_angles_deg:
                     turn = math.radians(angle + shift[1])
@@ -135,38 +164,38 @@ class PushTExpert:
                     for length in cfg.push_lengths:
                         end_local = start_local + direction * (cfg.standoff + length * max_len)
                         start, end = transform(np.stack([start_local, end_local]), pose)
-                        path = _approach_path(agent, start, pose)
-                        clear = len(path) == 2 or _segment_clear(path[-2], start, pose, AGENT_RADIUS + 4.0)
+                        path = _approach_path(geometry, agent, start, pose)
+                        clear = len(path) == 2 or _segment_clear(geometry, path[-2], start, pose, AGENT_RADIUS + 4.0)
                         approach = [np.clip(p, lo, hi) for p in _densify(path, speeds[0])]
                         push = [np.clip(p, lo, hi) for p in _densify([start, end], speeds[1])[1:]]
                         push += [push[-1]] * cfg.hold_steps
                         yield approach, push, clear
 
 
-def _simulate(trial: PushTSim, targets: list[np.ndarray], threshold: float) -> tuple[float, int]:
+def _simulate(trial, geometry: TGeometry, targets: list[np.ndarray], threshold: float) -> tuple[float, int]:
     """Cost after running ``targets`` on ``trial`` (-1 and the steps used when it succeeds)."""
     for i, target in enumerate(targets):
         trial.step(target)
         pose = trial.block_pose
         # the exact coverage is only worth computing near the goal
-        if pose_cost(pose) < 30.0 and coverage(pose) >= threshold:
+        if pose_cost(pose) < 30.0 and geometry.coverage(pose) >= threshold:
             return -100.0, i + 1  # success beats any unfinished push, whatever their lengths
     return pose_cost(trial.block_pose), len(targets)
 
 
-def _segment_clear(a: np.ndarray, b: np.ndarray, pose, clearance: float) -> bool:
+def _segment_clear(geometry: TGeometry, a: np.ndarray, b: np.ndarray, pose, clearance: float) -> bool:
     n = max(2, int(np.linalg.norm(b - a) / 6.0) + 1)
     ax, ay, bx, by = float(a[0]), float(a[1]), float(b[0]), float(b[1])
-    return all(point_t_distance((ax + (bx - ax) * f, ay + (by - ay) * f), pose) >= clearance
+    return all(geometry.distance((ax + (bx - ax) * f, ay + (by - ay) * f), pose) >= clearance
                for f in np.linspace(0.0, 1.0, n).tolist())
 
 
-def _approach_path(agent: np.ndarray, start: np.ndarray, pose) -> list[np.ndarray]:
+def _approach_path(geometry: TGeometry, agent: np.ndarray, start: np.ndarray, pose) -> list[np.ndarray]:
     """Waypoints from the agent to a push start: straight when clear, else around the block on a safe circle."""
-    if _segment_clear(agent, start, pose, AGENT_RADIUS + 4.0):
+    if _segment_clear(geometry, agent, start, pose, AGENT_RADIUS + 4.0):
         return [agent, start]
-    centre = np.array(pose[:2])
-    radius = T_RADIUS + AGENT_RADIUS + 10.0
+    centre = geometry.centre(pose)
+    radius = geometry.radius + AGENT_RADIUS + 10.0
     a0 = math.atan2(agent[1] - centre[1], agent[0] - centre[0])
     a1 = math.atan2(start[1] - centre[1], start[0] - centre[0])
     sweep = wrap_angle(a1 - a0)
@@ -227,7 +256,7 @@ def collect_episode(env, seed: int, expert: PushTExpert, max_steps: int | None =
 
 def _expert_episode(seed: int, attempt: int, image_size: int | None, env_options: dict) -> dict:
     """Attempt ``attempt`` of ``generate_demos``: env seed ``seed + attempt``, expert seeded by (seed, attempt)."""
-    env = PushTEnv(image_size=image_size, **env_options)
+    env = make_pusht(image_size=image_size, **env_options)
     try:
         return collect_episode(env, seed + attempt, PushTExpert(seed=[seed, attempt]))
     finally:
@@ -236,8 +265,9 @@ def _expert_episode(seed: int, attempt: int, image_size: int | None, env_options
 
 def generate_demos(num_episodes: int, seed: int = 0, image_size: int | None = None, only_successes: bool = True,
                    max_attempts_factor: int = 2, workers: int = 1, progress: bool = False,
-                   finish_threshold: float | None = None, **env_options) -> tuple[list[dict], dict]:
-    """``num_episodes`` expert demos on seeds seed, seed+1, ...; returns (episodes, env_args).
+                   finish_threshold: float | None = None, task: str = "PushT", **env_options) -> tuple[list[dict], dict]:
+    """``num_episodes`` expert demos of ``task`` (PushT or PushTStandard) on seeds seed, seed+1, ...; returns
+    (episodes, env_args).
 
     With ``only_successes`` failed episodes are dropped and further seeds are tried (up to
     ``max_attempts_factor * num_episodes`` in all). ``workers > 1`` plans the episodes in that many processes;
@@ -257,10 +287,14 @@ def generate_demos(num_episodes: int, seed: int = 0, image_size: int | None = No
         raise ValueError(f"num_episodes must be >= 1, got {num_episodes}")
     if workers < 1:
         raise ValueError(f"workers must be >= 1, got {workers}")
-    env = PushTEnv(image_size=image_size, **env_options)  # validates the options and gives the effective spec
-    # the effective difficulty fields, so the file alone rebuilds the same env
-    env_kwargs = {"image_size": env.task_spec.image_size, **asdict(env.difficulty)}
-    threshold = env.difficulty.success_threshold
+    env_options = {"task": task, **env_options}
+    env = make_pusht(image_size=image_size, **env_options)  # validates the options and gives the effective spec
+    if isinstance(env, PushTEnv):   # the effective difficulty fields, so the file alone rebuilds the same env
+        env_kwargs = {"image_size": env.task_spec.image_size, **asdict(env.difficulty)}
+    else:
+        env_kwargs = {"image_size": env.task_spec.image_size,
+                      **{k: v for k, v in env_options.items() if k not in ("task", "success_threshold")}}
+    threshold, name = env.success_threshold, env.task_spec.name
     env.close()
     if finish_threshold is None:
         finish_threshold = threshold
@@ -291,5 +325,5 @@ def generate_demos(num_episodes: int, seed: int = 0, image_size: int | None = No
         raise RuntimeError(f"the PushT expert reached coverage {finish_threshold} in only {len(episodes)} of "
                            f"{attempts} episodes; use an easier difficulty, a lower finish_threshold or "
                            "only_successes=False")
-    return episodes, {"env_name": "PushT", "type": "jepa_envs", "env_kwargs": env_kwargs,
+    return episodes, {"env_name": name, "type": "jepa_envs", "env_kwargs": env_kwargs,
                       "expert": {"seed": seed, "attempts": attempts, "finish_threshold": float(finish_threshold)}}
