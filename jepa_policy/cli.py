@@ -228,7 +228,8 @@ def cmd_protocols(args) -> int:
         result = select_checkpoint(run_dir, fresh_seed=args.fresh_seed,
                                    ladder=tuple(int(x) for x in args.ladder.split(",")), num_envs=args.num_envs,
                                    max_steps=args.max_steps, device=resolve_device(args.device),
-                                   workers=args.workers)
+                                   workers=args.workers, report_seed=args.report_seed,
+                                   report_episodes=args.report_episodes)
         print(json.dumps(result, indent=2))
         return 0
     if path.is_dir():
@@ -429,6 +430,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="confirm the two best evaluation checkpoints on fresh seeds with a paired bootstrap")
     p.add_argument("--fresh-seed", type=int, default=1_000_000, help="first fresh rollout seed (--select)")
     p.add_argument("--ladder", default="32,64,128", help="fresh episodes per candidate while undecided (--select)")
+    p.add_argument("--report-seed", type=int, default=2_000_000,
+                   help="first seed of the untouched block the pick's success is reported on (--select)")
+    p.add_argument("--report-episodes", type=int, default=None,
+                   help="episodes of that block (--select; default: the ladder's last rung)")
     p.add_argument("--num-envs", type=int, default=4, help="environments stepped together (--select)")
     p.add_argument("--workers", type=_non_negative, default=None,
                    help="env-only rollout processes (--select; default: one per available core; 0: in-process)")
