@@ -46,12 +46,13 @@ def _spec_or_exit(task: str):
 # -- make-demos -----------------------------------------------------------------------------------------------
 
 def _make_demos_args(p: argparse.ArgumentParser) -> None:
-    p.add_argument("task", help="task name, e.g. PushT")
+    p.add_argument("task", help="task name: PushT or PushTStandard (gym-pusht's task)")
     p.add_argument("--episodes", type=int, required=True, help="number of successful demonstrations")
     p.add_argument("--out", required=True, help="output HDF5 file (robomimic layout)")
     p.add_argument("--seed", type=int, default=0, help="first episode seed (episodes use seed, seed+1, ...)")
     p.add_argument("--image-size", type=int, default=None, help="camera image size (default: the task's)")
-    p.add_argument("--difficulty", default="easy", help="PushT difficulty preset: easy (default), medium, hard, full")
+    p.add_argument("--difficulty", default=None,
+                   help="PushT difficulty preset: easy (default), medium, hard, full (not for PushTStandard)")
     p.add_argument("--finish-threshold", type=float, default=None,
                    help="coverage at which each demonstration ends, between the task's success threshold and 1 "
                         "(default: the threshold itself; jepa-demo uses 0.9 on easy: demos that finish with a "
@@ -65,7 +66,8 @@ def make_demos(args: argparse.Namespace) -> int:
     spec = _spec_or_exit(args.task)
     if spec.suite != "embedded":
         raise SystemExit(
-            f"error: no scripted expert exists for {spec.name} ({spec.suite}); only PushT has one. Bring your own "
+            f"error: no scripted expert exists for {spec.name} ({spec.suite}); only PushT and PushTStandard have one. "
+            "Bring your own "
             f"data: download the public {spec.suite} demonstrations (or record your own) as HDF5 in the "
             "robomimic layout data/demo_N/{obs/<camera>_image, obs/<low-dim keys>, actions, states} with "
             "data.attrs['env_args']; convert delta actions with `jepa-envs convert-abs-actions IN OUT`; then "
@@ -79,10 +81,11 @@ def make_demos(args: argparse.Namespace) -> int:
 
     t0 = time.perf_counter()
     try:
+        options = {} if args.difficulty is None else {"difficulty": args.difficulty}
         episodes, env_args = generate_demos(args.episodes, seed=args.seed, image_size=args.image_size,
-                                            difficulty=args.difficulty, workers=args.workers, progress=True,
-                                            finish_threshold=args.finish_threshold)
-    except ValueError as exc:  # an option out of range (difficulty, finish threshold): say which and stop
+                                            task=spec.name, workers=args.workers, progress=True,
+                                            finish_threshold=args.finish_threshold, **options)
+    except (ValueError, TypeError) as exc:  # an option out of range or not of this task: say which and stop
         raise SystemExit(f"error: {exc}") from None
     write_dataset(args.out, episodes, env_args)
     steps = sum(len(ep["actions"]) for ep in episodes)

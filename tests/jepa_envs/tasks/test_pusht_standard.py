@@ -14,7 +14,7 @@ from PIL import Image
 import jepa_envs  # noqa: F401
 from jepa_envs.tasks import pusht_standard as std
 from jepa_envs.tasks.pusht import PushTEnv
-from jepa_envs.tasks.pusht_expert import PushTExpert, collect_episode
+from jepa_envs.tasks.pusht_expert import generate_demos
 from jepa_envs.tasks.pusht_standard import PushTStandardEnv
 
 # gym-pusht 0.1.8's own outputs (2 seeds x 30 steps of random and of expert actions), written by
@@ -239,11 +239,11 @@ def test_bad_actions_are_refused():
         env.close()
 
 
-def test_the_expert_pushes_the_standard_t_to_success():
-    env = _make()
-    try:
-        episode = collect_episode(env, 5, PushTExpert(seed=[0, 5]))
-    finally:
-        env.close()
-    assert episode["success"] and len(episode["actions"]) < 300
-    assert episode["obs"]["top_image"].shape[1:] == (96, 96, 3)
+def test_the_expert_pushes_the_standard_t_to_success_and_records_the_task():
+    episodes, env_args = generate_demos(1, seed=5, task="PushTStandard")
+    assert episodes[0]["success"] and len(episodes[0]["actions"]) < 300
+    assert episodes[0]["obs"]["top_image"].shape[1:] == (96, 96, 3)
+    assert env_args["env_name"] == "PushTStandard" and env_args["env_kwargs"] == {"image_size": 96}
+    assert env_args["expert"]["finish_threshold"] == 0.95
+    with pytest.raises(TypeError, match="difficulty presets belong to the embedded PushT"):
+        generate_demos(1, task="PushTStandard", difficulty="easy")
