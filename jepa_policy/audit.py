@@ -5,7 +5,11 @@ samples, with eigenvalues lambda_1 >= ... >= lambda_D of X_c^T X_c:
 - effective rank = exp(entropy of lambda / sum(lambda))  (Roy & Vetterli), between 1 and D;
 - top-eigenvalue share = lambda_1 / sum(lambda);
 - TE32 = 1 - sum_{i<=32} lambda_i / sum(lambda): spectral energy outside the leading 32 directions; the
-  paper's pre-specified low-rank boundary is TE32 = 0.05.
+  paper's pre-specified low-rank boundary is TE32 = 0.05, for views of 384 or more dimensions.
+  A view of D < 384 dimensions is judged with the same criterion scaled to its width: TE_k < 0.05 with
+  k = max(1, round(32 D / 384)) leading directions (the paper's 32 of 384), so a 64-d view looks at its top 5
+  and a 16-d one at its top 1; TE32 itself is 0 by construction at D <= 32 and says nothing there. Every
+  result states its boundary (``low_rank_boundary``).
 Views: ``c_t`` (the fused representation, width 384 at paper size: the audited one), ``e_rgb`` (the pooled image
 features E_rgb, 1,024-d) and ``z_hat`` (the predictor's output).
 
@@ -30,6 +34,7 @@ from jepa_policy.dataset import WindowDataset
 from monitor_service.scoring import nmse_rows
 
 TE32_BOUNDARY = 0.05
+PAPER_WIDTH = 384    # c_t's width at paper size, where the paper's TE32 boundary was set
 VIEWS = {
     "c_t": "fused representation c_t = Fuse([E_rgb(o_t), s_t]) (the paper's audited view)",
     "e_rgb": "pooled image features E_rgb(o_t)",
@@ -48,18 +53,33 @@ def centred_spectrum(x: np.ndarray) -> np.ndarray:
     return np.sort(s * s)[::-1]
 
 
+def boundary_directions(dim: int, k: int = 32) -> int:
+    """Leading directions the low-rank criterion counts for a ``dim``-wide view: the paper's k = 32 from 384
+    dimensions up, the same share of the width below (at least 1)."""
+    return k if dim >= PAPER_WIDTH else max(1, round(k * dim / PAPER_WIDTH))
+
+
 def spectral_stats(x: np.ndarray, k: int = 32) -> dict:
-    """Effective rank, top-eigenvalue share and TE_k of the centred matrix (Sec. 4.9)."""
+    """Effective rank, top-eigenvalue share and TE_k of the centred matrix (Sec. 4.9), and whether it is low-rank
+    by the criterion scaled to its dimension (module docstring), with that criterion stated."""
     lam = centred_spectrum(x)
+    dim = int(np.asarray(x).shape[1])
+    k_dim = boundary_directions(dim, k)
+    boundary = {"te_k": k_dim, "below": TE32_BOUNDARY,
+                "meaning": f"low-rank when the directions beyond the leading {k_dim} of {dim} hold less than "
+                           f"{TE32_BOUNDARY:.0%} of the spectral energy (the paper's TE{k} < {TE32_BOUNDARY} at "
+                           f"{PAPER_WIDTH} dimensions{'' if dim >= PAPER_WIDTH else ', scaled to this width'})"}
     total = lam.sum()
     if total <= 0:  # every sample identical: complete collapse
-        return {"effective_rank": 1.0, "top_share": 1.0, f"te{k}": 0.0, "dim": int(np.asarray(x).shape[1]),
-                "low_rank": True}
+        return {"effective_rank": 1.0, "top_share": 1.0, f"te{k}": 0.0, "dim": dim, "te_scaled": 0.0,
+                "low_rank": True, "low_rank_boundary": boundary}
     p = lam / total
     nz = p[p > 0]
     te = max(0.0, float(1.0 - p[:k].sum()))   # exactly 0 when D <= k (not -1e-16)
+    te_scaled = max(0.0, float(1.0 - p[:k_dim].sum()))
     return {"effective_rank": float(np.exp(-(nz * np.log(nz)).sum())), "top_share": float(p[0]),
-            f"te{k}": te, "dim": int(np.asarray(x).shape[1]), "low_rank": te < TE32_BOUNDARY}
+            f"te{k}": te, "dim": dim, "te_scaled": te_scaled, "low_rank": te_scaled < TE32_BOUNDARY,
+            "low_rank_boundary": boundary}
 
 
 def manifest(num_windows: int, samples: int = 4096, seed: int = 0) -> np.ndarray:

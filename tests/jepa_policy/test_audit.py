@@ -38,6 +38,22 @@ def test_stats_on_known_spectra():
         spectral_stats(np.ones(5))
 
 
+def test_low_rank_boundary_scales_with_the_dimension():
+    """Issue 36.4: with TE32 < 0.05 as the criterion any view of <= 32 dimensions is 'low-rank' (TE32 is 0 there),
+    so random 16-d data was flagged. The criterion now counts k = 32 D / 384 leading directions below 384
+    dimensions and states itself; full-rank random data passes, low-rank data is caught, at every width."""
+    rng = np.random.default_rng(5)
+    for dim, k in ((16, 1), (64, 5), (192, 16), (384, 32), (1024, 32)):
+        full = spectral_stats(rng.normal(size=(2000, dim)))
+        assert not full["low_rank"] and full["low_rank_boundary"]["te_k"] == k, dim
+        assert f"leading {k} of {dim}" in full["low_rank_boundary"]["meaning"]
+        rank = max(1, k // 2)   # energy in fewer directions than the boundary counts, plus a trace of noise
+        low = rng.normal(size=(2000, rank)) @ rng.normal(size=(rank, dim)) + 1e-3 * rng.normal(size=(2000, dim))
+        assert spectral_stats(low)["low_rank"], dim
+    paper = spectral_stats(rng.normal(size=(2000, 384)))
+    assert paper["te_scaled"] == paper["te32"]            # the paper's own criterion at its width
+
+
 def test_manifest_is_fixed_and_bounded():
     a, b = manifest(10_000, 4096, seed=3), manifest(10_000, 4096, seed=3)
     assert np.array_equal(a, b) and len(np.unique(a)) == 4096 and a.max() < 10_000
