@@ -115,3 +115,39 @@ def test_two_servers_on_one_postgres_lose_no_update_and_scale(pg_url, capsys):
     sent = sum(m["service"]["decisions"] for m in out["modes"].values())
     assert check["decisions"] >= sent   # every acknowledged decision is stored (earlier tests' rows add to it)
     assert "2 server process(es)" in capsys.readouterr().out
+
+
+def test_named_scores_gaps_and_resolved_alerts_on_postgres(pg_url, tmp_path):
+    """The JSON columns (scores, signal state, gap steps, task signals) and the alert life cycle on PostgreSQL,
+    across a restart that reloads the episode state from the rows."""
+    from monitor_testkit import records_with_scores
+
+    rng = np.random.default_rng(5)
+    A = {"X-API-Key": ADMIN}
+    with start_server(pg_url, admin_key=ADMIN, log_path=tmp_path / "a.log") as server, \
+            httpx.Client(base_url=server.url, timeout=60) as http:
+        http.put("/v1/tasks/Sig", json={"latent_dim": DIM, "signals": ["stac"]}, headers=A).raise_for_status()
+        robot = {"X-API-Key": http.post("/v1/keys", json={"name": "pg-sig", "role": "robot", "robot": "arm9"},
+                                        headers=A).json()["key"]}
+        for i in range(30):
+            ok = i % 3 != 0
+            stac = np.exp(rng.normal(0, 0.3, 10) + (0 if ok else np.linspace(0, 2, 10)))
+            recs = records_with_scores(f"sig-{i}", "Sig", rng, None, {"stac": stac}, success=ok)
+            assert http.post("/v1/batch", json={"records": recs}, headers=robot).status_code == 200
+        cal = http.post("/v1/calibrations", json={"task": "Sig", "signals": ["stac"], "alpha": 0.2,
+                                                  "n_bootstrap": 200, "n_permutation": 200}, headers=A)
+        assert cal.status_code == 201, cal.text
+        first = records_with_scores("sig-live", "Sig", rng, None, {"stac": np.array([0.5, 9.0])}, held_out=False,
+                                    steps=[0, 16])   # step 8 missing: a gap
+        assert http.post("/v1/batch", json={"records": first}, headers=robot).status_code == 200
+    with start_server(pg_url, admin_key=ADMIN, log_path=tmp_path / "b.log") as server, \
+            httpx.Client(base_url=server.url, timeout=60) as http:   # a fresh process: state read from the rows
+        more = records_with_scores("sig-live", "Sig", rng, None, {"stac": np.array([9.0, 9.0])}, held_out=False,
+                                   steps=[24, 32], success=False)
+        r = http.post("/v1/batch", json={"records": more}, headers=robot)
+        assert r.status_code == 200 and len(r.json()["alerts_raised"]) == 1
+        ep = http.get("/v1/episodes/sig-live", headers=A).json()
+        assert ep["gaps"] == 1 and ep["gap_steps"] == [8] and ep["detector"] == "stac band"
+        assert [d["scores"] for d in ep["decisions"]] == [{"stac": 0.5}, {"stac": 9.0}, {"stac": 9.0}, {"stac": 9.0}]
+        alert = http.get("/v1/alerts", params={"task": "Sig"}, headers=A).json()[0]
+        assert alert["state"] == "resolved" and alert["resolution"] == "failure" and alert["signals"] == "stac"
