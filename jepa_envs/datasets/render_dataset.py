@@ -13,12 +13,19 @@ holds after being put in it: 0 when the recording fits this simulator), ``replay
 between the recorded states and those reached by replaying the recorded actions open-loop from the first one)
 and ``replay_success``. A recorded model this robosuite cannot load (other robot geometry, e.g. a file from
 another robosuite release) is reported and the task's own model is used with the recorded states.
+
+No frame is written unchecked for content: the first and last frame of every episode, every camera, must equal
+the live render of the same state by a separately built env of the same model (a renderer whose GL buffers are
+lost stays lost, so the last frame vouches for the ones before it); an episode that fails stops the run and
+nothing is written.
 """
 from __future__ import annotations
 
 import copy
 import dataclasses
+import gc
 import json
+import os
 from pathlib import Path
 
 import numpy as np
@@ -86,7 +93,7 @@ def render_dataset(src: str | Path, out: str | Path, task: str | None = None, ca
                     demo = data[name]
                     states, actions = demo["states"][()], demo["actions"][()]
                     model = demo.attrs.get("model_file")
-                    episode, report = renderer.episode(states, actions, model)
+                    episode, report = renderer.episode(states, actions, model, name)
                     for key in ("rewards", "dones"):
                         if key in demo:
                             episode[key] = demo[key][()]
@@ -112,7 +119,7 @@ class PushTRenderer:
     def output_env_args(self) -> dict:
         return {"env_name": "PushT", "type": "jepa_envs", "env_kwargs": {"image_size": self.spec.image_size}}
 
-    def episode(self, states, actions, model) -> tuple[dict, dict]:
+    def episode(self, states, actions, model, name: str = "demo") -> tuple[dict, dict]:
         obs = []
         error = 0.0
         for state in states:
@@ -143,6 +150,7 @@ class RobosuiteRenderer:
         self.env_args.setdefault("env_kwargs", {})
         self.delta = delta
         self.env = self._make()
+        self.reference: RobosuiteTaskEnv | None = None   # the live renders frames are checked against
 
     def _make(self):
         backend = make_backend_from_env_args(self.env_args, control_delta=self.delta, cameras=self.spec.cameras,
@@ -161,20 +169,42 @@ class RobosuiteRenderer:
 
     def _reset_to(self, states, model) -> str:
         """Reset to the recorded model and first state; returns which model is used."""
-        if model is not None:
-            try:
-                self.env.reset(seed=0, options={"model": model, "state": states[0]})
-                return "recorded"
-            except Exception as exc:   # another robosuite's geometry: rebuild ours, keep the states
-                why = first_line(str(exc), 120)
-                self.env.close()
-                self.env = self._make()
-                self.env.reset(seed=0, options={"state": states[0]})
-                return f"own (recorded XML unusable here: {why})"
+        if model is None:
+            self.env.reset(seed=0, options={"state": states[0]})
+            return "own"
+        try:
+            self.env.reset(seed=0, options={"model": model, "state": states[0]})
+            return "recorded"
+        except Exception as exc:   # another robosuite's geometry: rebuild ours, keep the states
+            why = first_line(str(exc), 120)
+        # Out of the except block on purpose: its traceback held the render context robosuite made for the
+        # recorded model, and that context, freed later with ours current, deleted our GL buffers by id (every
+        # frame black or noise). Free it now, with it current.
+        self.env.close()
+        gc.collect()
+        self.env = self._make()
         self.env.reset(seed=0, options={"state": states[0]})
-        return "own"
+        return f"own (recorded XML unusable here: {why})"
 
-    def episode(self, states, actions, model) -> tuple[dict, dict]:
+    def check_frames(self, name: str, obs: dict, states, model, which: str) -> None:
+        """Raise unless the first and last frame of each camera equal the live render of their state by a
+        separately built env of the same model (see the module docstring)."""
+        if self.reference is None:
+            self.reference = self._make()
+        self.reference.reset(seed=0, options={"state": states[0]} if which != "recorded"
+                             else {"model": model, "state": states[0]})
+        for t in sorted({0, len(states) - 1}):
+            self.reference.set_sim_state(states[t])
+            live = self.reference.observe_now()
+            for key in self.spec.image_keys:
+                if not np.array_equal(obs[key][t], live[key]):
+                    diff = np.abs(obs[key][t].astype(int) - live[key]).max()
+                    raise DatasetError(f"data/{name}: frame {t} of {key} is not the live render of its state "
+                                       f"(largest pixel difference {diff}; the renderer lost its GL buffers or "
+                                       f"renders another scene); nothing was written. Re-run; if it recurs, "
+                                       f"report it with MUJOCO_GL={os.environ.get('MUJOCO_GL', '<unset>')}")
+
+    def episode(self, states, actions, model, name: str = "demo") -> tuple[dict, dict]:
         states = np.asarray(states, np.float64)
         actions = np.asarray(actions, np.float64)
         which = self._reset_to(states, model)
@@ -184,6 +214,8 @@ class RobosuiteRenderer:
             self.env.set_sim_state(state)
             error = max(error, float(np.abs(sim.get_state().flatten() - state).max()))
             obs.append(self.env.observe_now())
+        obs = {k: np.stack([o[k] for o in obs]) for k in obs[0]}
+        self.check_frames(name, obs, states, model, which)
         # open-loop replay of the recorded actions from the first state
         self.env.set_sim_state(states[0])
         drift, success = 0.0, False
@@ -194,12 +226,13 @@ class RobosuiteRenderer:
                 drift = max(drift, float(np.abs(sim.get_state().flatten()[1:] - states[t + 1][1:]).max()))
         if self.delta:   # set from the recorded actions' width (render_dataset)
             actions = delta_to_abs_by_replay(self.env.backend, states, actions)
-        episode = {"obs": {k: np.stack([o[k] for o in obs]) for k in obs[0]},
-                   "actions": actions.astype(np.float32), "states": states}
+        episode = {"obs": obs, "actions": actions.astype(np.float32), "states": states}
         return episode, {"model": which, "state_error": error, "replay_drift": drift, "replay_success": success}
 
     def close(self) -> None:
         self.env.close()
+        if self.reference is not None:
+            self.reference.close()
 
 
 def replay_in_env(path: str | Path, task: str, episodes: int | None = None) -> dict:

@@ -147,3 +147,83 @@ def test_robosuites_shipped_lift_demonstration_renders_loads_and_replays(tmp_pat
     assert demos.actions.shape == (392, 10) and demos.obs["agentview_image"].shape == (392, 84, 84, 3)
     replay = replay_in_env(tmp_path / "lift.hdf5", "Lift")
     assert replay["successes"] == 1 and replay["episodes"][0]["within_time_limit"]
+
+
+def _shipped_lift_demo(tmp_path, steps):
+    """The first ``steps`` of robosuite's own Lift demonstration 3 (robosuite 1.4.0's model XML, which this
+    robosuite cannot load), as a raw file."""
+    src = os.path.join(os.path.dirname(robosuite.__file__), "models/assets/demonstrations/lift/demo.hdf5")
+    one = tmp_path / "lift_cut.hdf5"
+    with h5py.File(src) as f, h5py.File(one, "w") as g:
+        data = g.create_group("data")
+        for key, value in f["data"].attrs.items():
+            data.attrs[key] = value
+        demo = data.create_group("demo_0")
+        demo.attrs["model_file"] = f["data/demo_3"].attrs["model_file"]
+        for key in ("states", "actions"):
+            demo.create_dataset(key, data=f["data/demo_3"][key][:steps])
+    return one
+
+
+def _live_frames(task, states, size):
+    """Each state rendered live by a freshly made env of the task (the content every written frame must have).
+    Hard reset, as render-dataset's own model: the model (the cube's randomised size) is built at the seeded
+    reset, not at construction."""
+    env = gym.make(f"JEPA/{task}-v0", image_size=size, hard_reset=True).unwrapped
+    try:
+        env.reset(seed=0, options={"state": states[0]})
+        frames = []
+        for state in states:
+            env.set_sim_state(state)
+            frames.append(env.observe_now())
+    finally:
+        env.close()
+    return frames
+
+
+@pytest.mark.robosuite
+def test_robosuites_shipped_lift_demo_renders_the_scene_of_its_states(tmp_path):
+    """robosuite 1.4.0's XML fails to load here and the task's own model takes over: every written frame must be
+    the live render of its state (it was all black or noise: the failed load's render context, freed late, took
+    the new context's GL buffers with it)."""
+    raw = _shipped_lift_demo(tmp_path, steps=4)
+    report = render_dataset(raw, tmp_path / "out.hdf5", task="Lift", size=32)
+    assert report["episodes"][0]["model"].startswith("own")
+    with h5py.File(raw) as f:
+        states = f["data/demo_0/states"][()]
+    live = _live_frames("Lift", states, 32)
+    with h5py.File(tmp_path / "out.hdf5") as f:
+        for camera in ("agentview_image", "robot0_eye_in_hand_image"):
+            written = f[f"data/demo_0/obs/{camera}"][()]
+            assert written.std() > 10, f"{camera}: a flat frame is no scene"
+            for t, frame in enumerate(live):
+                assert np.array_equal(written[t], frame[camera]), (camera, t)
+
+
+@pytest.mark.robosuite
+def test_a_frame_unlike_the_live_render_is_never_written(tmp_path, monkeypatch):
+    """Fault injection, the mechanism of the black frames: another render context, freed while the renderer's is
+    current, deletes the renderer's GL buffers by id. render-dataset must refuse the episode, naming it, and
+    write nothing."""
+    import gc
+
+    from robosuite.utils.binding_utils import MjRenderContextOffscreen, MjSim
+
+    from jepa_envs.datasets.render_dataset import RobosuiteRenderer
+
+    reset_to = RobosuiteRenderer._reset_to
+
+    def reset_then_lose_buffers(self, states, model):
+        which = reset_to(self, states, model)
+        scratch = MjSim.from_xml_string(self.env.backend.sim.model.get_xml())
+        MjRenderContextOffscreen(scratch, device_id=-1)    # a second GL context, made current
+        self.env._make_gl_current()
+        del scratch._render_context_offscreen, scratch
+        gc.collect()                                       # freed now, with the renderer's context current
+        return which
+
+    monkeypatch.setattr(RobosuiteRenderer, "_reset_to", reset_then_lose_buffers)
+    raw = _shipped_lift_demo(tmp_path, steps=3)
+    with pytest.raises(DatasetError, match=r"demo_0.*frame 0 .* is not the live render of its state"):
+        render_dataset(raw, tmp_path / "out.hdf5", task="Lift", size=32)
+    assert not (tmp_path / "out.hdf5").exists() and not list(tmp_path.glob("out.hdf5*"))
