@@ -12,7 +12,8 @@ from __future__ import annotations
 import os
 
 from jepa_envs.tasks.libero_setup import check_assets, ensure_libero_config
-from jepa_envs.tasks.robosuite_common import RobosuiteTaskEnv, check_action_mode, global_numpy_seed, set_control_delta
+from jepa_envs.tasks.robosuite_common import (CONSTRUCTION_SEED, RobosuiteTaskEnv, check_action_mode, global_numpy_seed,
+                                              set_control_delta)
 from jepa_envs.tasks.spec import get_task_spec
 
 BENCHMARK = "libero_10"
@@ -51,9 +52,10 @@ class LiberoEnv(RobosuiteTaskEnv):
         task_info = suite.get_task(index)
         self.bddl_file = os.path.join(get_libero_path("bddl_files"), task_info.problem_folder, task_info.bddl_file)
         self.init_states = suite.get_task_init_states(index)
-        self.libero_env = OffScreenRenderEnv(
-            bddl_file_name=self.bddl_file, camera_names=list(spec.cameras), camera_heights=spec.image_size,
-            camera_widths=spec.image_size, ignore_done=True, hard_reset=hard_reset)
+        with global_numpy_seed(CONSTRUCTION_SEED):   # the same scene in every process (robosuite_common)
+            self.libero_env = OffScreenRenderEnv(
+                bddl_file_name=self.bddl_file, camera_names=list(spec.cameras), camera_heights=spec.image_size,
+                camera_widths=spec.image_size, ignore_done=True, hard_reset=hard_reset)
         self.language_instruction = self.libero_env.language_instruction
         backend = self.libero_env.env  # the robosuite env inside LIBERO's wrapper
         set_control_delta(backend, action_mode == "delta")

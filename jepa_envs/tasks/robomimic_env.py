@@ -12,7 +12,8 @@ import json
 from pathlib import Path
 from typing import Any
 
-from jepa_envs.tasks.robosuite_common import RobosuiteTaskEnv, check_action_mode, osc_pose_config
+from jepa_envs.tasks.robosuite_common import (CONSTRUCTION_SEED, RobosuiteTaskEnv, check_action_mode, global_numpy_seed,
+                                              osc_pose_config)
 from jepa_envs.tasks.spec import TaskSpec, all_task_specs, get_task_spec
 
 ROBOSUITE_ENV_TYPE = 1  # robomimic's EnvType.ROBOSUITE_TYPE, stored as env_args["type"]
@@ -85,8 +86,9 @@ def _validated_env_args(env_args: dict) -> dict:
 
 def make_backend_from_env_args(env_args: dict, *, control_delta: bool, use_camera_obs: bool = True,
                                cameras: tuple[str, ...] | None = None, image_size: int | None = None,
-                               **overrides) -> Any:
-    """Build the raw robosuite env that a dataset's env_args describe, with our rendering settings."""
+                               seed: int = CONSTRUCTION_SEED, **overrides) -> Any:
+    """Build the raw robosuite env that a dataset's env_args describe, with our rendering settings; numpy's
+    global RNG is seeded with ``seed`` while robosuite builds it (object geometry, masses), then restored."""
     import robosuite
 
     env_args = _validated_env_args(env_args)
@@ -102,7 +104,8 @@ def make_backend_from_env_args(env_args: dict, *, control_delta: bool, use_camer
     kwargs.pop("render_gpu_device_id", None)  # EGL device choice; meaningless under OSMesa
     kwargs.update(overrides)
     _register_source_tasks(env_args["env_name"])
-    return robosuite.make(env_args["env_name"], **kwargs)
+    with global_numpy_seed(seed):
+        return robosuite.make(env_args["env_name"], **kwargs)
 
 
 def _register_source_tasks(env_name: str) -> None:

@@ -21,11 +21,15 @@ import mujoco
 import numpy as np
 from gymnasium import spaces
 
-from jepa_envs.tasks import abs_actions
+from jepa_envs.tasks import abs_actions, rotations
 from jepa_envs.tasks.base import JEPAEnv
 from jepa_envs.tasks.spec import TaskSpec
 
 ACTION_MODES = ("abs", "delta")
+# numpy's global RNG is seeded with this while robosuite builds an env: its object models draw their sizes,
+# masses and frictions from it (Transport's hammer, Lift's cube), so the same task is the same scene in every
+# process (reset seeds then vary the placements).
+CONSTRUCTION_SEED = 0
 NATIVE_DIM_PER_ARM = abs_actions.NATIVE_DIM_PER_ARM
 # Declared bounds of the absolute action: positions in metres (world frame, generous box around every task's
 # workspace), 6-D rotation entries are unit-vector components, gripper -1 (open) .. 1 (closed).
@@ -163,14 +167,23 @@ class RobosuiteTaskEnv(JEPAEnv):
                           dtype=np.float32)
 
     def to_native(self, action: np.ndarray) -> np.ndarray:
-        """Our action -> the backend's controller input (7 per arm)."""
+        """Our action -> the backend's controller input (7 per arm).
+
+        Every action in the space is accepted: an arm whose 6-D rotation defines no rotation (a zero first
+        column, or parallel columns, e.g. the all-zeros action) holds its end effector's current orientation
+        (its position and gripper are taken as given)."""
         action = np.asarray(action, dtype=np.float64)
         if action.shape != self.action_space.shape:
             raise ValueError(f"{self.task_spec.name}: action must have shape {self.action_space.shape} "
                              f"({self.action_mode} mode), got {action.shape}")
         if self.action_mode == "delta":
             return action
-        return abs_actions.abs_to_native(action, self.num_arms)
+        arms = abs_actions.split_arms(action, self.num_arms, abs_actions.ABS_DIM_PER_ARM, "absolute").copy()
+        held = rotations.rot6d_is_degenerate(arms[:, 3:9])
+        if held.any():
+            _, mats = self.controller_pose()
+            arms[held, 3:9] = rotations.matrix_to_rot6d(mats[held])
+        return abs_actions.abs_to_native(arms.reshape(-1), self.num_arms)
 
     def controller_pose(self) -> tuple[np.ndarray, np.ndarray]:
         """Per arm, the current pose in the frame of the OSC controller: positions (n, 3), matrices (n, 3, 3).

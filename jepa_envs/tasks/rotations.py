@@ -76,6 +76,17 @@ def matrix_to_rot6d(matrix: np.ndarray) -> np.ndarray:
     return np.concatenate([m[..., :, 0], m[..., :, 1]], axis=-1)
 
 
+def rot6d_is_degenerate(rot6d: np.ndarray) -> np.ndarray:
+    """Where a 6-D rotation defines no rotation (a zero first column, or columns parallel or the second zero):
+    the inputs ``rot6d_to_matrix`` refuses. Boolean, over the leading batch shape."""
+    r = _check_last(rot6d, 6, "6-D rotation")
+    a1, a2 = r[..., :3], r[..., 3:]
+    n1 = np.linalg.norm(a1, axis=-1)
+    b1 = a1 / np.maximum(n1, _EPS)[..., None]
+    u2 = a2 - np.sum(b1 * a2, axis=-1, keepdims=True) * b1
+    return (n1 < _EPS) | (np.linalg.norm(u2, axis=-1) < _EPS * np.maximum(1.0, np.linalg.norm(a2, axis=-1)))
+
+
 def rot6d_to_matrix(rot6d: np.ndarray) -> np.ndarray:
     """6-D representation -> rotation matrix by Gram-Schmidt; any two independent 3-vectors are accepted.
 

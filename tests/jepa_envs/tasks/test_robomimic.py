@@ -299,3 +299,84 @@ def test_reading_the_hold_pose_changes_nothing(square):
     controller = square.backend.robots[0].controller
     controller.update(force=True)
     assert np.allclose(pos[0], controller.ee_pos, atol=1e-12) and np.allclose(mats[0], controller.ee_ori_mat)
+
+
+_FINGERPRINT = """
+import hashlib, sys
+import numpy as np
+np.random.seed(int(sys.argv[1]))   # each process's global RNG elsewhere, as two independent runs have it
+import gymnasium as gym
+import jepa_envs
+env = gym.make("JEPA/Transport-v0", image_size=16).unwrapped
+model = env.backend.sim.model
+obs, _ = env.reset(seed=7)
+for _ in range(3):
+    obs, *_ = env.step(env.hold_action())
+digest = lambda *arrays: hashlib.sha1(b"".join(np.ascontiguousarray(a).tobytes() for a in arrays)).hexdigest()[:12]
+print(digest(model.geom_size, model.geom_pos, model.body_mass, model.geom_friction), hashlib.sha1(
+    model.get_xml().encode()).hexdigest()[:12], digest(*[obs[k] for k in sorted(obs)]))
+"""
+
+
+@pytest.mark.slow
+def test_transport_is_the_same_scene_in_two_processes():
+    """robosuite builds Transport's hammer (radius, length, density, friction) from numpy's global RNG while the
+    env is made, before any seeded reset: two processes with the same reset seed saw different geometry, masses,
+    images and trajectories. Construction is seeded now."""
+    import os
+    import subprocess
+    import sys
+
+    env = {**os.environ, "MUJOCO_GL": os.environ.get("MUJOCO_GL", "osmesa")}
+    runs = [subprocess.Popen([sys.executable, "-c", _FINGERPRINT, str(seed)], stdout=subprocess.PIPE,
+                             stderr=subprocess.PIPE, text=True, env=env) for seed in (1, 2)]
+    outs = []
+    for run in runs:
+        out, err = run.communicate(timeout=300)
+        assert run.returncode == 0, err[-2000:]
+        outs.append(out.strip().splitlines()[-1])
+    geometry, xml, observation = (list(part) for part in zip(*(o.split() for o in outs)))
+    assert geometry[0] == geometry[1] and xml[0] == xml[1], outs
+    assert observation[0] == observation[1], outs
+
+
+@pytest.mark.parametrize("task", ["Square", "ToolHang"])
+def test_every_action_in_the_space_steps_and_a_degenerate_rotation_holds_the_orientation(task, square):
+    """action_space.contains(zeros) is true, so step(zeros) must work (it raised on the 6-D rotation's zero
+    column): an arm whose rotation is degenerate holds its current orientation; sampled actions step too."""
+    env = square if task == "Square" else RobomimicEnv(task, image_size=SIZE)
+    env.reset(seed=2)
+    env.set_render_images(False)
+    try:
+        env.action_space.seed(0)
+        for _ in range(3):
+            env.step(env.action_space.sample())
+        zeros = np.zeros(env.action_space.shape, np.float32)
+        assert env.action_space.contains(zeros)
+        _, before = env.controller_pose()
+        env.step(zeros)
+        goal_p, goal_m = env.controller_goal()
+        np.testing.assert_allclose(goal_m, before, atol=1e-6)   # robosuite keeps the goal in float32
+        np.testing.assert_allclose(goal_p, np.zeros((1, 3)), atol=1e-9)   # the position is taken as given
+    finally:
+        env.set_render_images(True)
+        if env is not square:
+            env.close()
+
+
+def test_a_degenerate_rotation_holds_only_its_own_arm(transport):
+    transport.reset(seed=3)
+    transport.set_render_images(False)
+    try:
+        action = transport.hold_action()
+        target_p, target_m = _target_pose(transport, [0.0, 0.0, 0.0], 0.3)
+        action[13:19] = rotations.matrix_to_rot6d(target_m[1])   # arm 1 turns
+        action[3:9] = [1, 0, 0, 2, 0, 0]                          # arm 0: parallel columns
+        _, before = transport.controller_pose()
+        transport.step(action)
+        _, goal_m = transport.controller_goal()
+        np.testing.assert_allclose(goal_m[0], before[0], atol=1e-6)
+        np.testing.assert_allclose(goal_m[1], target_m[1], atol=1e-6)
+    finally:
+        transport.set_render_images(True)
+
