@@ -271,16 +271,29 @@ def cmd_audit(args) -> int:
     return 0
 
 
+def _score_names(text: str | None) -> tuple[str, ...] | None:
+    """--monitor-scores: None for all, () for none, else the names."""
+    if text in (None, "all"):
+        return None
+    return () if text == "none" else tuple(x.strip() for x in text.split(",") if x.strip())
+
+
 def cmd_robot(args) -> int:
     from jepa_envs.real_robot.proxy import BridgeError
     from jepa_policy.robot import run_checkpoint_on_bridge
+    from jepa_policy.serve import read_secret
+    from jepa_policy.serve.config import MONITOR_KEY_ENV
 
     try:
         summary = run_checkpoint_on_bridge(args.checkpoint, args.address, args.episodes, seed=args.seed,
                                            device=args.device, method=args.method, wait=not args.no_wait,
                                            asynchronous=args.asynchronous, replan_steps=args.replan_steps,
                                            curve_server_key=args.curve_server_key,
-                                           curve_client_key=args.curve_client_key)
+                                           curve_client_key=args.curve_client_key, monitor_url=args.monitor_url,
+                                           monitor_key=read_secret("--monitor-key", args.monitor_key,
+                                                                   args.monitor_key_file, MONITOR_KEY_ENV),
+                                           task_id=args.task_id, robot=args.robot,
+                                           monitor_scores=_score_names(args.monitor_scores))
     except (BridgeError, TimeoutError) as exc:   # busy, lost control, no bridge: the message names the fix
         print(f"error: {exc}", file=sys.stderr)
         return 1
@@ -455,6 +468,16 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--curve-server-key", help="CurveZMQ: the bridge's public key file (jepa-robot-bridge keys)")
     p.add_argument("--curve-client-key", help="CurveZMQ: this computer's secret key file")
     p.add_argument("--json", help="also write the summary to this file")
+    p.add_argument("--monitor-url", help="report every decision (z_hat, scores), target and outcome to this monitor "
+                                         "service, e.g. http://127.0.0.1:8765 (synchronous loop)")
+    p.add_argument("--monitor-key", help="a robot key of the monitor; visible in ps: prefer JEPA_POLICY_MONITOR_KEY "
+                                         "or --monitor-key-file")
+    p.add_argument("--monitor-key-file", help="read the monitor key from this file's first line (chmod 600)")
+    p.add_argument("--task-id", help="the monitor's task name (default: the checkpoint's task)")
+    p.add_argument("--robot", help="the monitor key's robot name")
+    p.add_argument("--monitor-scores", default="all",
+                   help="named scores to send: all (default: every finite one the policy computes), none, or a comma list, "
+                        "e.g. stac,rnd (the task must register them: jepa-monitor tasks add TASK --signals ...)")
     p.set_defaults(func=cmd_robot)
 
     p = sub.add_parser("serve", help="serve a checkpoint over openpi's websocket protocol (openpi-client), with the "

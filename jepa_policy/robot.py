@@ -8,6 +8,11 @@ evaluation manifest (checkpoint, method, seed) and reports the success rate. The
 the first episode (its first call builds kernels and caches and can take seconds, longer than the bridge's
 watchdog allows), and that time is reported apart. A policy is anything with ``reset()`` and
 ``act(obs) -> action`` (``Policy`` is one).
+
+With a monitor (``--monitor-url``, ``MonitorReporter``) the synchronous loop sends every decision's z_hat, the
+present latent (the persistence control) and its named failure scores (``Decision.scores``: STAC, and RND,
+PCA-kmeans and Mahalanobis when the checkpoint has fitted detectors), the realized latent of each decision's
+target frame, and the episode's outcome, as ``jepa-policy serve`` does.
 """
 from __future__ import annotations
 
@@ -21,6 +26,7 @@ import numpy as np
 from jepa_envs.real_robot.executor import AsyncChunkExecutor
 from jepa_envs.real_robot.proxy import RealRobotEnv
 from jepa_policy.policy import Policy
+from monitor_service.client import MonitorClient
 
 
 class ActingPolicy(Protocol):
@@ -48,9 +54,56 @@ def warm_up(policy: ActingPolicy, env, calls: int = 2) -> float:
     return time.monotonic() - start
 
 
+class MonitorReporter:
+    """The robot loop's side of the monitor: per decision z_hat (for step + k), the present latent and the named
+    scores; per target frame its realized latent; per episode the outcome (``MonitorClient``, batched, retried).
+
+    ``scores``: which of the decision's scores to send (None: every finite one; the task must have them
+    registered, ``jepa-monitor tasks add TASK --signals stac,rnd,pca_kmeans,mahalanobis``, or the monitor
+    refuses the record)."""
+
+    def __init__(self, client: MonitorClient, task: str, checkpoint: str | None = None,
+                 scores: tuple[str, ...] | None = None):
+        self.client, self.task, self.checkpoint, self.scores = client, task, checkpoint, scores
+        self.episode = ""
+        self._pending: set[int] = set()
+
+    def start(self, episode: str) -> None:
+        self.episode, self._pending = episode, set()
+
+    def observed(self, policy: Policy, obs: dict, decided: bool) -> None:
+        """After ``policy.act(obs)``: report the decision it made (``decided``) and any target frame ``obs`` is."""
+        t = policy.t
+        if t in self._pending:
+            self._pending.discard(t)
+            self.client.target(self.episode, t, policy.encode_future(obs))
+        if not decided:
+            return
+        d = policy.last_decision
+        scores = {k: v for k, v in d.scores.items() if np.isfinite(v) and (self.scores is None or k in self.scores)}
+        if d.z_hat is None and not scores:
+            return
+        self.client.decision(self.task, self.episode, d.step, d.k if d.z_hat is not None else None, d.z_hat,
+                             checkpoint=self.checkpoint, scores=scores or None,
+                             z_now=policy.encode_future(obs) if d.z_hat is not None else None)
+        if d.z_hat is not None:
+            self._pending.add(d.target_step)
+
+    def target_frame(self, policy: Policy, obs: dict, step: int) -> None:
+        """The frame of env step ``step`` (after the last action of a loop that does not act on it)."""
+        if step in self._pending:
+            self._pending.discard(step)
+            self.client.target(self.episode, step, policy.encode_future(obs))
+
+    def outcome(self, success: bool, length: int) -> None:
+        self.client.outcome(self.episode, success, length=length)
+
+
 def run_episodes(env, policy: ActingPolicy, episodes: int, seed: int = 0, manifest: dict | None = None,
-                 before_episode: Callable[[int], None] | None = None, warmup: bool = True) -> dict:
-    """Run ``episodes`` seeded episodes (synchronous loop); returns per-episode results and the success rate."""
+                 before_episode: Callable[[int], None] | None = None, warmup: bool = True,
+                 monitor: MonitorReporter | None = None) -> dict:
+    """Run ``episodes`` seeded episodes (synchronous loop); returns per-episode results and the success rate.
+    ``monitor`` (a ``Policy`` then): every decision, target and outcome goes to the monitor service."""
     if episodes < 1:
         raise ValueError("episodes must be >= 1")
     warmup_s = warm_up(policy, env) if warmup else 0.0
@@ -61,12 +114,21 @@ def run_episodes(env, policy: ActingPolicy, episodes: int, seed: int = 0, manife
         policy.reset()
         episode_manifest = {**(manifest or {}), "episode_index": index}
         obs, info = env.reset(seed=seed + index, options={"manifest": episode_manifest})
+        if monitor is not None:
+            monitor.start(f"{(manifest or {}).get('run', 'robot')}-{seed + index}-{time.time_ns()}")
         steps = 0
         while True:
-            obs, _, terminated, truncated, info = env.step(policy.act(obs))
+            before = getattr(policy, "last_decision", None)
+            action = policy.act(obs)
+            if monitor is not None:
+                monitor.observed(policy, obs, policy.last_decision is not before)
+            obs, _, terminated, truncated, info = env.step(action)
             steps += 1
             if terminated or truncated:
                 break
+        if monitor is not None:
+            monitor.target_frame(policy, obs, steps)
+            monitor.outcome(bool(info["is_success"]), steps)
         results.append({"index": index, "seed": seed + index, "steps": steps,
                         "is_success": bool(info["is_success"]), "outcome": info.get("outcome"),
                         "interrupted": info.get("interrupted", ""), "chunks": info.get("chunks_used"),
@@ -97,32 +159,71 @@ def run_episodes_async(env, policy: Policy, episodes: int, seed: int = 0, manife
             "replan_steps": executor.replan_steps}
 
 
+BRIDGE_BACKENDS = {"SimBackend": "sim", "ARX5Backend": "arx5", "ReplayBackend": "replay"}
+
+
+def image_size_refusal(address: str, welcome: dict, policy: Policy) -> str:
+    """Why a bridge of another image size is refused, and the bridge command that fits the checkpoint."""
+    served, size, task = welcome["spec"]["image_size"], policy.image_size, policy.spec.name
+    backend = BRIDGE_BACKENDS.get(welcome.get("backend"), "sim")
+    if backend == "replay":
+        fix = f"replay an episode recorded at {size} px (a replayed episode keeps its recorded frames)"
+    elif backend == "arx5":
+        fix = f"restart it with `jepa-robot-bridge serve --backend arx5 --config CONFIG --image-size {size}`"
+    else:
+        fix = f"restart it with `jepa-robot-bridge serve --backend sim --task {task} --image-size {size}`"
+    return (f"the bridge at {address} serves {served} px images, this checkpoint acts on {size} px (the image size "
+            f"it was trained at); {fix}, keeping its other flags")
+
+
 def run_checkpoint_on_bridge(checkpoint: str | Path, address: str, episodes: int, seed: int = 0,
                              device: str = "cpu", method: str = "JEPA Policy", wait: bool = True,
                              asynchronous: bool = False, replan_steps: int | None = None,
-                             curve_server_key: str | None = None, curve_client_key: str | None = None) -> dict:
+                             curve_server_key: str | None = None, curve_client_key: str | None = None,
+                             monitor_url: str | None = None, monitor_key: str | None = None,
+                             task_id: str | None = None, robot: str | None = None,
+                             monitor_scores: tuple[str, ...] | None = None, monitor_flush_s: float = 30.0) -> dict:
     """Load a ``jepa-policy train`` checkpoint, connect to the bridge serving its task and run the episodes.
 
     ``wait``: ask the operator on stdin to set the scene up before each episode (only on a terminal).
+    ``monitor_url`` / ``monitor_key`` (a robot key): report every decision with its scores to the monitor under
+    ``task_id`` (default: the checkpoint's task); ``monitor_scores``: which scores (default every finite one).
     Raises SystemExit with the fix when the checkpoint is missing or the bridge serves another image size.
     """
     checkpoint = Path(checkpoint)
     if not checkpoint.is_file():
         raise SystemExit(f"checkpoint {checkpoint} not found; train one with `jepa-policy train`")
+    if monitor_url and not monitor_key:
+        raise ValueError("--monitor-url needs --monitor-key (a robot key of the monitor service: jepa-monitor keys "
+                         "create --role robot)")
+    if monitor_url and asynchronous:
+        raise ValueError("--monitor-url reports the synchronous loop's decisions; drop --async")
     policy = Policy.from_checkpoint(checkpoint, device=device)
     env = RealRobotEnv(task=policy.spec.name, address=address, client_name=f"launcher:{checkpoint.name}",
                        curve_server_key=curve_server_key, curve_client_key=curve_client_key)
     try:
-        if env.task_spec.image_size != policy.spec.image_size:
-            raise SystemExit(f"the bridge serves {env.task_spec.image_size}px images, the checkpoint was trained "
-                             f"on {policy.spec.image_size}px; restart the bridge with --image-size "
-                             f"{policy.spec.image_size}")
+        if env.task_spec.image_size != policy.image_size:
+            raise SystemExit(image_size_refusal(address, env.welcome, policy))
         manifest = {"checkpoint": str(checkpoint.resolve()), "checkpoint_step": policy.checkpoint_step,
                     "method": method, "task": policy.spec.name}
         before = None if not wait or not sys.stdin.isatty() else (
             lambda i: input(f"Set up the scene for episode {i + 1}/{episodes}, then press Enter "))
         if asynchronous:
             return run_episodes_async(env, policy, episodes, seed, manifest, replan_steps, before_episode=before)
-        return run_episodes(env, policy, episodes, seed, manifest, before_episode=before)
+        if not monitor_url:
+            return run_episodes(env, policy, episodes, seed, manifest, before_episode=before)
+        client = MonitorClient(monitor_url, monitor_key, robot=robot)
+        try:
+            reporter = MonitorReporter(client, task_id or policy.spec.name, f"{checkpoint.name}@{policy.checkpoint_step}",
+                                       monitor_scores)
+            summary = run_episodes(env, policy, episodes, seed, manifest, before_episode=before, monitor=reporter)
+        finally:
+            delivered = client.close(timeout=monitor_flush_s)
+        stats = client.stats
+        summary["monitor"] = {"url": monitor_url, "task": reporter.task, "delivered": delivered,
+                              "dropped": stats.dropped, "rejected": len(stats.rejected),
+                              "first_rejection": ({"status": stats.rejected[0][1], "message": stats.rejected[0][2]}
+                                                  if stats.rejected else None)}
+        return summary
     finally:
         env.close()
