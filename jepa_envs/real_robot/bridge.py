@@ -15,8 +15,9 @@ operator's commands. Its layers, one module each:
 
 One event-loop thread owns the backend and the control socket, so no backend call races another, except the
 e-stop's ``emergency_stop`` (the backend's contract). Each loop turn does a bounded amount of work: at most
-``CONTROL_TURN`` control messages (``CHUNK_TURN`` between two actions of a chunk), taken one per connection in
-turn by the ROUTER, so no flood delays the session's messages, its link's echoes or the next action for long.
+``IDLE_TURN`` control messages and operator commands (``CHUNK_TURN`` between two actions of a chunk), the
+messages taken one per connection in turn by the ROUTER, so no flood delays the session's messages, its
+link's echoes or the next action for long.
 
 * control socket (ROUTER): the one controlling client (``proxy.RealRobotEnv``) sends hello / reset / step /
   chunk / observe / stream / bye, and opens its link connection with ``link``; a second client gets ``busy``.
@@ -61,9 +62,10 @@ from jepa_envs.real_robot.wire import ControlWire, Incoming
 
 log = logging.getLogger(__name__)
 
-CONTROL_TURN = 64           # control messages read per loop turn ...
-CHUNK_TURN = 8              # ... and between two actions of a chunk
+IDLE_TURN = (64, 16)        # (control messages, operator commands) served per loop turn ...
+CHUNK_TURN = (8, 1)         # ... and between two actions of a chunk
 TURN_BUDGET_S = 0.002       # a turn stops reading after this long
+BETWEEN_ACTIONS_S = 0.001   # back-to-back simulated actions serve the sockets at most this often
 
 
 def chunk_budget_for(spec) -> int:
@@ -102,7 +104,7 @@ class RobotBridge:
         # pressed by the operator thread, never waiting for the loop; checked before every action decided
         self.estop = EStop(lambda: self.backend.emergency_stop(), self.config.state_file)
         self.runner = EpisodeRunner(backend, self.safety, self.guard, self.estop, self.chunk_budget,
-                                    self.config.record_dir, lambda timeout: self._pump(timeout, CHUNK_TURN),
+                                    self.config.record_dir, self._between_actions,
                                     self._apply_estop_if_latched)
         self._ctx = zmq.Context()
         self._auth = None
@@ -181,7 +183,7 @@ class RobotBridge:
         try:
             while not self._stop.is_set():
                 try:
-                    self._pump(self._poll_timeout(), CONTROL_TURN)
+                    self._pump(self._poll_timeout(), IDLE_TURN)
                 except Exception:   # never reached by input (handled per message); a bug must not free the robot
                     self.counters["loop_errors"] += 1
                     log.exception("bridge event loop error; the robot holds")
@@ -219,7 +221,7 @@ class RobotBridge:
             log.exception("backend call %s failed", getattr(fn, "__name__", fn))
 
     # ---------------------------------------------------------------- event pump
-    def _pump(self, timeout_s: float, control_messages: int) -> None:
+    def _pump(self, timeout_s: float, turn: tuple[int, int]) -> None:
         """One bounded turn between actions: apply a latched e-stop, serve what is waiting, enforce the timers."""
         start = time.monotonic()
         if start - self._turn_end > self.heartbeat_interval:
@@ -229,10 +231,16 @@ class RobotBridge:
         if self._monitor in events:
             self._serve_monitor()
         if self._control in events:
-            self._serve_control(control_messages)
-        self._operator.serve_loop()
+            self._serve_control(turn[0])
+        self._operator.serve_loop(turn[1])
         self._check_timers()
         self._turn_end = time.monotonic()
+
+    def _between_actions(self, timeout_s: float) -> None:
+        """The runner's turn between two actions; a simulator's back-to-back actions get one every millisecond
+        at most (the sockets wait that long, the robot's actions do not wait for a flood's messages)."""
+        if timeout_s > 0 or time.monotonic() - self._turn_end >= BETWEEN_ACTIONS_S:
+            self._pump(timeout_s, CHUNK_TURN)
 
     def _serve_control(self, messages: int) -> None:
         deadline = time.monotonic() + TURN_BUDGET_S
@@ -567,7 +575,7 @@ class RobotBridge:
                 "chunks": ep.chunks, "chunk_budget": self.chunk_budget, "action_budget": self.action_budget,
                 "underflow_steps": run.stream.underflow_steps,
                 "frame_to_chunk_latency": latency_stats(ep.chunk_latency_s)},
-            "frame_to_chunk_latency_all": latency_stats(list(run.steady_latencies), skip_first=False),
+            "frame_to_chunk_latency_all": run.latency_summary(),
             "counters": dict(counters),
             "events": [dict(e) for e in run.events[-20:]],
         }

@@ -113,6 +113,11 @@ def _parser() -> argparse.ArgumentParser:
     bench.add_argument("--window", type=float, default=4.0,
                        help="--load: seconds the controller's chunk rate is counted alone, then under the load")
     bench.add_argument("--abort-runs", type=int, default=30, help="--load aborts: fresh bridges flooded")
+    bench.add_argument("--nice", type=int, default=0,
+                       help="--load: the bridges' niceness (the systemd unit's -10 needs root; default 0)")
+    bench.add_argument("--realtime", action="store_true",
+                       help="--load: the bridge paces actions at the task's rate, as on the robot (default: as "
+                            "fast as the simulator runs, the CPU-bound worst case)")
     bench.add_argument("--flood-seconds", type=float, default=3.0, help="--load aborts: seconds of flood per run")
     return parser
 

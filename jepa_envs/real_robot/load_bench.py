@@ -1,14 +1,20 @@
 """``jepa-robot-bridge bench --load``: the bridge under local load (issue 35), every party in a process of its own.
 
-A simulated PushT bridge (``serve --backend sim``, heartbeats on: the default link timeout of one control
+A simulated PushT bridge (``serve --backend sim``, link liveness on: the default link timeout of one control
 period) serves a policy process that runs action chunks back to back, as fast as the simulator allows (the
-bridge's loop is never idle, the worst case for draining its sockets). The scenarios:
+bridge's loop is never idle, the worst case for draining its sockets). With ``--realtime`` the bridge paces
+actions at the task's 10 Hz, as on the robot: the chunk rate then shows whether the flood starves the
+controller, not how much CPU the flood's process takes from it on a small machine. ``--nice -10`` runs the
+bridges at the priority the systemd unit gives them (negative values need root). The scenarios:
 
 * ``flood``: a stranger process with four DEALER sockets sends undecodable and tokenless frames at full speed on
   the control socket and reads the replies. Measured: the e-stop, and the controller's chunk rate under the
   flood over its rate alone (the same length of time just before).
 * ``operators``: 50 operator connections each keep a ``status`` queued (each sends the next on its answer).
 * ``operators+flood``: both at once (an e-stop queued behind other operators' commands on a flooded bridge).
+* ``flood-elsewhere``: the same flood at a second bridge on this machine: the CPU it takes, without touching
+  the controller's bridge. Its rate ratio is what the machine allows; ``flood``'s beside it is what the bridge
+  adds.
 * ``big``: a stranger keeps sending a 16 MiB message that is slow to decode (16 M one-byte integers).
 * ``aborts``: ``--abort-runs`` fresh bridges, each with a controller, flooded for ``--flood-seconds``; counts the
   bridges that died (libzmq's ``!_io_error`` abort is exit -6) and the controller links held or lost meanwhile.
@@ -40,7 +46,8 @@ FLOOD_HEARTBEATS = "JEPA_FLOOD_ZMTP_HEARTBEATS"   # set: the flood's sockets sen
 OPERATOR_CONNECTIONS = 50
 BIG_MESSAGE = msgpack.packb([1] * (16 * 1024 * 1024 - 16))   # 16 MiB of one-byte integers: slow to decode
 # each scenario's load processes (``aborts`` is its own loop of fresh bridges)
-LOADS = {"flood": ["flood"], "operators": ["operators"], "operators+flood": ["operators", "flood"], "big": ["big"]}
+LOADS = {"flood": ["flood"], "operators": ["operators"], "operators+flood": ["operators", "flood"], "big": ["big"],
+         "flood-elsewhere": ["flood"]}
 SCENARIOS = (*LOADS, "aborts")
 
 
@@ -196,10 +203,11 @@ class Child:
 class Bridge:
     """A sim bridge in a child process on free loopback ports (heartbeats on: the default link timeout)."""
 
-    def __init__(self, extra: tuple[str, ...] = ()):
+    def __init__(self, extra: tuple[str, ...] = (), nice: int = 0):   # extra serve arguments, e.g. ("--realtime",)
         env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+        priority = ["nice", "-n", str(nice)] if nice else []   # the systemd unit runs the bridge at Nice=-10
         self.proc = subprocess.Popen(
-            [sys.executable, "-m", "jepa_envs.real_robot.cli", "serve", "--backend", "sim", "--task", "PushT",
+            [*priority, sys.executable, "-m", "jepa_envs.real_robot.cli", "serve", "--backend", "sim", "--task", "PushT",
              "--chunk-budget", "1000000", "--bind", "tcp://127.0.0.1:*", "--operator-bind", "tcp://127.0.0.1:*",
              "--no-prompt", *extra], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
         banner = self.proc.stdout.readline()
@@ -279,9 +287,10 @@ def _summary(samples: list[float]) -> dict:
     return {"p50_ms": float(np.median(x)), "max_ms": float(x.max()), "over_100ms": int((x > 100).sum())}
 
 
-def scenario(name: str, trials: int, window_s: float) -> dict:
+def scenario(name: str, trials: int, window_s: float, realtime: bool = False, nice: int = 0) -> dict:
     """One load scenario on a fresh bridge with a controller: chunk rates and the e-stop under that load."""
-    bridge = Bridge()
+    bridge = Bridge(("--realtime",) if realtime else (), nice)
+    other = Bridge(nice=nice) if name == "flood-elsewhere" else None
     controller = Child("controller", bridge.control)
     controller.wait_ready()
     loads: list[Child] = []
@@ -290,8 +299,9 @@ def scenario(name: str, trials: int, window_s: float) -> dict:
         started = time.time()
         time.sleep(window_s)   # the controller alone
         alone = (started, time.time())
+        target = other or bridge
         for role in LOADS[name]:
-            loads.append(Child(role, bridge.operator if role == "operators" else bridge.control))
+            loads.append(Child(role, target.operator if role == "operators" else target.control))
         time.sleep(0.3)
         loaded_from = time.time()
         time.sleep(window_s)   # the controller under the load
@@ -310,6 +320,8 @@ def scenario(name: str, trials: int, window_s: float) -> dict:
             child.finish()
         result = controller.finish()
         bridge.close()
+        if other is not None:
+            other.close()
     chunks = np.asarray(result.get("chunks", []), np.float64)
     rates = [float(((chunks >= a) & (chunks < b)).sum() / (b - a)) for a, b in (alone, loaded)]
     out["chunks_per_s_alone"], out["chunks_per_s_loaded"] = rates
@@ -357,7 +369,8 @@ def run_load_bench(args) -> int:
     with open("/proc/loadavg") as f:
         load = f.read().split()[:3]
     print(f"load average before: {' '.join(load)} ({os.cpu_count()} CPUs); libzmq {zmq.zmq_version()}, "
-          f"pyzmq {zmq.__version__}", flush=True)
+          f"pyzmq {zmq.__version__}; bridge {'at 10 Hz' if args.realtime else 'as fast as it runs'}, "
+          f"niceness {args.nice}", flush=True)
     results = {"loadavg": load, "libzmq": zmq.zmq_version(), "pyzmq": zmq.__version__}
     for name in names:
         if name == "aborts":
@@ -368,7 +381,7 @@ def run_load_bench(args) -> int:
             for line in r["abort_lines"]:
                 print(f"  {line}")
             continue
-        results[name] = r = scenario(name, args.trials, args.window)
+        results[name] = r = scenario(name, args.trials, args.window, args.realtime, args.nice)
         e = r["estop"]
         answer, latched = _summary(e["answer_ms"]), _summary(e["latched_ms"])
         print(f"{name}: e-stop answered p50 {answer['p50_ms'] or float('nan'):.1f} ms, max "

@@ -33,7 +33,6 @@ log = logging.getLogger(__name__)
 OPERATOR_COMMANDS = (P.OP_ESTOP, P.OP_CLEAR_ESTOP, P.OP_CONFIRM, P.OP_HOME, P.OP_STATUS, P.OP_SHUTDOWN)
 TURN_REQUESTS = 256     # requests read per turn (the e-stops among them are answered first)
 MAX_PENDING = 64        # operator commands waiting for the event loop
-LOOP_TURN_COMMANDS = 16     # forwarded commands the event loop answers per turn
 _ids = itertools.count()
 
 
@@ -182,9 +181,9 @@ class OperatorChannel:
             return dict(self.counters)
 
     # ------------------------------------------------------------ the event loop's side
-    def serve_loop(self) -> None:
-        """On the event loop: answer the commands waiting for it, forwarded (bounded per turn) or in-process."""
-        for _ in range(LOOP_TURN_COMMANDS):
+    def serve_loop(self, commands: int) -> None:
+        """On the event loop: answer up to ``commands`` forwarded commands, and the in-process ones."""
+        for _ in range(commands):
             try:
                 frames = self.loop_commands.recv_multipart(zmq.NOBLOCK)
             except zmq.Again:

@@ -25,7 +25,7 @@ import numpy as np
 
 from jepa_envs.real_robot import protocol as P
 from jepa_envs.real_robot.backends.base import RobotBackend, StepResult
-from jepa_envs.real_robot.episodes import EpisodeRecord, FrameHistory
+from jepa_envs.real_robot.episodes import EpisodeRecord, FrameHistory, latency_stats
 from jepa_envs.real_robot.estop import EStop
 from jepa_envs.real_robot.safety import ActionGuard, InvalidAction, SafetyConfig, validate_action, validate_chunk
 from jepa_envs.real_robot.streaming import StreamQueue
@@ -73,6 +73,17 @@ class EpisodeRunner:
         # steady-state frame-to-chunk latencies of all episodes (each episode's first chunk left out, Sec. 4.8)
         self.steady_latencies: collections.deque[float] = collections.deque(maxlen=100_000)
         self.saved_manifests: list[str] = []
+        self._summary_key: tuple | None = None
+        self._summary: dict = {}
+
+    def latency_summary(self) -> dict:
+        """The steady-state frame-to-chunk latencies of all episodes (for ``status``), computed once per new
+        chunk: a percentile over 100,000 values takes milliseconds, and operators may ask many times a chunk."""
+        key = (len(self.steady_latencies), self.steady_latencies[-1] if self.steady_latencies else None)
+        if self._summary_key != key:
+            self._summary_key = key
+            self._summary = latency_stats(list(self.steady_latencies), skip_first=False)
+        return self._summary
 
     @property
     def running(self) -> bool:

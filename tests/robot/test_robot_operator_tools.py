@@ -184,7 +184,8 @@ def test_async_executor_runs_each_action_at_the_step_its_chunk_planned(robot):
     assert record.outcome == "failure" and record.steps == 24 and len(executed) == 24
     origins, index = executed[:, 0] - 100, executed[:, 1] - 100
     assert np.array_equal(origins + index, np.arange(24)), "an action ran at a step its chunk did not plan it for"
-    late = [d["late_steps"] for d in record.decisions[1:]]
+    # a chunk streamed after the budget's last action found the episode over (nothing accepted, no lateness)
+    late = [d["late_steps"] for d in record.decisions[1:] if d["accepted"]]
     assert min(late) >= 2 and np.median(late) <= 5
     assert all(d["latency_steps"] >= 3 for d in record.decisions)
     assert record.underflow_steps == 0 and record.summary()["late_steps_max"] >= 2
