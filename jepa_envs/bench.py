@@ -4,7 +4,11 @@ Per task that can be built here, side by side in one process:
 - raw backend vs our interface: steps/s of the backend's own step with its native hold-still action
   (``env.unwrapped.backend``, ``native_zero_action()``), against ``env.step`` of ``gym.make(id)`` with the
   equivalent action in our convention (``hold_action()``); overhead = raw rate / our rate - 1 (goal <= 3%).
-  For PushT the raw backend is the pymunk simulation + the camera render + the coverage (reward) computation.
+  Both arms produce the same observation, cameras rendered: for robosuite the raw arm reads every observable
+  after its step (robosuite's own ``_get_observations(force_update=True)``, as our step does; our cameras
+  never sample on robosuite's clock, so a bare ``backend.step`` would render nothing and the column would
+  compare rendering with not rendering). For PushT the raw backend is the pymunk simulation + the camera
+  render + the coverage (reward) computation.
 - render every step vs ``RenderOnDemand`` in a chunked policy loop (n_action_steps per chunk, obs_steps
   history, future frame k): steps/s and the speed-up (goal >= 2.5x).
 The arms of each comparison run interleaved in blocks of one chunk, so load from other processes hits both.
@@ -12,6 +16,7 @@ Each comparison is bounded by ``--steps`` and a time budget, so the default run 
 """
 from __future__ import annotations
 
+import os
 import time
 from typing import Callable
 
@@ -54,7 +59,11 @@ def _raw_step(env) -> Callable[[], None]:
             render()
             score(backend.block_pose)
         return step
-    return lambda: backend.step(native)
+
+    def step():
+        backend.step(native)
+        backend._get_observations(force_update=True)
+    return step
 
 
 def _hold_step(env, render_every_step: bool = False) -> Callable[[], None]:
@@ -106,19 +115,23 @@ def run_bench(tasks: list[str] | None = None, steps: int = 1000, budget_s: float
     """Measure and print the table; tasks that fail to build are reported and skipped."""
     specs = [get_task_spec(t) for t in tasks] if tasks else buildable_tasks()
     print(f"jepa-envs bench: up to {steps} steps or {budget_s:.0f} s per comparison; "
-          "chunked loop = n_action_steps per chunk, obs_steps history + future frame k rendered")
+          "chunked loop = n_action_steps per chunk, obs_steps history + future frame k rendered; raw and ours "
+          f"both render the task's cameras; {os.cpu_count()} cores, load = 1-minute load average around the row")
     header = (f"{'task':<20}{'raw st/s':>10}{'ours st/s':>11}{'overhead':>10}  "
-              f"{'every-step st/s':>16}{'on-demand st/s':>15}{'speed-up':>9}{'frames':>8}")
+              f"{'every-step st/s':>16}{'on-demand st/s':>15}{'speed-up':>9}{'frames':>8}{'load':>12}")
     print(header)
     rows = []
     for spec in specs:
+        load_before = os.getloadavg()[0]
         try:
             row = bench_task(spec, steps, budget_s)
         except Exception as exc:  # one backend failing to build must not hide the others' numbers
             print(f"{spec.name:<20}skipped: {type(exc).__name__}: {exc}")
             continue
+        row["load"] = (load_before, os.getloadavg()[0])
         rows.append(row)
         print(f"{row['task']:<20}{row['raw']:>10.1f}{row['ours']:>11.1f}{row['overhead']:>+9.1%}  "
-              f"{row['every']:>16.1f}{row['on_demand']:>15.1f}{row['speedup']:>8.2f}x{row['rendered_fraction']:>8.0%}")
+              f"{row['every']:>16.1f}{row['on_demand']:>15.1f}{row['speedup']:>8.2f}x{row['rendered_fraction']:>8.0%}"
+              f"{row['load'][0]:>6.1f}-{row['load'][1]:<5.1f}")
     return rows
 
