@@ -1,17 +1,18 @@
 """The robot bridge: owns the robot, serves observations, executes actions, enforces the safety rules.
 
 This file is the flow, top to bottom: the event loop (``_loop`` -> ``_pump``), a control message from its frame
-to its handler (``_serve_control`` -> ``_on_control``), synchronous execution (``_run`` -> ``_execute``: the
-e-stop latch, the ActionGuard's bounds and jump limits, ``backend.apply``, the joint limits), asynchronous
-execution (``_on_stream`` -> ``_stream_tick``), the timers (link, watchdog), the safety reactions and the
-operator's commands. Its layers, one module each:
+to its handler (``_serve_control`` -> ``_on_control``) and on to the robot (``_on_actions`` ->
+``EpisodeRunner.run``, which serves this loop between two actions), the timers (link, watchdog, the
+asynchronous queue's ticks), the reaction to a latched e-stop and the operator's commands. Its layers, one
+module each:
 
 * ``endpoints.py``: configuration, the loopback rule, CurveZMQ, the control socket.
 * ``wire.py``: control frames -> a decoded request (or its refusal), a stranger's limits; replies out.
 * ``sessions.py``: who controls the robot (token, seq) and the liveness of that client's link.
-* ``estop.py``: the latch, the robot's stop, and the latch across restarts.
+* ``estop.py``: the latch, the robot's stop, and the latch across restarts (``supervisor.py`` restarts).
 * ``operator_channel.py``: the operator socket in a thread of its own; the e-stop is answered there.
-* ``episodes.py``: the per-episode record and its files.
+* ``runner.py``: an episode's actions through the safety rules onto the backend (``streaming.py``: the
+  asynchronous queue; ``episodes.py``: the record and the served frames).
 
 One event-loop thread owns the backend and the control socket, so no backend call races another, except the
 e-stop's ``emergency_stop`` (the backend's contract). Each loop turn does a bounded amount of work: at most
@@ -94,7 +95,6 @@ class RobotBridge:
         if bind_problem:
             raise ValueError(bind_problem)
         self.guard = ActionGuard(self.safety, backend.action_low, backend.action_high)
-        self.period = 1.0 / float(self.spec.control_hz)
         self.link_timeout = self.safety.resolved_link_timeout(self.spec.control_hz)
         self.heartbeat_interval = self.safety.resolved_heartbeat(self.spec.control_hz)
         self.link_grace = float(self.safety.link_grace_s)
@@ -224,8 +224,9 @@ class RobotBridge:
     def _pump(self, timeout_s: float, turn: tuple[int, int]) -> None:
         """One bounded turn between actions: apply a latched e-stop, serve what is waiting, enforce the timers."""
         start = time.monotonic()
-        if start - self._turn_end > self.heartbeat_interval:
-            self._listening_since = start   # the loop was busy (a long backend call): silence counts from now
+        if start - self._turn_end > self.link_timeout / 2:
+            # the loop was busy (a long backend call) and could neither ping nor read: silence counts from now
+            self._listening_since = start
         self._apply_estop_if_latched()
         events = dict(self._poller.poll(max(0, int(timeout_s * 1000))))
         if self._monitor in events:

@@ -110,6 +110,9 @@ class SessionKeeper:
     def open_link(self, identity: bytes, message: dict) -> Session:
         """A ``link`` message with the session's token: ``identity`` is the connection to ping from now on."""
         s = self._check_token(identity, message)
+        if identity == s.identity:   # its messages would be taken for echoes and never read
+            raise Refused(P.error(P.ERR_BAD_MESSAGE, "the link is a second connection; this one carries the "
+                                                     "session's requests"), "malformed")
         s.link_identity, s.next_ping = identity, time.monotonic()
         return s
 

@@ -257,3 +257,19 @@ def test_keys_never_leave_a_client_secret_in_the_bridge_folder(tmp_path, capsys)
     assert (tmp_path / "out" / "policy-pc.key_secret").stat().st_mode & 0o077 == 0
     with pytest.raises(SystemExit, match="holds a secret key"):
         main(["keys", str(keys), "--authorize", str(tmp_path / "out" / "policy-pc.key_secret")])
+
+
+def test_a_link_on_the_sessions_own_connection_is_refused(robot, ctx):
+    """The link must be a second connection: on the session's own one, the bridge would take every later request
+    for an echo of its ping and never read it (the session would look alive and do nothing)."""
+    bridge = robot.bridge()
+    dealer = _socket(ctx, zmq.DEALER, bridge.control_endpoint)
+    dealer.send(P.encode({"type": P.HELLO, "client": "raw", "seq": 1}))
+    token = _recv(dealer)["session"]
+    dealer.send(P.encode({"type": P.LINK, "session": token}))
+    reply = _recv(dealer)
+    assert reply["code"] == P.ERR_BAD_MESSAGE and "second connection" in reply["message"]
+    dealer.send(P.encode({"type": P.RESET, "session": token, "seq": 2, "seed": 0}))
+    obs = _recv(dealer)["obs"]
+    dealer.send(P.encode({"type": P.STEP, "session": token, "seq": 3, "action": obs["agent_pos"].astype(np.float64)}))
+    assert _recv(dealer)["info"]["executed"] == 1, "the session's requests are still read"
