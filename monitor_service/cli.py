@@ -8,6 +8,8 @@ import sys
 import tempfile
 from pathlib import Path
 
+from monitor_service import compare_cli
+
 
 def _settings(args, database: str | None = None):
     """The settings; ``database``: "existing" (refused when missing) or "create" (made when missing) checks the
@@ -318,6 +320,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--seed", type=int, default=0, help="seed of the folds and the band split")
     s.add_argument("--json", action="store_true", help="print every figure as JSON")
     s.set_defaults(func=cmd_study)
+
+    compare_cli.add_parser(sub)
 
     s = sub.add_parser("report", help="per-task calibrations (pooled figure only as a warning)")
     s.add_argument("--json", action="store_true")

@@ -1,0 +1,439 @@
+"""``jepa-monitor compare``: every failure signal and alert rule on the same episodes, against the published
+runtime monitors' designs (issue 38): our future-consistency NMSE beside STAC, RND, PCA-kmeans, a Gaussian
+density score, a random chance row, FIPER's both-exceed rule and a Bonferroni p-value fusion.
+
+Input: episode records as ``jepa-policy eval --faults ... --out`` writes them (one JSON object per line, any
+number of files): {"seed", "success", "length", "regime" ("natural" or a fault's name), "fault_onset"?, "arm",
+"checkpoint", "decisions": [{"step", "target_step", "nmse", "nmse_persistence", "nmse_white"?, "scores":
+{"stac", "rnd", "pca_kmeans", "mahalanobis"}}, ...]}. Nothing here imports the policy or the envs.
+
+Signals. Target-time signals (known at t + k, when their target frame arrives): ``nmse`` (ours),
+``nmse_persistence`` (the control that predicts nothing), ``nmse_white`` (an attempt at a sharper NMSE, per-dim
+whitened). Decision-time signals (known at t): every name in ``scores``, and ``random`` (uniform, seeded by
+the episode's seed and the step: the chance row). Every signal is judged on the same episodes and folds.
+
+Two views of each episode: ``whole`` (every decision) and ``prefix`` (the first ``prefix`` decisions of the
+episodes still running after them: every episode of this view has the same number of decisions, so a score
+cannot rank failures by their length; PushT's failures are all 300-step time-outs).
+
+Regimes: ``natural`` (the unfaulted episodes; positives their failures) and each fault (positives the faulted
+episodes that failed; benign faults are read for their alert rate). The negatives of every regime are the
+natural successes, so TNR = 1 - the false-alert rate on clean successes.
+
+Figures per signal x regime x view (per checkpoint: calibrations are per checkpoint, and raw scores are never
+pooled across checkpoints):
+- ranking: AUROC of an episode score (the mean of the signal over the view's decisions; for a fault, over the
+  decisions after its onset and those before it alike) with its bootstrap 95 % CI;
+- detection, cross-fitted in ``folds`` folds (stratified by outcome; a faulted episode sits in the fold of its
+  natural twin, the episode of the same seed, so no calibration ever saw its first ``onset`` steps): each
+  detector (``monitor_service.detectors``) calibrated on the natural episodes of the other folds, on successes
+  only (conformal, FAIL-Detect's and FIPER's way) or on labelled successes and failures (Youden); TPR, TNR,
+  balanced accuracy, the Clopper-Pearson interval of the false-alert rate; detection time: for natural failures
+  the lead before the episode's end (env steps), for faults the delay after the onset (env steps, and in
+  decisions of ``n_action_steps``); an alert raised before a fault's onset is no detection of it.
+"""
+from __future__ import annotations
+
+import gzip
+import json
+from collections import defaultdict
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from monitor_service import detectors, rules, stats
+
+TARGET_TIME = ("nmse", "nmse_persistence", "nmse_white")
+RANDOM = "random"
+OURS = "nmse"
+PREFIX = 10            # decisions of the length-controlled view (80 env steps of PushT)
+N_ACTION_STEPS = 8     # env steps between decisions (the paper's chunk execution)
+RULES = {"default": rules.RuleParams("band", 5, 2), "fast": rules.RuleParams("band", 1, 1)}
+
+
+@dataclass
+class Episode:
+    """One recorded episode, its per-decision signal values (NaN where missing) and where it belongs."""
+
+    seed: int
+    success: bool
+    length: int
+    regime: str
+    group: str
+    steps: np.ndarray
+    known_at: dict[str, np.ndarray]
+    values: dict[str, np.ndarray]
+    onset: int | None = None
+    fold: int = -1
+    extra: dict = field(default_factory=dict)
+
+    @property
+    def n_decisions(self) -> int:
+        return int(self.steps.size)
+
+    def signal_episode(self, signals, prefix: int | None = None) -> detectors.SignalEpisode:
+        """The monitor's view of this episode (``prefix``: its first decisions only)."""
+        cut = slice(None) if prefix is None else slice(0, prefix)
+        return detectors.SignalEpisode({s: self.values[s][cut] for s in signals if s in self.values},
+                                       self.success, self.steps[cut],
+                                       {s: self.known_at[s][cut] for s in signals if s in self.values},
+                                       self.length, self.group, f"{self.regime}-{self.seed}")
+
+
+def random_score(seed: int, step: int) -> float:
+    """The chance row's per-decision value: uniform in (0, 1], a function of the episode's seed and the step only."""
+    return 1.0 - float(np.random.default_rng([int(seed), int(step), 0x52414E44]).random())
+
+
+def episode_of(row: dict, where: str = "") -> Episode:
+    """An ``Episode`` from one record; ValueError naming the record for a malformed one."""
+    try:
+        decisions = sorted(row["decisions"], key=lambda d: d["step"])
+        seed, success, length = int(row["seed"]), bool(row["success"]), int(row["length"])
+    except (KeyError, TypeError, ValueError) as exc:
+        raise ValueError(f"{where}: an episode record needs seed, success, length and decisions ({exc}); write them "
+                         "with jepa-policy eval --out") from None
+    steps = np.array([int(d["step"]) for d in decisions], dtype=np.int64)
+    target = np.array([int(d.get("target_step", d["step"])) for d in decisions], dtype=np.int64)
+    names = {n for d in decisions for n in TARGET_TIME if d.get(n) is not None}
+    names |= {n for d in decisions for n in (d.get("scores") or {})}
+    values, known = {}, {}
+    for name in sorted(names):
+        raw = [d.get(name) if name in TARGET_TIME else (d.get("scores") or {}).get(name) for d in decisions]
+        values[name] = np.array([np.nan if v is None else float(v) for v in raw], dtype=np.float64)
+        known[name] = target if name in TARGET_TIME else steps
+    values[RANDOM] = np.array([random_score(seed, s) for s in steps], dtype=np.float64)
+    known[RANDOM] = steps
+    regime = str(row.get("regime", "natural"))
+    group = str(row.get("group") or f"{row.get('arm', 'policy')}:{row.get('checkpoint', '')}")
+    onset = row.get("fault_onset")
+    return Episode(seed, success, length, regime, group, steps, known, values,
+                   None if onset is None else int(onset), extra={"arm": row.get("arm")})
+
+
+def load_records(paths, where: dict | None = None) -> list[Episode]:
+    """Every episode record of the JSONL files (``.gz`` too); ``where``: keep records whose fields equal these."""
+    out = []
+    for path in map(Path, paths):
+        if not path.is_file():
+            raise FileNotFoundError(f"{path} does not exist; write records with jepa-policy eval --faults all --out")
+        with (gzip.open(path, "rt") if path.suffix == ".gz" else path.open()) as f:
+            for n, line in enumerate(f, 1):
+                if not line.strip():
+                    continue
+                try:
+                    row = json.loads(line)
+                except json.JSONDecodeError as exc:
+                    raise ValueError(f"{path}:{n}: not JSON ({exc.msg}); one episode record per line") from None
+                if not isinstance(row, dict) or "decisions" not in row:
+                    raise ValueError(f"{path}:{n}: not an episode record (no 'decisions'); compare reads "
+                                     "jepa-policy eval --out records")
+                if where and any(str(row.get(k)) != v for k, v in where.items()):
+                    continue
+                out.append(episode_of(row, f"{path}:{n}"))
+    if not out:
+        raise ValueError("no episode records to compare (check the files and --where)")
+    return out
+
+
+def assign_folds(episodes: list[Episode], k: int, seed: int = 0) -> None:
+    """Natural episodes: k folds stratified by outcome within each group; a faulted episode: the fold of its
+    natural twin (same group and seed), else seed mod k."""
+    rng = np.random.default_rng(seed)
+    twins = {}
+    for key in sorted({(e.group, e.success) for e in episodes if e.regime == "natural"}):
+        members = sorted((e for e in episodes if e.regime == "natural" and (e.group, e.success) == key),
+                         key=lambda e: e.seed)
+        for i, j in enumerate(rng.permutation(len(members))):
+            members[j].fold = i % k
+            twins[(members[j].group, members[j].seed)] = members[j].fold
+    for e in episodes:
+        if e.regime != "natural":
+            e.fold = twins.get((e.group, e.seed), e.seed % k)
+
+
+def episode_score(values: np.ndarray) -> float | None:
+    """The ranking score of one episode's signal values: their mean (NaNs left out); None if none."""
+    finite = values[np.isfinite(values)]
+    return float(finite.mean()) if finite.size else None
+
+
+def view_of(episodes: list[Episode], view: str, prefix: int) -> tuple[list[Episode], int | None]:
+    """The episodes a view holds and the decisions each is cut to."""
+    if view == "whole":
+        return episodes, None
+    return [e for e in episodes if e.n_decisions >= prefix], prefix
+
+
+def _quartiles(values) -> dict | None:
+    values = [v for v in values if v is not None]
+    if not values:
+        return None
+    q1, med, q3 = np.percentile(np.asarray(values, dtype=np.float64), [25, 50, 75])
+    return {"median": float(med), "q1": float(q1), "q3": float(q3), "mean": float(np.mean(values)),
+            "n": len(values)}
+
+
+def ranking(episodes: list[Episode], signals, regime: str, cut: int | None, n_bootstrap: int, seed: int,
+            with_roc: bool = False) -> dict:
+    """AUROC [95 % CI] per signal: the regime's failures against the natural successes (``with_roc``: and the ROC
+    curve's points, for figures)."""
+    positives = [e for e in episodes if e.regime == regime and not e.success]
+    negatives = [e for e in episodes if e.regime == "natural" and e.success]
+    out = {}
+    for signal in signals:
+        scored = [(episode_score(e.values[signal][:cut]), label) for label, group in ((1, positives), (0, negatives))
+                  for e in group if signal in e.values]
+        scored = [(s, y) for s, y in scored if s is not None]
+        r = stats.auroc_with_ci(np.array([s for s, _ in scored]), np.array([y for _, y in scored]), n_bootstrap,
+                                seed)
+        out[signal] = {"auroc": r["auroc"], "ci": r["ci"], "failures": sum(y for _, y in scored),
+                       "successes": sum(1 - y for _, y in scored), **({"reason": r["reason"]} if "reason" in r else {})}
+        if with_roc and r["auroc"] is not None:
+            roc = stats.roc_points(np.array([s for s, _ in scored]), np.array([y for _, y in scored]))
+            out[signal]["roc"] = {"fpr": [round(x, 5) for x in roc["fpr"]], "tpr": [round(x, 5) for x in roc["tpr"]]}
+    return out
+
+
+def detector_specs(signals, params: rules.RuleParams) -> list[detectors.DetectorSpec]:
+    """Each signal alone, calibrated both ways; FIPER's rule on an OOD score with STAC and on NMSE with STAC and
+    RND; the Bonferroni fusion of every non-control signal, and of NMSE with STAC."""
+    signals = [s for s in signals]
+    real = [s for s in signals if s not in (RANDOM, "nmse_persistence", "nmse_white")]
+    specs = [detectors.DetectorSpec((s,), "single", cal, params) for s in signals for cal in detectors.CALIBRATIONS]
+    pairs = [("rnd", "stac"), ("pca_kmeans", "stac"), ("mahalanobis", "stac"), (OURS, "stac"), (OURS, "rnd")]
+    specs += [detectors.DetectorSpec(p, "fiper", "successes", params) for p in pairs if set(p) <= set(signals)]
+    for combo in (tuple(real), (OURS, "stac")):
+        if len(combo) > 1 and set(combo) <= set(signals):
+            specs.append(detectors.DetectorSpec(combo, "bonferroni", "successes", params))
+    return specs
+
+
+def detection(episodes: list[Episode], signals, cut: int | None, alpha: float, params: rules.RuleParams,
+              folds: int, seed: int) -> dict[str, dict]:
+    """Cross-fitted judgements of every detector on every episode of one group: detector name -> one judge dict
+    per episode (by its index in ``episodes``) and the refusals."""
+    specs = detector_specs(signals, params)
+    judged: dict[str, dict[int, dict]] = defaultdict(dict)
+    refused: dict[str, str] = {}
+    for fold in range(folds):
+        calibration = [e.signal_episode(signals, cut) for e in episodes if e.regime == "natural" and e.fold != fold]
+        test_idx = [i for i, e in enumerate(episodes) if e.fold == fold]
+        test = [episodes[i].signal_episode(signals, cut) for i in test_idx]
+        fold_judged, fold_refused = detectors.study_judgements(calibration, test, alpha, specs, seed)
+        refused.update(fold_refused)
+        for name, rows in fold_judged.items():
+            for i, row in zip(test_idx, rows):
+                judged[name][i] = row
+    return {"judged": judged, "refused": refused, "specs": {s.name: s for s in specs}}
+
+
+def detection_figures(episodes: list[Episode], judged: dict[int, dict], regime: str) -> dict:
+    """TPR on the regime's failures (faults: alerts known after the onset), TNR on natural successes, balanced
+    accuracy, detection time, and the alert rate of the regime's successes (the false alarms of a benign fault)."""
+    def alerted(i: int, e: Episode) -> bool:
+        j = judged.get(i)
+        if j is None or not j["alerted"]:
+            return False
+        return e.onset is None or e.regime == "natural" or j["known_at"] > e.onset
+
+    clean = [i for i, e in enumerate(episodes) if e.regime == "natural" and e.success and i in judged]
+    failed = [i for i, e in enumerate(episodes) if e.regime == regime and not e.success and i in judged]
+    kept = [i for i, e in enumerate(episodes) if e.regime == regime and e.success and i in judged]
+    fa = sum(alerted(i, episodes[i]) for i in clean)
+    ta = sum(alerted(i, episodes[i]) for i in failed)
+    ka = sum(alerted(i, episodes[i]) for i in kept)
+    tpr = ta / len(failed) if failed else None
+    tnr = 1 - fa / len(clean) if clean else None
+    out = {"failures": len(failed), "true_alerts": ta, "tpr": tpr, "tpr_ci": rules.binomial_ci(ta, len(failed)),
+           "successes": len(clean), "false_alerts": fa, "tnr": tnr,
+           "false_alert_rate": None if tnr is None else 1 - tnr, "false_alert_ci": rules.binomial_ci(fa, len(clean)),
+           "balanced_accuracy": None if tpr is None or tnr is None else (tpr + tnr) / 2,
+           "regime_successes": len(kept), "regime_success_alerts": ka,
+           "regime_success_alert_rate": ka / len(kept) if kept else None,
+           "regime_success_alert_ci": rules.binomial_ci(ka, len(kept))}
+    hits = [(judged[i], episodes[i]) for i in failed if alerted(i, episodes[i])]
+    if regime == "natural":
+        out["lead_steps"] = _quartiles([j["lead"] for j, _ in hits])
+    else:
+        delays = [j["known_at"] - e.onset for j, e in hits]
+        out["delay_steps"] = _quartiles(delays)
+        out["delay_decisions"] = _quartiles([d / N_ACTION_STEPS for d in delays])
+        out["pre_onset_alerts"] = sum(1 for i in failed if judged[i]["alerted"] and not alerted(i, episodes[i]))
+    return out
+
+
+def compare(episodes: list[Episode], alpha: float = 0.1, folds: int = 5, prefix: int = PREFIX, seed: int = 0,
+            n_bootstrap: int = 2000, rule_names=("default", "fast"), views=("prefix", "whole"),
+            signals: list[str] | None = None) -> dict:
+    """Every signal and detector on the same episodes and folds, per checkpoint (group), view and regime."""
+    if not 0 < alpha < 1:
+        raise ValueError(f"alpha must lie in (0, 1), got {alpha}")
+    unknown = [r for r in rule_names if r not in RULES]
+    if unknown:
+        raise ValueError(f"unknown rule setting(s) {unknown}; choose from {sorted(RULES)}")
+    assign_folds(episodes, folds, seed)
+    result: dict = {"settings": {"alpha": alpha, "folds": folds, "prefix": prefix, "seed": seed,
+                                 "n_bootstrap": n_bootstrap, "rules": {r: RULES[r].to_dict() for r in rule_names},
+                                 "ranking_score": "mean of the signal over the view's decisions",
+                                 "negatives": "natural successes"},
+                    "groups": {}}
+    for group in sorted({e.group for e in episodes}):
+        members = [e for e in episodes if e.group == group]
+        present = sorted({s for e in members for s in e.values})
+        chosen = [s for s in (signals or present) if s in present]
+        regimes = ["natural"] + sorted({e.regime for e in members} - {"natural"})
+        g = {"arm": members[0].extra.get("arm"), "signals": chosen, "episodes": {}, "views": {}}
+        for regime in regimes:
+            rs = [e for e in members if e.regime == regime]
+            g["episodes"][regime] = {"episodes": len(rs), "successes": sum(e.success for e in rs),
+                                     "failures": sum(not e.success for e in rs),
+                                     "onset": _quartiles([e.onset for e in rs if e.onset is not None])}
+        for view in views:
+            eps, cut = view_of(members, view, prefix)
+            v = {"episodes": len(eps), "decisions": cut, "ranking": {}, "detection": {}}
+            for regime in regimes:
+                v["ranking"][regime] = ranking(eps, chosen, regime, cut, n_bootstrap, seed, regime == "natural")
+            for rule_name in rule_names:
+                d = detection(eps, chosen, cut, alpha, RULES[rule_name], folds, seed)
+                rows = {}
+                for name, judged in d["judged"].items():
+                    rows[name] = {regime: detection_figures(eps, judged, regime) for regime in regimes}
+                v["detection"][rule_name] = {"detectors": rows, "refused": d["refused"]}
+            g["views"][view] = v
+        result["groups"][group] = g
+    return result
+
+
+# ----------------------------------------------------------------------------- text
+
+def _auc(r: dict) -> str:
+    if r.get("auroc") is None:
+        return "n/a"
+    return f"{r['auroc']:.3f} [{r['ci'][0]:.2f}, {r['ci'][1]:.2f}]"
+
+
+def _rate(k: int, n: int) -> str:
+    return "n/a" if not n else f"{k}/{n}={k / n:.2f}"
+
+
+def ranking_table(result: dict, view: str) -> list[str]:
+    """Markdown: one row per signal, one column per (checkpoint, regime): AUROC [95 % CI] (failures/successes)."""
+    lines = []
+    for group, g in result["groups"].items():
+        v = g["views"].get(view)
+        if v is None:
+            continue
+        regimes = list(v["ranking"])
+        lines += [f"**{group}** ({view}: {v['episodes']} episodes" + (f", first {v['decisions']} decisions" if
+                  v["decisions"] else "") + ")", "",
+                  "| signal | " + " | ".join(f"{r} ({v['ranking'][r][g['signals'][0]]['failures']} fail)"
+                                             for r in regimes) + " |",
+                  "|---" * (len(regimes) + 1) + "|"]
+        for s in g["signals"]:
+            lines.append(f"| {s} | " + " | ".join(_auc(v["ranking"][r][s]) for r in regimes) + " |")
+        lines.append("")
+    return lines
+
+
+def detection_table(result: dict, view: str, rule: str, regime: str) -> list[str]:
+    """Markdown: one row per detector: TPR, TNR, balanced accuracy, detection time, per checkpoint."""
+    lines = []
+    for group, g in result["groups"].items():
+        v = g["views"].get(view)
+        if v is None or rule not in v["detection"]:
+            continue
+        rows = v["detection"][rule]["detectors"]
+        timing = "lead before the end, steps" if regime == "natural" else "delay after onset, decisions"
+        lines += [f"**{group}**, {regime}, {view}, rule {rule}", "",
+                  f"| detector | TPR | TNR (false alerts [95% CI]) | balanced acc. | {timing}, median (IQR) |"
+                  + (" alerts on this regime's successes |" if regime != "natural" else ""),
+                  "|---|---|---|---|---|" + ("---|" if regime != "natural" else "")]
+        for name, per in rows.items():
+            r = per.get(regime)
+            if r is None:
+                continue
+            q = r.get("lead_steps") if regime == "natural" else r.get("delay_decisions")
+            t = "-" if q is None else f"{q['median']:.3g} ({q['q1']:.3g}-{q['q3']:.3g})"
+            ci = r["false_alert_ci"]
+            tnr = "n/a" if r["tnr"] is None else f"{r['tnr']:.3f} ({r['false_alerts']}/{r['successes']} " \
+                                                 f"[{ci[0]:.3f}, {ci[1]:.3f}])"
+            bacc = "n/a" if r["balanced_accuracy"] is None else f"{r['balanced_accuracy']:.3f}"
+            row = f"| {name} | {_rate(r['true_alerts'], r['failures'])} | {tnr} | {bacc} | {t} |"
+            if regime != "natural":
+                row += f" {_rate(r['regime_success_alerts'], r['regime_successes'])} |"
+            lines.append(row)
+        lines.append("")
+    return lines
+
+
+def best_rows(result: dict, view: str, rule: str) -> list[dict]:
+    """Per checkpoint and regime: the single signal with the highest AUROC, the detector with the highest
+    balanced accuracy, and where our NMSE stands (for the summary)."""
+    out = []
+    for group, g in result["groups"].items():
+        v = g["views"].get(view)
+        if v is None:
+            continue
+        for regime, ranks in v["ranking"].items():
+            real = {s: r for s, r in ranks.items() if r.get("auroc") is not None}
+            det = {n: per[regime] for n, per in v["detection"][rule]["detectors"].items()
+                   if per.get(regime, {}).get("balanced_accuracy") is not None}
+            best_signal = max(real, key=lambda s: real[s]["auroc"]) if real else None
+            best_det = max(det, key=lambda n: det[n]["balanced_accuracy"]) if det else None
+            out.append({"group": group, "regime": regime, "best_signal": best_signal,
+                        "best_auroc": real[best_signal] if best_signal else None,
+                        "nmse_auroc": real.get(OURS), "best_detector": best_det,
+                        "best_detection": det[best_det] if best_det else None})
+    return out
+
+
+def summary_text(result: dict) -> str:
+    """The console summary: per checkpoint and view, the natural-failure AUROCs, then the best detector per regime."""
+    lines = []
+    s = result["settings"]
+    lines.append(f"alpha {s['alpha']}, {s['folds']} folds (stratified; faults in their natural twin's fold), "
+                 f"prefix {s['prefix']} decisions; ranking score: {s['ranking_score']}; negatives: {s['negatives']}")
+    for group, g in result["groups"].items():
+        counts = ", ".join(f"{r} {c['episodes']} ({c['failures']} failed)" for r, c in g["episodes"].items())
+        lines.append(f"\n{group}: {counts}")
+        for view, v in g["views"].items():
+            nat = v["ranking"]["natural"]
+            lines.append(f"  {view} ({v['episodes']} episodes{', ' + str(v['decisions']) + ' decisions' if v['decisions'] else ''})"
+                         " natural-failure AUROC: " + ", ".join(f"{k} {_auc(r)}" for k, r in
+                                                                 sorted(nat.items(), key=lambda kv: -(kv[1]['auroc'] or 0))))
+            for rule in v["detection"]:
+                for row in best_rows({"groups": {group: g}}, view, rule):
+                    d = row["best_detection"]
+                    if d is None:
+                        continue
+                    q = d.get("lead_steps") if row["regime"] == "natural" else d.get("delay_decisions")
+                    when = "" if q is None else (f", lead {q['median']:.0f} steps" if row["regime"] == "natural"
+                                                 else f", median delay {q['median']:.2f} decisions")
+                    lines.append(f"    [{rule}] {row['regime']:<16} best {row['best_detector']}: balanced acc "
+                                 f"{d['balanced_accuracy']:.3f} (TPR {_rate(d['true_alerts'], d['failures'])}, "
+                                 f"false alerts {_rate(d['false_alerts'], d['successes'])}){when}")
+    return "\n".join(lines)
+
+
+def markdown(result: dict, figures=()) -> str:
+    """The whole comparison as a Markdown page: counts, ranking tables, detection tables, figures."""
+    lines = ["# Failure signals compared on the same episodes (jepa-monitor compare)", "", summary_text(result)
+             .replace("\n", "\n\n"), ""]
+    for view in ("prefix", "whole"):
+        lines += [f"## Ranking (AUROC of failures against natural successes), {view}", ""]
+        lines += ranking_table(result, view)
+    rule = next(iter(result["settings"]["rules"]))
+    for view in ("prefix", "whole"):
+        lines += [f"## Detection, natural failures, {view}", ""]
+        lines += detection_table(result, view, rule, "natural")
+    regimes = sorted({r for g in result["groups"].values() for r in g["episodes"]} - {"natural"})
+    for rule in result["settings"]["rules"]:
+        for regime in regimes:
+            lines += [f"## Detection, {regime} (whole episode, rule {rule})", ""]
+            lines += detection_table(result, "whole", rule, regime)
+    for f in figures:
+        lines += [f"![{Path(f).stem}]({Path(f).name})", ""]
+    return "\n".join(lines)
+

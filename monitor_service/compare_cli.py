@@ -1,0 +1,67 @@
+"""``jepa-monitor compare``: its arguments (argparse only, so ``jepa-monitor --help`` stays quick) and its run;
+the comparison itself is ``monitor_service/compare.py``."""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+HELP = ("every failure signal and alert rule on the same recorded episodes (natural failures, faults, benign "
+        "shift): AUROC with CI, TPR/TNR/balanced accuracy, detection time, both calibrations, cross-fitted")
+
+
+def add_parser(sub) -> argparse.ArgumentParser:
+    """Register ``compare`` on the ``jepa-monitor`` sub-parsers."""
+    s = sub.add_parser("compare", help=HELP, description=HELP)
+    s.add_argument("records", nargs="+", help="episode records (JSONL, .gz too) of `jepa-policy eval --faults all "
+                                              "--out FILE`, one file per checkpoint or several")
+    s.add_argument("--where", action="append", metavar="KEY=VALUE",
+                   help="keep only records with this field value, e.g. --where arm=jepa (repeatable)")
+    s.add_argument("--alpha", type=float, default=0.1, help="false-alert rate the rules are calibrated at (0.1)")
+    s.add_argument("--folds", type=int, default=5, help="cross-fitting folds (default 5)")
+    s.add_argument("--prefix", type=int, default=10, help="decisions of the length-controlled view (default 10)")
+    s.add_argument("--rules", default="default,fast",
+                   help="rule settings: default (band, window 5, debounce 2: the service's), fast (band, window 1, "
+                        "debounce 1)")
+    s.add_argument("--views", default="prefix,whole", help="prefix (length-controlled) and/or whole episodes")
+    s.add_argument("--signals", help="comma-separated signals to compare (default: every one the records hold)")
+    s.add_argument("--bootstrap", type=int, default=2000, help="AUROC bootstrap resamples (default 2000)")
+    s.add_argument("--seed", type=int, default=0, help="seed of the folds, the band split and the bootstrap")
+    s.add_argument("--json", metavar="FILE", help="write every figure as JSON (with the natural-failure ROC "
+                                                  "curves: python3 -m jepa_policy.compare_figures draws them)")
+    s.add_argument("--markdown", metavar="FILE", help="write the tables as Markdown")
+    s.set_defaults(func=run)
+    return s
+
+
+def run(args) -> int:
+    from monitor_service.compare import compare, load_records, markdown, summary_text
+
+    t0 = time.perf_counter()
+    where = {}
+    for item in args.where or []:
+        key, eq, value = item.partition("=")
+        if not eq:
+            raise ValueError(f"--where {item!r} needs KEY=VALUE, e.g. --where arm=jepa")
+        where[key] = value
+    if args.folds < 2:
+        raise ValueError(f"--folds must be >= 2 for cross-fitting, got {args.folds}")
+    if args.prefix < 1:
+        raise ValueError(f"--prefix must be >= 1 decision, got {args.prefix}")
+    views = tuple(v.strip() for v in args.views.split(",") if v.strip())
+    if not views or set(views) - {"prefix", "whole"}:
+        raise ValueError(f"--views takes prefix and/or whole, got {args.views!r}")
+    episodes = load_records(args.records, where)
+    result = compare(episodes, alpha=args.alpha, folds=args.folds, prefix=args.prefix, seed=args.seed,
+                     n_bootstrap=args.bootstrap, rule_names=tuple(r.strip() for r in args.rules.split(",")),
+                     views=views, signals=[s.strip() for s in args.signals.split(",")] if args.signals else None)
+    result["seconds"] = round(time.perf_counter() - t0, 1)
+    if args.json:
+        Path(args.json).write_text(json.dumps(result, indent=1))
+    if args.markdown:
+        Path(args.markdown).write_text(markdown(result))
+    print(summary_text(result))
+    print(f"\n{len(episodes)} episodes compared in {result['seconds']} s", file=sys.stderr)
+    return 0

@@ -1,0 +1,221 @@
+"""``jepa-monitor compare`` on synthetic episode records whose answers are known: a signal that separates the
+outcomes ranks and detects them perfectly, the random row sits at chance, the prefix view reads only the first
+decisions, a fault's detection delay counts from its onset and an alert before the onset detects nothing, and
+cross-fitting never calibrates on the episodes it judges (nor on a faulted episode's natural twin)."""
+import gzip
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from monitor_service import compare as cmp
+from monitor_service import detectors
+from monitor_service.cli import main as monitor_main
+
+ONSET = 30
+
+
+def record(seed, success, n, regime="natural", onset=None, stac=None, nmse=None, arm="jepa"):
+    """One record as ``jepa-policy eval --faults ... --out`` writes it: decisions every 8 env steps, NMSE known at
+    the target step t + 4, STAC missing at the first decision. ``stac``/``nmse``: f(i, step, rng) -> value
+    (default: uniform noise)."""
+    rng = np.random.default_rng([seed, len(regime)])
+    decisions = []
+    for i in range(n):
+        step = 8 * i
+        decisions.append({"step": step, "target_step": step + 4,
+                          "nmse": nmse(i, step, rng) if nmse else float(rng.random()),
+                          "nmse_persistence": float(rng.random()),
+                          "scores": {"stac": None if i == 0 else (stac(i, step, rng) if stac else float(rng.random())),
+                                     "rnd": float(rng.random())}})
+    row = {"seed": seed, "success": success, "length": 8 * n if success else 300, "regime": regime, "arm": arm,
+           "checkpoint": f"{arm}.pt", "decisions": decisions}
+    if onset is not None:
+        row.update(fault=regime, fault_onset=onset)
+    return row
+
+
+def natural(count=90, stac=None, nmse=None, fail_every=3):
+    """``count`` natural episodes, every ``fail_every``-th a 38-decision failure, the rest 12-21-decision
+    successes; ``stac``/``nmse``: f(failed, i, step, rng)."""
+    rows = []
+    for seed in range(count):
+        failed = seed % fail_every == 0
+        rows.append(record(seed, not failed, 38 if failed else 12 + seed % 10,
+                           stac=None if stac is None else (lambda i, s, g, f=failed: stac(f, i, s, g)),
+                           nmse=None if nmse is None else (lambda i, s, g, f=failed: nmse(f, i, s, g))))
+    return rows
+
+
+def run(rows, **kw):
+    kw.setdefault("n_bootstrap", 300)
+    kw.setdefault("rule_names", ("fast",))
+    return cmp.compare([cmp.episode_of(r) for r in rows], **kw)
+
+
+def single(view, rule, signal):
+    return view["detection"][rule]["detectors"][detectors.DetectorSpec((signal,), params=cmp.RULES[rule]).name]
+
+
+def test_a_separating_signal_ranks_and_detects_every_failure_and_the_random_row_sits_at_chance():
+    rows = natural(stac=lambda failed, i, s, g: (2.0 if failed else 0.0) + g.random())
+    result = run(rows, rule_names=("default", "fast"), signals=["stac", "random", "absent"])
+    g = result["groups"]["jepa:jepa.pt"]
+    assert g["episodes"]["natural"] == {"episodes": 90, "successes": 60, "failures": 30, "onset": None}
+    assert g["signals"] == ["stac", "random"]      # a signal the records lack is left out
+    for view in ("prefix", "whole"):
+        v = g["views"][view]
+        stac = v["ranking"]["natural"]["stac"]
+        assert stac["auroc"] == 1.0 and stac["ci"] == [1.0, 1.0] and (stac["failures"], stac["successes"]) == (30, 60)
+        assert stac["roc"]["tpr"][-1] == 1.0
+        rnd = v["ranking"]["natural"]["random"]
+        assert rnd["ci"][0] < 0.5 < rnd["ci"][1] and abs(rnd["auroc"] - 0.5) < 0.2
+        for rule in ("default", "fast"):
+            d = single(v, rule, "stac")["natural"]
+            assert d["tpr"] == 1.0 and d["true_alerts"] == 30
+            # conformal on successes at alpha 0.1: the false alerts of 60 clean successes within the binomial bound
+            assert d["false_alert_ci"][0] <= 0.1 and d["false_alerts"] <= 12
+            assert d["balanced_accuracy"] == pytest.approx((1 + d["tnr"]) / 2)
+            assert d["lead_steps"]["n"] == 30 and d["lead_steps"]["median"] > 0
+    text = cmp.summary_text(result)
+    assert "stac 1.000 [1.00, 1.00]" in text and "natural 90 (30 failed)" in text
+
+
+def test_the_prefix_view_reads_only_the_first_decisions_of_the_episodes_that_reach_them():
+    # identical in the first 10 decisions of every episode; failures rise after them
+    rows = natural(stac=lambda failed, i, s, g: 0.5 if i < 10 else (3.0 if failed else 0.5))
+    rows.append(record(500, True, 6))   # too short for the prefix view
+    g = run(rows, prefix=10)["groups"]["jepa:jepa.pt"]
+    prefix, whole = g["views"]["prefix"], g["views"]["whole"]
+    assert (prefix["episodes"], prefix["decisions"]) == (90, 10) and (whole["episodes"], whole["decisions"]) == (91, None)
+    assert prefix["ranking"]["natural"]["stac"]["auroc"] == 0.5     # every prefix ties
+    assert whole["ranking"]["natural"]["stac"]["auroc"] == 1.0
+    # the length-controlled cut also holds for detection: no prefix alert can come after decision 10
+    d = single(prefix, "fast", "stac")["natural"]
+    assert d["true_alerts"] == 0 and single(whole, "fast", "stac")["natural"]["true_alerts"] == 30
+
+
+def faulted(seeds, regime, stac, nmse=None, success=False):
+    """Faulted twins of natural seeds: failures of 38 decisions, or successes as long as the natural ones."""
+    return [record(s, success, 12 + s % 10 if success else 38, regime, ONSET, stac=stac, nmse=nmse) for s in seeds]
+
+
+def test_fault_delay_counts_from_the_onset_and_an_alert_before_it_detects_nothing():
+    rows = natural()
+    # the fault lifts STAC and NMSE from its onset on: the first decision after step 30 is step 32
+    rows += faulted(range(20), "block_displaced", lambda i, s, g: 5 + g.random() if s > ONSET else g.random(),
+                    nmse=lambda i, s, g: 5 + g.random() if s + 4 > ONSET else g.random())
+    # a spike before the onset only, then quiet: the first alert comes before the onset
+    rows += faulted(range(20, 40), "early_spike", lambda i, s, g: 9.0 if s < ONSET else 0.01 * g.random())
+    # a harmless shift: successes under the fault, read for their alert rate
+    rows += faulted(range(40, 60), "background_tint", lambda i, s, g: g.random(), success=True)
+    g = run(rows, signals=["stac", "nmse"])["groups"]["jepa:jepa.pt"]
+    assert g["episodes"]["block_displaced"]["onset"]["median"] == ONSET
+    whole = g["views"]["whole"]
+    stac = single(whole, "fast", "stac")
+    assert stac["block_displaced"]["tpr"] == 1.0
+    assert stac["block_displaced"]["delay_steps"]["median"] == 2          # known at step 32
+    assert stac["block_displaced"]["delay_decisions"]["median"] == 2 / 8
+    nmse = single(whole, "fast", "nmse")["block_displaced"]
+    assert nmse["tpr"] == 1.0 and nmse["delay_steps"]["median"] == (32 + 4) - ONSET   # known at its target step 36
+    spike = stac["early_spike"]
+    assert spike["true_alerts"] == 0 and spike["pre_onset_alerts"] == 20 and spike["delay_steps"] is None
+    benign = stac["background_tint"]
+    assert benign["failures"] == 0 and benign["regime_successes"] == 20
+    assert benign["regime_success_alert_ci"][0] <= 0.1      # noise like the clean successes': alerts near alpha
+    # the ranking regime of a fault: its failures against the natural successes
+    assert whole["ranking"]["block_displaced"]["stac"]["auroc"] == 1.0
+
+
+def test_cross_fitting_never_calibrates_on_the_fold_it_judges_nor_on_a_faulted_episodes_twin(monkeypatch):
+    rows = natural(stac=lambda failed, i, s, g: g.random() + failed)
+    rows += faulted(range(0, 60, 2), "block_displaced", lambda i, s, g: g.random() + (s > ONSET))
+    calls = []
+    real = detectors.study_judgements
+
+    def spy(calibration, test, alpha, specs, seed=0):   # records who calibrates and who is judged, then runs the real one
+        calls.append(([e.episode for e in calibration], [e.episode for e in test]))
+        return real(calibration, test, alpha, specs, seed)
+
+    monkeypatch.setattr(detectors, "study_judgements", spy)
+    run(rows, folds=5, views=("whole",))
+    assert len(calls) == 5
+    judged = [e for _, test in calls for e in test]
+    assert sorted(judged) == sorted(f"{r['regime']}-{r['seed']}" for r in rows)   # each episode judged once
+    for calibration, test in calls:
+        assert all(e.startswith("natural-") for e in calibration)
+        seeds_calibrated = {int(e.split("-")[1]) for e in calibration}
+        seeds_tested = {int(e.split("-")[1]) for e in test}
+        assert not seeds_calibrated & seeds_tested       # a faulted episode's natural twin sits in its own fold
+        assert len(calibration) + sum(e.startswith("natural-") for e in test) == 90
+
+
+def test_labelled_calibration_is_judged_beside_the_conformal_one_and_combinations_keep_their_names():
+    rows = natural(stac=lambda failed, i, s, g: g.random() + 1.5 * failed,
+                   nmse=lambda failed, i, s, g: g.random() + 1.5 * failed)
+    d = run(rows, views=("whole",))["groups"]["jepa:jepa.pt"]["views"]["whole"]["detection"]["fast"]
+    assert {"stac band", "stac band [labelled]", "nmse band", "fiper(nmse+stac) band", "fiper(rnd+stac) band",
+            "bonferroni(nmse+stac) band", "random band"} <= set(d["detectors"])
+    # at alpha / 3 the 48 successes of a calibration fold are too few: refused with the reason, not judged
+    assert "bonferroni(nmse+rnd+stac) band" not in d["detectors"]
+    assert "success" in d["refused"]["bonferroni(nmse+rnd+stac) band"]
+
+
+def test_checkpoints_are_never_pooled():
+    rows = natural(stac=lambda failed, i, s, g: g.random() + 2 * failed)
+    rows += [dict(record(r["seed"], r["success"], len(r["decisions"]), arm="mip")) for r in natural()]
+    result = run(rows, views=("whole",), signals=["stac"])
+    assert set(result["groups"]) == {"jepa:jepa.pt", "mip:mip.pt"}
+    assert result["groups"]["jepa:jepa.pt"]["views"]["whole"]["ranking"]["natural"]["stac"]["auroc"] == 1.0
+    assert result["groups"]["mip:mip.pt"]["views"]["whole"]["ranking"]["natural"]["stac"]["auroc"] < 0.8
+
+
+def test_the_command_writes_json_and_markdown_and_refuses_bad_input_in_one_line(tmp_path, capsys):
+    rows = natural(stac=lambda failed, i, s, g: g.random() + 2 * failed)
+    rows += faulted(range(10), "block_displaced", lambda i, s, g: 5 + g.random() if s > ONSET else g.random())
+    path = tmp_path / "records.jsonl.gz"
+    with gzip.open(path, "wt") as f:
+        f.writelines(json.dumps(r) + "\n" for r in rows)
+    out_json, out_md = tmp_path / "c.json", tmp_path / "c.md"
+    assert monitor_main(["compare", str(path), "--where", "arm=jepa", "--rules", "fast", "--bootstrap", "200",
+                         "--signals", "stac,nmse",
+                         "--json", str(out_json), "--markdown", str(out_md)]) == 0
+    printed = capsys.readouterr().out
+    assert "natural 90 (30 failed), block_displaced 10 (10 failed)" in printed
+    result = json.loads(out_json.read_text())
+    assert result["groups"]["jepa:jepa.pt"]["views"]["whole"]["ranking"]["natural"]["stac"]["auroc"] == 1.0
+    md = out_md.read_text()
+    assert "| stac | 1.000 [1.00, 1.00] | 1.000 [1.00, 1.00] |" in md and "## Detection, block_displaced" in md
+
+    bad = tmp_path / "bad.jsonl"
+    bad.write_text(json.dumps(rows[0]) + "\n{not json\n")
+    for argv, message in ((["compare", str(path), "--where", "arm"], "--where 'arm' needs KEY=VALUE"),
+                          (["compare", str(tmp_path / "none.jsonl")], "does not exist"),
+                          (["compare", str(bad)], f"{bad}:2: not JSON"),
+                          (["compare", str(path), "--where", "arm=diffusion"], "no episode records to compare"),
+                          (["compare", str(path), "--folds", "1"], "--folds must be >= 2"),
+                          (["compare", str(path), "--rules", "slow"], "unknown rule setting")):
+        assert monitor_main(argv) == 2
+        err = capsys.readouterr().err.strip()
+        assert err.startswith("jepa-monitor: error: ") and message in err and "\n" not in err
+
+
+def test_the_monitor_package_imports_no_plotting_library(tmp_path):
+    code = "import sys, monitor_service.compare, monitor_service.cli; sys.exit('matplotlib' in sys.modules)"
+    assert subprocess.run([sys.executable, "-c", code]).returncode == 0
+
+
+def test_figures_are_drawn_from_the_json_alone(tmp_path):
+    pytest.importorskip("matplotlib")
+    from jepa_policy.compare_figures import main as figures_main
+
+    rows = natural(stac=lambda failed, i, s, g: g.random() + 2 * failed)
+    rows += faulted(range(10), "block_displaced", lambda i, s, g: 5 + g.random() if s > ONSET else g.random())
+    (tmp_path / "c.json").write_text(json.dumps(run(rows, signals=["stac", "nmse", "random"])))
+    assert figures_main([str(tmp_path / "c.json"), "--out", str(tmp_path / "fig")]) == 0
+    for name in ("compare_roc.png", "compare_delay.png"):
+        assert (tmp_path / "fig" / name).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    (tmp_path / "x.json").write_text("{}")
+    assert figures_main([str(tmp_path / "x.json"), "--out", str(tmp_path / "fig")]) == 2
