@@ -336,7 +336,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--num-envs", type=int, default=4, help="environments stepped together (the policy's batch)")
     p.add_argument("--workers", type=_non_negative, default=None,
                    help="env-only rollout processes (default: one per available core; 0: step the envs in this "
-                        "process, fastest for cheap envs such as PushT); results are identical for any number")
+                        "process, fastest for cheap envs such as PushT); results are identical for any number; a "
+                        "worker silent past 30x its measured step time (at least 30 s; JEPA_POOL_TIMEOUT_S=S fixes "
+                        "the limit) is restarted and its round rerun")
     p.add_argument("--max-steps", type=int, default=None, help="episode step limit (default: the task's)")
     p.add_argument("--video", default=None, help="directory for one GIF per episode")
     p.add_argument("--out", default=None, help="JSONL file of per-episode records")

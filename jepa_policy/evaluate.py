@@ -158,10 +158,11 @@ def pool_env(policy, fault: dict | None = None) -> tuple[str, dict]:
 
 
 def make_pool(policy, num_envs: int, workers: int | None = 0, max_steps: int | None = None,
-              timeout_s: float = 300.0, fault: dict | None = None) -> EnvPool:
+              timeout_s: float | None = None, fault: dict | None = None) -> EnvPool:
     """A persistent rollout pool for ``policy``'s task (its image size, its demonstrations' env settings);
     pass it to ``evaluate`` again and again. ``workers=None``: one worker per available core; 0: in-process.
-    ``fault``: every env wrapped in that fault (``pool_env``)."""
+    ``fault``: every env wrapped in that fault (``pool_env``). ``timeout_s``: the hung-worker limit; None derives
+    it from the task's measured reset/step time, or takes JEPA_POOL_TIMEOUT_S (``EnvPool``)."""
     env_id, env_kwargs = pool_env(policy, fault)
     return EnvPool(env_id, num_envs, workers=workers, env_kwargs=env_kwargs, max_steps=max_steps,
                    timeout_s=timeout_s)

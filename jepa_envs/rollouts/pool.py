@@ -9,13 +9,19 @@ batches of ``num_envs`` rows in the same order.
 
 An environment whose episode ended is frozen (not stepped, no frames rendered) until the next reset, and
 rendering is per environment on demand (``set_render_images``), so only the frames a policy and its monitor
-use are made. A worker that dies or does not answer within ``timeout_s`` raises ``WorkerFailure`` naming it;
+use are made. A worker that dies or does not answer in time raises ``WorkerFailure`` naming it;
 ``restart(worker)`` replaces it (the caller reruns what was lost; ``jepa_policy.evaluate`` reruns the round
 and says so in its report). Nothing is dropped silently.
+
+"In time" is derived from the task: each worker times one reset and one rendered step of its first env when it
+starts, and a command may take TIMEOUT_MARGIN times (its environments x the slowest time per env measured so
+far for that kind of command), never less than ``timeout_floor_s``. ``timeout_s`` (or the environment variable
+JEPA_POOL_TIMEOUT_S, which reaches ``jepa-policy eval``, ``train`` and ``bench``) sets one fixed limit instead.
 """
 from __future__ import annotations
 
 import contextlib
+import math
 import multiprocessing as mp
 import os
 import sys
@@ -28,6 +34,23 @@ import gymnasium as gym
 import numpy as np
 
 import jepa_envs  # noqa: F401  (registers the JEPA/* ids)
+
+TIMEOUT_MARGIN = 30.0      # a command may take this many times its measured duration (load bursts) before it hangs
+TIMEOUT_FLOOR_S = 30.0     # ... and never less than this
+TIMEOUT_ENV = "JEPA_POOL_TIMEOUT_S"
+
+
+def _seconds_from_env(text: str) -> float:
+    """JEPA_POOL_TIMEOUT_S as seconds, refused in one line naming the variable when it is not a finite number > 0."""
+    try:
+        seconds = float(text)
+    except ValueError:
+        seconds = math.nan
+    if not (math.isfinite(seconds) and seconds > 0):
+        raise ValueError(f"{TIMEOUT_ENV}={text!r} is not a number of seconds > 0; set it to the seconds a rollout "
+                         f"worker may take per command (e.g. {TIMEOUT_ENV}=600) or unset it to derive the limit "
+                         f"from the task")
+    return seconds
 
 
 class WorkerFailure(RuntimeError):
@@ -58,6 +81,16 @@ class _EnvHost:
         self.envs = [gym.make(env_id, **env_kwargs, **extra) for _ in range(count)]
         self.last: list[tuple] = [None] * count
         self.done = [True] * count
+
+    def probe(self) -> dict[str, float]:
+        """Seconds of one reset and one rendered step of the first environment (what the pool's time limits are
+        derived from); the pool resets every environment before stepping it, so this leaves no trace."""
+        env = self.envs[0]
+        t0 = time.perf_counter()
+        env.reset(seed=0)
+        t1 = time.perf_counter()
+        env.step(env.unwrapped.hold_action())
+        return {"reset": t1 - t0, "step": time.perf_counter() - t1}
 
     def reset(self, payload: tuple[list, list[bool], list[bool] | None]) -> list[tuple]:
         seeds, active, render = payload
@@ -118,7 +151,7 @@ def _worker_main(conn, env_id: str, count: int, env_kwargs: dict, max_steps: int
     os.environ.setdefault("LP_NUM_THREADS", str(render_threads))
     try:
         host = _EnvHost(env_id, count, env_kwargs, max_steps)
-        conn.send(("ok", (os.getpid(), _renderer_in_use())))
+        conn.send(("ok", (os.getpid(), _renderer_in_use(), host.probe())))
         while True:
             command, payload = conn.recv()
             if command == "close":
@@ -179,6 +212,7 @@ class _Worker:
     process: Any = None
     conn: Any = None
     pid: int | None = None
+    seconds: dict[str, float] = field(default_factory=dict)   # slowest measured seconds per env, per command
 
 
 @dataclass
@@ -194,7 +228,8 @@ class EnvPool:
     """``num_envs`` environments of one task over ``workers`` processes (0: in this process)."""
 
     def __init__(self, env_id: str, num_envs: int, workers: int | None = None, env_kwargs: dict | None = None,
-                 max_steps: int | None = None, timeout_s: float = 300.0, start_timeout_s: float = 600.0):
+                 max_steps: int | None = None, timeout_s: float | None = None, start_timeout_s: float = 600.0,
+                 timeout_floor_s: float = TIMEOUT_FLOOR_S):
         if num_envs < 1:
             raise ValueError(f"num_envs must be >= 1, got {num_envs}")
         workers = available_cores() if workers is None else int(workers)
@@ -203,7 +238,12 @@ class EnvPool:
         self.env_id, self.num_envs = env_id, int(num_envs)
         self.workers = min(workers, self.num_envs)
         self.env_kwargs, self.max_steps = dict(env_kwargs or {}), max_steps
-        self.timeout_s, self.start_timeout_s = float(timeout_s), float(start_timeout_s)
+        if timeout_s is None and os.environ.get(TIMEOUT_ENV, "").strip():
+            timeout_s = _seconds_from_env(os.environ[TIMEOUT_ENV])
+        elif timeout_s is not None and not (math.isfinite(timeout_s) and timeout_s > 0):
+            raise ValueError(f"the pool's timeout_s must be a finite number of seconds > 0, got {timeout_s}")
+        self.timeout_s = None if timeout_s is None else float(timeout_s)   # None: derived per command
+        self.start_timeout_s, self.timeout_floor_s = float(start_timeout_s), float(timeout_floor_s)
         self.events: list[PoolEvent] = []
         self._render = [True] * self.num_envs
         self._render_changed = True   # render flags travel with the next reset or step (no extra round trip)
@@ -240,7 +280,18 @@ class EnvPool:
         if status != "ok":
             self._kill(worker)
             raise RuntimeError(f"rollout worker {worker.index} could not build {self.env_id}:\n{payload}")
-        worker.pid, self.renderer = payload
+        worker.pid, self.renderer, worker.seconds = payload
+        worker.seconds["call"] = worker.seconds["reset"]
+
+    def command_timeout(self, worker: _Worker, command: str) -> tuple[float, str]:
+        """The limit for ``command`` on ``worker`` and how it was set (for the hung worker's message)."""
+        if self.timeout_s is not None:
+            return self.timeout_s, f"the fixed limit (timeout_s / {TIMEOUT_ENV})"
+        per_env = worker.seconds[command]
+        derived = TIMEOUT_MARGIN * per_env * len(worker.envs)
+        return max(self.timeout_floor_s, derived), (
+            f"{TIMEOUT_MARGIN:g} x its {len(worker.envs)} env(s) x {per_env:.3g}s, the slowest {command} measured, at "
+            f"least {self.timeout_floor_s:g}s; set {TIMEOUT_ENV} to fix another limit")
 
     def _kill(self, worker: _Worker) -> None:
         if worker.process is not None and worker.process.is_alive():
@@ -259,10 +310,10 @@ class EnvPool:
         self._await_start(worker)
         self._render_changed = True
 
-    def _receive(self, worker: _Worker, timeout_s: float):
+    def _receive(self, worker: _Worker, timeout_s: float, how: str = "the start limit"):
         try:
             if not worker.conn.poll(timeout_s):
-                raise WorkerFailure(worker.index, f"no answer within {timeout_s:.0f}s (hung)")
+                raise WorkerFailure(worker.index, f"no answer within {timeout_s:.3g}s (hung; {how})")
             return worker.conn.recv()
         except (EOFError, BrokenPipeError, ConnectionResetError, OSError) as exc:
             raise WorkerFailure(worker.index, f"process ended (exit code {self._exit_code(worker)}): "
@@ -293,12 +344,15 @@ class EnvPool:
             except (BrokenPipeError, OSError):
                 failures[worker.index] = f"process ended (exit code {self._exit_code(worker)}): its pipe is closed"
         answers, errors = {}, []
+        started = time.perf_counter()
         for worker in sent:
             try:
-                status, payload = self._receive(worker, self.timeout_s)
+                status, payload = self._receive(worker, *self.command_timeout(worker, command))
             except WorkerFailure as exc:
                 failures[worker.index] = exc.reason
                 continue
+            per_env = (time.perf_counter() - started) / len(worker.envs)
+            worker.seconds[command] = max(worker.seconds[command], per_env)
             if status != "ok":
                 errors.append(f"rollout worker {worker.index} failed on {command!r}:\n{payload}")
             answers[worker.index] = payload
@@ -384,7 +438,8 @@ class EnvPool:
 
     def describe(self) -> dict:
         return {"env_id": self.env_id, "num_envs": self.num_envs, "workers": self.workers, "renderer": self.renderer,
-                "pids": [w.pid for w in self._workers], "restarts": [e.__dict__ for e in self.events]}
+                "pids": [w.pid for w in self._workers], "restarts": [e.__dict__ for e in self.events],
+                "step_timeout_s": [self.command_timeout(w, "step")[0] for w in self._workers]}
 
 
 def _stack(observations: list[dict]) -> dict:
