@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from jepa_envs.datasets.lerobot.format import DEFAULT_FEATURES, DONE, REWARD, SUCCESS, KeyMap, LeRobotError
 from jepa_envs.datasets.lerobot.reader import LeRobotDataset
+from jepa_envs.tasks.pusht_variants import demonstration_mismatches
 from jepa_envs.tasks.spec import TaskSpec
 
 
@@ -51,9 +52,18 @@ def check_features(ds: LeRobotDataset, spec: TaskSpec, km: KeyMap, fps: int | No
     if km.action in feats and list(feats[km.action].get("shape") or []) != [spec.action_dim]:
         problems.append(f"feature {km.action!r} has shape {feats[km.action].get('shape')}; task {spec.name} acts "
                         f"with {spec.action_dim}-D absolute actions")
+    # a PushT dataset of the other variant, or in other units (image size, action units)
+    problems += demonstration_mismatches(spec, {k: feats[k].get("shape") for k in km.images if k in feats}, feats,
+                                         _episode_ranges(ds, km.action), _episode_ranges(ds, km.state[0]))
     if problems:
         count = f"{len(problems)} problems" if len(problems) > 1 else "1 problem"
         raise LeRobotError(f"{ds.root} does not fit task {spec.name} ({count}): " + "; ".join(problems))
+
+
+def _episode_ranges(ds: LeRobotDataset, key: str) -> list[tuple[list, list]] | None:
+    """Per episode, the (min, max) per dimension of a feature, from the episodes' stats (None without them)."""
+    ranges = [(ep.get(f"stats/{key}/min"), ep.get(f"stats/{key}/max")) for ep in ds.episodes]
+    return None if not ranges or any(lo is None or hi is None for lo, hi in ranges) else ranges
 
 
 def _target(km: KeyMap, key: str) -> str:

@@ -62,7 +62,7 @@ class KeyMap:
 
     @classmethod
     def default(cls, spec: TaskSpec) -> "KeyMap":
-        return cls({f"{IMAGES}{c}": f"{c}_image" for c in spec.cameras}, (STATE, spec.lowdim_keys))
+        return cls(image_features(spec), (STATE, spec.lowdim_keys))
 
     @classmethod
     def parse(cls, spec: TaskSpec, items: list[str] | tuple[str, ...] = ()) -> "KeyMap":
@@ -90,6 +90,12 @@ class KeyMap:
                                    f"{list(spec.image_keys)}, low-dim {list(spec.lowdim_keys)}, action, states)")
         km.images = images
         return km
+
+
+def image_features(spec: TaskSpec) -> dict[str, str]:
+    """LeRobot image feature -> our image key of a task: ``observation.images.<camera>``, or the names its spec
+    gives (PushTStandard: lerobot/pusht's single ``observation.image``)."""
+    return dict(spec.extra.get("lerobot_image_keys") or {f"{IMAGES}{c}": f"{c}_image" for c in spec.cameras})
 
 
 def instruction_for(spec: TaskSpec) -> str:

@@ -14,8 +14,8 @@ import pyarrow.parquet as pq
 from jepa_envs.datasets.hdf5 import demo_names, open_hdf5, resolve_task
 from jepa_envs.datasets.lerobot.format import (ACTION, CHUNKS_SIZE, CODEBASE_VERSION, CODECS, DATA_FILE_MB, DATA_PATH,
                                                DEFAULT_FEATURES, DONE, ENCODER_TIMEOUT_S, ENV_STATE, EPISODES_PATH,
-                                               IMAGES, INFO_PATH, REWARD, ROBOT_TYPE_PREFIX, STATE, STATS_PATH,
-                                               SUCCESS, TASKS_PATH, VIDEO_FILE_MB, VIDEO_PATH, LeRobotError,
+                                               INFO_PATH, REWARD, ROBOT_TYPE_PREFIX, STATE, STATS_PATH, SUCCESS,
+                                               TASKS_PATH, VIDEO_FILE_MB, VIDEO_PATH, LeRobotError, image_features,
                                                instruction_for, jsonable, next_file)
 from jepa_envs.datasets.lerobot.stats import RunningStats, episode_stats
 from jepa_envs.datasets.lerobot.video import VideoWriter
@@ -75,13 +75,12 @@ def _export_fps(fps: int | None, env_args: dict, spec: TaskSpec, src) -> int:
 def _export_features(spec: TaskSpec, demo, src) -> dict:
     obs = demo["obs"]
     features: dict = {}
-    for cam in spec.cameras:
-        key = f"{cam}_image"
+    for feature, key in image_features(spec).items():
         if key not in obs:
             raise LeRobotError(f"{src}: data/demo_0/obs has no {key!r} (task {spec.name} needs it); for a file "
                                "with states only, render it first: jepa-envs render-dataset")
         _, h, w, c = obs[key].shape
-        features[f"{IMAGES}{cam}"] = {"dtype": "video", "shape": [h, w, c], "names": ["height", "width", "channels"]}
+        features[feature] = {"dtype": "video", "shape": [h, w, c], "names": ["height", "width", "channels"]}
     names = []
     for key, dim in spec.lowdim:
         if key not in obs:
@@ -164,9 +163,9 @@ def _write_export(f, names, spec, features, root: Path, fps: int, codec: str, in
             row = {"episode_index": e, "tasks": [text], "length": n, "data/chunk_index": data_chunk,
                    "data/file_index": data_file, "dataset_from_index": index, "dataset_to_index": index + n}
             for key, video in videos.items():
-                frames = obs[f"{key[len(IMAGES):]}_image"][()]
+                frames = obs[image_features(spec)[key]][()]
                 if frames.shape[0] != n or frames.dtype != np.uint8:
-                    raise LeRobotError(f"data/{name}/obs/{key[len(IMAGES):]}_image has shape {frames.shape} "
+                    raise LeRobotError(f"data/{name}/obs/{image_features(spec)[key]} has shape {frames.shape} "
                                        f"{frames.dtype}; it needs {n} uint8 frames")
                 row.update(video.add_episode(frames, e))
                 row.update(episode_stats(key, stats[key].add(frames)))
