@@ -6,7 +6,9 @@
 #   with --no-deps beside torch 2.13.0 and torchvision 0.28.0 from PyPI (its dataset code imports torchvision,
 #   whose PyPI wheel needs PyPI's CUDA build of torch: about 4 GB, downloaded once into .cache/interop), the
 #   torchcodec that decodes its videos (it loads Debian's FFmpeg libraries) and the modules its dataset code
-#   imports. openpi-client needs numpy < 2: its own small venv.
+#   imports. openpi-client needs numpy < 2: its own small venv. gym-pusht 0.1.8 (the standard Push-T) pins
+#   pymunk < 7 (ours is 7.x): its own venv; scripts/interop_pusht.py checks our standard PushT against it step for
+#   step and writes docs/pusht_parity.md.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 ROOT=.cache/interop
@@ -41,4 +43,16 @@ if ! "$OPENPI/bin/python" -c "import openpi_client.websocket_client_policy" 2>/d
   "${PIPX[@]}" "$OPENPI/bin/pip" install -q --disable-pip-version-check "openpi-client==0.1.2" typing_extensions
 fi
 
-python3 scripts/interop.py --lerobot-python "$LEROBOT/bin/python" --openpi-python "$OPENPI/bin/python" "$@"
+GYM_PUSHT=$ROOT/gym_pusht
+if ! "$GYM_PUSHT/bin/python" -c "import gym_pusht, PIL" 2>/dev/null; then
+  echo "[interop] gym-pusht venv ($GYM_PUSHT)"
+  python3.11 -m venv "$GYM_PUSHT"
+  # pillow: our PushT replays there too, on pymunk 6 (a control that tells pymunk versions from us)
+  "${PIPX[@]}" "$GYM_PUSHT/bin/pip" install -q --disable-pip-version-check "gym-pusht==0.1.8" pillow
+fi
+
+status=0
+python3 scripts/interop_pusht.py --gym-pusht-python "$GYM_PUSHT/bin/python" \
+  --lerobot-python "$LEROBOT/bin/python" --table docs/pusht_parity.md || status=1
+python3 scripts/interop.py --lerobot-python "$LEROBOT/bin/python" --openpi-python "$OPENPI/bin/python" "$@" || status=1
+exit $status
