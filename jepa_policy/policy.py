@@ -14,6 +14,7 @@ from collections import deque
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import gymnasium as gym
 import numpy as np
 import torch
 
@@ -21,6 +22,7 @@ from jepa_envs.tasks.spec import TaskSpec, get_task_spec
 from jepa_envs.tasks.wrappers import frames_to_render
 from jepa_policy.checkpoint import load_checkpoint, load_model
 from jepa_policy.detectors import EmbeddingDetectors, detector_path, load_detectors, stac
+from jepa_policy.evaluate import env_kwargs_for
 
 
 @dataclass
@@ -81,6 +83,17 @@ class Policy:
         policy.env_args = ckpt.get("env_args")
         return policy
 
+    @property
+    def image_size(self) -> int:
+        """The camera image size in pixels this policy acts on: its checkpoint's. Environments follow it
+        (``make_env``, evaluation, ``jepa-policy robot``); ``act`` refuses frames of another size."""
+        return self.spec.image_size
+
+    def make_env(self, **kwargs) -> gym.Env:
+        """``gym.make`` of the policy's task as it was trained: its image size and its demonstrations' env
+        settings (``kwargs`` override them)."""
+        return gym.make(self.spec.env_id, **{**env_kwargs_for(self.spec, self.env_args), **kwargs})
+
     # ------------------------------------------------------------------ state
     def reset(self) -> None:
         """Forget the history and the queued actions; call at the start of every episode."""
@@ -136,7 +149,7 @@ class Policy:
         batched = self._is_batched(obs)
         images = {}
         for key in self.spec.image_keys:
-            arr = np.asarray(obs[key])
+            arr = self._image(obs, key)
             # a copy: env observations may be read-only views, which torch must not alias
             images[key] = torch.from_numpy(np.array(arr if batched else arr[None], dtype=np.uint8)).to(self.device)
         z = self.model.encode_future(images).float().cpu().numpy()
@@ -152,19 +165,30 @@ class Policy:
             raise ValueError(f"{key} must be (S,S,3) or (B,S,S,3) uint8, got shape {np.asarray(obs[key]).shape}")
         return ndim == 4
 
+    def _image(self, obs: dict, key: str) -> np.ndarray:
+        """Camera ``key`` of an observation, refused with the fix when it is not of the policy's image size."""
+        arr = np.asarray(obs[key])
+        size = self.spec.image_size
+        if arr.shape[-3:-1] != (size, size):
+            raise ValueError(
+                f"{key} is {arr.shape[-3]}x{arr.shape[-2]} px but this policy acts on {size}x{size} px (its "
+                f"checkpoint's image size); make the env at the policy's size: policy.make_env() or "
+                f"gym.make({self.spec.env_id!r}, image_size={size}); a robot bridge: jepa-robot-bridge serve ... "
+                f"--image-size {size}")
+        return arr
+
     def _push(self, obs: dict) -> None:
         batched = self._is_batched(obs)
-        if self._batched is None:
-            self._batched = batched
-        elif batched != self._batched:
+        if self._batched is not None and batched != self._batched:
             raise ValueError("mixing batched and unbatched observations in one episode; call reset() first")
         frame = {}
         for key in (*self.spec.image_keys, *self.spec.lowdim_keys):
             if key not in obs:
                 raise KeyError(f"observation lacks {key!r}; the task {self.spec.name} needs "
                                f"{list(self.spec.image_keys) + list(self.spec.lowdim_keys)}")
-            arr = np.asarray(obs[key])
+            arr = self._image(obs, key) if key in self.spec.image_keys else np.asarray(obs[key])
             frame[key] = arr if batched else arr[None]
+        self._batched = batched     # only once the frame was accepted: a refused one leaves no trace
         if not self._history:  # pad the start of the episode by repeating the first frame, as in training
             self._history.extend([frame] * (self.obs_steps - 1))
         self._history.append(frame)

@@ -98,6 +98,23 @@ def test_bad_observations_name_the_problem(model):
         policy.act({"top_image": np.zeros((32, 32), np.uint8), "agent_pos": np.zeros(2, np.float32)})
 
 
+def test_frames_of_another_image_size_are_refused_with_the_fix(model):
+    policy = Policy(model, SPEC)
+    assert policy.image_size == 32
+    rng = np.random.default_rng(2)
+    wrong = {"top_image": np.zeros((84, 84, 3), np.uint8), "agent_pos": np.zeros(2, np.float32)}
+    fix = (r"top_image is 84x84 px but this policy acts on 32x32 px \(its checkpoint's image size\); make the env "
+           r"at the policy's size: policy.make_env\(\) or gym.make\('JEPA/PushT-v0', image_size=32\); a robot "
+           r"bridge: jepa-robot-bridge serve ... --image-size 32")
+    for call in (policy.act, policy.predict, policy.encode_future):
+        with pytest.raises(ValueError, match=fix):
+            call(wrong)
+    with pytest.raises(ValueError, match="top_image is 48x48 px"):
+        policy.act({"top_image": np.zeros((4, 48, 48, 3), np.uint8), "agent_pos": np.zeros((4, 2), np.float32)})
+    assert policy.act(_obs(rng)).shape == (2,)      # the refused frames left no trace in the history
+    assert policy.last_decision.step == 0
+
+
 def test_images_needed_covers_every_frame_a_decision_uses(model):
     policy = Policy(model, SPEC)
     needed = {t for t in range(60) if policy.images_needed(t)}
@@ -130,5 +147,10 @@ def test_from_checkpoint_acts_with_ema_weights(pusht_demo_file, tmp_path):
     assert policy.spec.image_size == 32 and policy.checkpoint_step == 3
     assert policy.env_args["env_name"] == "PushT"
     assert not policy.model.training
+    env = policy.make_env()                              # the task as trained: the checkpoint's 32 px, not 84
+    obs, _ = env.reset(seed=0)
+    assert obs["top_image"].shape == (32, 32, 3) and policy.image_size == 32
+    assert policy.act(obs).shape == (2,)
+    assert policy.make_env(image_size=40).reset(seed=0)[0]["top_image"].shape == (40, 40, 3)   # kwargs override
     with pytest.raises(FileNotFoundError, match="does not exist"):
         Policy.from_checkpoint(tmp_path / "missing.pt")

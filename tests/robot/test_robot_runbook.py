@@ -15,6 +15,7 @@ import pytest
 from runbook_walker import Shell, free_port, runbook_blocks
 
 from jepa_envs.real_robot.proxy import RealRobotEnv
+from jepa_policy.train import load_config
 
 ROOT = Path(__file__).resolve().parents[2]
 RUNBOOK = ROOT / "deploy" / "robot" / "RUNBOOK.md"
@@ -41,7 +42,10 @@ def test_robot_runbook_walks_in_rehearsal(tmp_path):
         assert shell.run(start).split()[:2] == ["PushT", "False"]
         # the policy computer runs an episode; the operator's e-stop interrupts it
         env = RealRobotEnv(address=address, client_name="policy-pc", timeout_s=30.0)
+        # the rehearsal serves what the README's cpu-preset checkpoint acts on (jepa-policy robot refuses another)
+        assert env.task_spec.image_size == load_config("PushT", "cpu").image_size == 48
         obs, _ = env.reset(seed=0)
+        assert obs["top_image"].shape == (48, 48, 3)
         env.step(obs["agent_pos"])
         assert "estop" in shell.run(estop).splitlines(), "the status names the e-stop as the reason"
         # a new episode runs to its budget (2 chunks) and waits for the operator's confirmation
