@@ -41,7 +41,8 @@ def roc_figure(result: dict, path: Path) -> Path:
             cut = f", first {v['decisions']} decisions" if v.get("decisions") else ""
             ax.set(title=f"{g.get('arm') or group}: natural failures ({view}{cut})", xlabel="false-alarm rate",
                    ylabel="failures ranked above")
-            ax.legend(fontsize=7, loc="lower right")
+            if ax.get_legend_handles_labels()[0]:
+                ax.legend(fontsize=7, loc="lower right")
     fig.tight_layout()
     fig.savefig(path, dpi=100)
     plt.close(fig)
@@ -78,7 +79,8 @@ def delay_figure(result: dict, path: Path) -> Path | None:
     ax.set_xticks(range(len(regimes)), regimes, rotation=30, ha="right", fontsize=8)
     ax.axhline(2, color="grey", ls=":", lw=1)
     ax.set(ylabel="median delay after onset (decisions)", title=f"alert delay on injected faults (rule {rule})")
-    ax.legend(fontsize=6, ncol=4)
+    if ax.get_legend_handles_labels()[0]:
+        ax.legend(fontsize=6, ncol=4)
     fig.tight_layout()
     fig.savefig(path, dpi=100)
     plt.close(fig)

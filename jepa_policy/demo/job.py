@@ -6,7 +6,9 @@
    real ``MonitorClient`` in the loop: z_hat at each decision, E_rgb(o_{t+k}) when the frame arrives, the outcome
    at the end. A held-out set of labelled rollouts calibrates the task; later rollouts are scored live against
    that calibration and raise alerts;
-4. a Markdown report with PNG figures in the output folder and a printed summary.
+4. failure prediction compared: every failure signal (ours, STAC, RND, PCA-kmeans, Mahalanobis, chance) on
+   several hundred more labelled rollouts per arm, natural and under faults with a known onset (``failure.py``);
+5. a Markdown report with PNG figures in the output folder and a printed summary.
 
 Every number in the report is what this run measured. Reruns reuse demos and checkpoints unless ``--fresh``.
 """
@@ -39,6 +41,7 @@ from jepa_policy.audit import audit_checkpoint, gradient_audit, retrieval_audit
 from jepa_policy.bench import count_passes, time_calls
 from jepa_policy.checkpoint import load_checkpoint
 from jepa_policy.demo.ceiling import evaluate_state_policy, state_ceiling, train_state_policy
+from jepa_policy.demo.failure import run_failure_study
 from jepa_policy.demo.report import write_report
 from jepa_policy.evaluate import env_kwargs_for, evaluate, make_pool
 from jepa_policy.policy import Policy
@@ -78,7 +81,18 @@ class DemoConfig:
     audit_samples: int = 4096
     audit_pool: int = 256
     selection_ladder: tuple[int, ...] = (32, 64, 128)
+    # failure prediction compared (jepa_policy/demo/failure.py): natural rollouts per arm on a seed block of their
+    # own, rollouts per fault, the training windows the embedding detectors are fitted on, bootstrap resamples
+    failure_episodes: int = 0
+    failure_fault_episodes: int = 0
+    failure_faults: tuple[str, ...] = ()
+    failure_detector_samples: int = 2048
+    failure_bootstrap: int = 2000
 
+
+# the failure-prediction step of the default and full modes: >= 300 labelled episodes per arm (issue 38)
+FAILURE_BUDGET = {"failure_episodes": 320, "failure_fault_episodes": 40,
+                  "failure_faults": ("block_displaced", "action_latency", "background_tint")}
 
 MODES = {
     "quick": DemoConfig("quick", demos=6, preset="quick", seeds=(42,), calib_episodes=6, live_episodes=4,
@@ -87,11 +101,13 @@ MODES = {
                                                                              "init_candidates": 2,
                                                                              "init_screen_steps": 6},
                         num_envs=2, bootstrap=1000, permutations=1000, ceiling_steps=30, audits=True,
-                        audit_samples=64, audit_pool=32, selection_ladder=(2, 4)),
+                        audit_samples=64, audit_pool=32, selection_ladder=(2, 4), failure_episodes=6,
+                        failure_fault_episodes=2, failure_faults=("block_displaced",), failure_detector_samples=256,
+                        failure_bootstrap=200),
     "default": DemoConfig("default", demos=200, preset="cpu", seeds=(42,), calib_episodes=64, live_episodes=64,
-                          latency_iters=300, latency_warmup=30),
+                          latency_iters=300, latency_warmup=30, **FAILURE_BUDGET),
     "full": DemoConfig("full", demos=200, preset="cpu", seeds=(41, 42, 43), calib_episodes=64, live_episodes=40,
-                       latency_iters=300, latency_warmup=30, audits=True),
+                       latency_iters=300, latency_warmup=30, audits=True, **FAILURE_BUDGET),
 }
 ARMS = ("jepa", "mip")
 ROBOT = "pusht-sim"
@@ -368,7 +384,7 @@ def run(cfg: DemoConfig, out: Path, fresh: bool = False) -> dict:
     """Run the main job and return the summary (also written to ``out/summary.json``)."""
     out.mkdir(parents=True, exist_ok=True)
     timer = Timer()
-    n_steps = 7 if cfg.audits else 6
+    n_steps = (7 if cfg.audits else 6) + bool(cfg.failure_episodes)
     with timer.step(f"1/{n_steps} scripted demonstrations"):
         dataset = make_demos(cfg, out, fresh)
     with timer.step(f"2/{n_steps} training JEPA Policy and MIP (same seed, data and budget)"):
@@ -419,15 +435,21 @@ def run(cfg: DemoConfig, out: Path, fresh: bool = False) -> dict:
         policies = {arm: Policy.from_checkpoint(checkpoints[arm, cfg.seeds[0]]) for arm in ARMS}
         latency = decision_latency(policies, cfg)
         frames = rollout_frames(policies["jepa"], LIVE_SEED)
+    failure, step = None, 6
+    if cfg.failure_episodes:
+        with timer.step(f"{step}/{n_steps} failure prediction compared (every signal on the same labelled "
+                        "episodes, faults)"):
+            failure = run_failure_study(cfg, dataset, checkpoints, ARMS, out)
+        step += 1
     audits = None
     if cfg.audits:
-        with timer.step(f"6/{n_steps} audits (collapse, retrieval, gradients) and checkpoint selection"):
+        with timer.step(f"{step}/{n_steps} audits (collapse, retrieval, gradients) and checkpoint selection"):
             audits = audit_runs(cfg, dataset, checkpoints)
     with timer.step(f"{n_steps}/{n_steps} report"):
         summary = write_report(out, cfg=asdict(cfg), dataset=dataset, checkpoints=checkpoints, ceiling=ceiling,
                                audits=audits, records=records,
                                calibrations=calibrations, alerts=alerts, monitor_episodes=episodes,
-                               monitor_report=monitor_report, latency=latency, frames=frames)
+                               monitor_report=monitor_report, latency=latency, frames=frames, failure=failure)
     summary["timing"] = {"steps_s": timer.steps, "total_s": timer.total}
     (out / "summary.json").write_text(json.dumps(summary, indent=2, default=str))
     print(summary["text"])

@@ -375,6 +375,13 @@ def render_markdown(summary: dict, cfg: dict, figures: dict[str, str]) -> tuple[
                 f"episodes ({lv['alerted_failures']}/{lv['failures']} failures and {lv['alerted_successes']}/"
                 f"{lv['episodes'] - lv['failures']} successes flagged)")
 
+    if summary.get("failure"):
+        from jepa_policy.demo.failure import report_lines
+
+        failure_lines, failure_text = report_lines(summary["failure"])
+        lines += failure_lines
+        text += failure_text
+
     if summary.get("init_selection"):
         lines += ["", "## Training starts (best-of-K, docs/training.md)", "",
                   "| run | candidate seeds | mean first-step loss over the scored steps | chosen |", "|---|---|---|---|"]
@@ -413,7 +420,11 @@ def render_markdown(summary: dict, cfg: dict, figures: dict[str, str]) -> tuple[
     lines += ["## Files", "", "- `records.jsonl`: one line per rollout (arm, seed, phase, success, length, "
               "per-decision NMSE)", "- `summary.json`: every number above", "- `monitor.db`: the monitor's "
               "SQLite store", "- `runs/<arm>_seed<seed>/`: checkpoints, TensorBoard logs, `log.jsonl`, "
-              "`eval_curve.json`", ""]
+              "`eval_curve.json`"]
+    if summary.get("failure"):
+        lines += ["- `failure_records.jsonl`, `failure_compare.json`, `failure_compare.md`, `failure/`: the failure "
+                  "prediction step's rollouts (every signal per decision), its comparison and fitted detectors"]
+    lines += [""]
     return "\n".join(lines), "\n".join(["", "== summary"] + ["  " + t for t in text])
 
 
@@ -443,7 +454,7 @@ def dataset_summary(path: Path) -> dict:
 def write_report(out: Path, *, cfg: dict, dataset: Path, checkpoints: dict, ceiling: dict | None,
                  audits: dict | None, records: list[dict],
                  calibrations: dict, alerts: list[dict], monitor_episodes: list[dict], monitor_report: dict,
-                 latency: dict, frames: list[tuple[str, np.ndarray]]) -> dict:
+                 latency: dict, frames: list[tuple[str, np.ndarray]], failure: dict | None = None) -> dict:
     """Write records.jsonl, the figures and report.md; return the summary (with the console text)."""
     for rec in records:
         rec["early_score"] = early_score(rec["decisions"]) if rec["arm"] == "jepa" else None
@@ -459,6 +470,7 @@ def write_report(out: Path, *, cfg: dict, dataset: Path, checkpoints: dict, ceil
     summary["demonstrations"] = dataset_summary(dataset)
     summary["ceiling"] = ceiling
     summary["audits"] = audits
+    summary["failure"] = failure
     run_dirs = {f"{arm} seed {seed}": Path(p).parent.parent for (arm, seed), p in checkpoints.items()}
     starts = {label: json.loads((d / "init_selection.json").read_text()) for label, d in run_dirs.items()
               if (d / "init_selection.json").exists()}
@@ -470,6 +482,13 @@ def write_report(out: Path, *, cfg: dict, dataset: Path, checkpoints: dict, ceil
     plot_roc(calibrations, out / figures["ROC of the early NMSE score"])
     plot_nmse_distributions(records, out / figures["NMSE distributions"])
     save_frames(frames, out / figures["Rollout frames"])
+    if failure is not None:
+        from jepa_policy.compare_figures import delay_figure, roc_figure
+
+        full = json.loads((out / "failure_compare.json").read_text())   # with the ROC points
+        figures["ROC of every failure signal (natural failures)"] = roc_figure(full, out / "failure_roc.png").name
+        if (delay := delay_figure(full, out / "failure_delay.png")) is not None:
+            figures["Alert delay after a fault's onset"] = delay.name
     page, text = render_markdown(summary, cfg, figures)
     (out / "report.md").write_text(page)
     summary.update(text=text, dataset=str(dataset), monitor_report=monitor_report,

@@ -36,10 +36,38 @@ def test_report_files_exist(quick_run):
     for figure in ("learning_curves.png", "roc.png", "nmse_distributions.png", "frames.png"):
         assert f"]({figure})" in page
     assert set(summary["timing"]["steps_s"]) == {
-        "1/7 scripted demonstrations", "2/7 training JEPA Policy and MIP (same seed, data and budget)",
-        "3/7 imitation ceiling of these demonstrations (true-state policy, same episodes)",
-        "4/7 monitor service + monitored rollouts", "5/7 decision latency (JEPA vs MIP, interleaved)",
-        "6/7 audits (collapse, retrieval, gradients) and checkpoint selection", "7/7 report"}
+        "1/8 scripted demonstrations", "2/8 training JEPA Policy and MIP (same seed, data and budget)",
+        "3/8 imitation ceiling of these demonstrations (true-state policy, same episodes)",
+        "4/8 monitor service + monitored rollouts", "5/8 decision latency (JEPA vs MIP, interleaved)",
+        "6/8 failure prediction compared (every signal on the same labelled episodes, faults)",
+        "7/8 audits (collapse, retrieval, gradients) and checkpoint selection", "8/8 report"}
+
+
+def test_failure_prediction_step_compares_every_signal_on_its_own_episodes(quick_run):
+    out, summary = quick_run
+    cfg, f = demo.MODES["quick"], summary["failure"]
+    rows = [json.loads(line) for line in (out / "failure_records.jsonl").read_text().splitlines()]
+    per_arm = cfg.failure_episodes + cfg.failure_fault_episodes * len(cfg.failure_faults)
+    assert f["episodes"] == len(rows) == 2 * per_arm
+    monitored = {r["seed"] for r in _records(out)}
+    assert not monitored & {r["seed"] for r in rows}          # a seed block of its own
+    for arm in ("jepa", "mip"):
+        nat = [r for r in rows if r["arm"] == arm and r["regime"] == "natural"]
+        faulted = [r for r in rows if r["arm"] == arm and r["regime"] == "block_displaced"]
+        assert len(nat) == cfg.failure_episodes and len(faulted) == cfg.failure_fault_episodes
+        assert all(r["fault_onset"] == 30 for r in faulted)
+        assert {r["seed"] for r in faulted} <= {r["seed"] for r in nat}   # each has its natural twin
+        d = nat[0]["decisions"][1]
+        assert {"stac", "rnd", "pca_kmeans", "mahalanobis"} <= set(d["scores"])
+        assert (d.get("nmse") is not None) == (arm == "jepa")
+    groups = json.loads((out / "failure_compare.json").read_text())["groups"]
+    assert {g["arm"] for g in groups.values()} == {"jepa", "mip"}
+    jepa = next(g for g in groups.values() if g["arm"] == "jepa")
+    assert {"nmse", "nmse_persistence", "stac", "rnd", "pca_kmeans", "mahalanobis", "random"} <= set(jepa["signals"])
+    assert set(jepa["views"]) == {"prefix", "whole"} and jepa["views"]["prefix"]["decisions"] == 10
+    page = (out / "report.md").read_text()
+    assert "## Failure prediction compared" in page and "### Ranking, prefix" in page
+    assert "| stac |" in page and "](failure_roc.png)" in page and (out / "failure_roc.png").stat().st_size > 0
 
 
 def test_ceiling_is_measured_on_the_same_episodes_and_compared(quick_run):
