@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import os
 import stat
+import sys
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -54,7 +55,7 @@ def check_config(config: ServeConfig) -> None:
 
 def read_secret(flag: str, value: str | None, file: str | None, env: str) -> str | None:
     """A secret from ``--flag VALUE``, ``--flag-file PATH`` (its first line) or the environment variable ``env``,
-    in that order; giving both the flag and the file is refused."""
+    in that order; giving both the flag and the file is refused, and a secret on argv is warned about on stderr."""
     if value is not None and file is not None:
         raise ValueError(f"pass {flag} or {flag}-file, not both")
     if file is not None:
@@ -69,5 +70,12 @@ def read_secret(flag: str, value: str | None, file: str | None, env: str) -> str
             raise ValueError(f"{flag}-file {file} is readable by other users; chmod 600 {file}")
         return secret
     if value is not None:
+        print(argv_secret_warning(flag, env), file=sys.stderr)
         return value
     return os.environ.get(env) or None
+
+
+def argv_secret_warning(flag: str, env: str) -> str:
+    """What a secret given on the command line is told: who can read it, and the two ways that hide it."""
+    return (f"warning: {flag} on the command line is visible to every local user (ps, /proc/<pid>/cmdline); set "
+            f"{env} or pass {flag}-file PATH (a file of mode 600) instead")

@@ -77,7 +77,7 @@ def test_a_network_bind_needs_a_key_or_mutual_tls(serve, checkpoint, pki):
             _tls_client(server.port, pki, cert)
 
 
-def test_secrets_from_a_file_or_the_environment(tmp_path, monkeypatch):
+def test_secrets_from_a_file_or_the_environment(tmp_path, monkeypatch, capsys):
     key = tmp_path / "api.key"
     key.write_text("from-file\n")
     key.chmod(0o600)
@@ -86,6 +86,9 @@ def test_secrets_from_a_file_or_the_environment(tmp_path, monkeypatch):
     assert read_secret("--api-key", None, None, "JEPA_TEST_KEY") == "from-env"
     assert read_secret("--api-key", "argv", None, "JEPA_TEST_KEY") == "argv"
     monkeypatch.delenv("JEPA_TEST_KEY")
+    capsys.readouterr()
+    assert read_secret("--monitor-key", None, None, "JEPA_TEST_KEY") is None
+    assert capsys.readouterr().err == ""                       # nothing on argv, nothing to warn about
     assert read_secret("--api-key", None, None, "JEPA_TEST_KEY") is None
     with pytest.raises(ValueError, match="not both"):
         read_secret("--api-key", "argv", str(key), "JEPA_TEST_KEY")
@@ -108,6 +111,30 @@ def test_bad_key_files_are_one_line_errors(checkpoint, tmp_path, capsys):
                            (["--monitor-url", "http://127.0.0.1:9"], "--monitor-url needs --monitor-key")):
         assert policy_main(["serve", "--checkpoint", str(checkpoint), *flags]) == 2
         assert message in capsys.readouterr().err
+
+
+def test_a_key_given_on_argv_is_warned_about_with_the_env_var_and_file_alternatives(checkpoint, tmp_path, capsys,
+                                                                                     monkeypatch):
+    """--api-key / --monitor-key still work (scripts rely on them) but say that `ps` shows them and what hides them;
+    the file and the environment variable say nothing. (--tls-cert without --tls-key stops serve right after the
+    secrets are read, before any port is bound.)"""
+    stop = ["--tls-cert", str(tmp_path / "c.pem")]
+    assert policy_main(["serve", "--checkpoint", str(checkpoint), "--api-key", "s3cret",
+                        "--monitor-url", "http://127.0.0.1:9", "--monitor-key", "m0n", *stop]) == 2
+    err = capsys.readouterr().err.splitlines()
+    assert err == [
+        "warning: --api-key on the command line is visible to every local user (ps, /proc/<pid>/cmdline); set "
+        "JEPA_POLICY_API_KEY or pass --api-key-file PATH (a file of mode 600) instead",
+        "warning: --monitor-key on the command line is visible to every local user (ps, /proc/<pid>/cmdline); set "
+        "JEPA_POLICY_MONITOR_KEY or pass --monitor-key-file PATH (a file of mode 600) instead",
+        "jepa-policy serve: error: TLS needs both --tls-cert and --tls-key"]
+    key = tmp_path / "api.key"
+    key.write_text("s3cret\n")
+    key.chmod(0o600)
+    monkeypatch.setenv("JEPA_POLICY_MONITOR_KEY", "m0n")
+    assert policy_main(["serve", "--checkpoint", str(checkpoint), "--api-key-file", str(key),
+                        "--monitor-url", "http://127.0.0.1:9", *stop]) == 2
+    assert capsys.readouterr().err.splitlines() == ["jepa-policy serve: error: TLS needs both --tls-cert and --tls-key"]
 
 
 def _free_port() -> int:
