@@ -135,3 +135,101 @@ def run_bench(tasks: list[str] | None = None, steps: int = 1000, budget_s: float
               f"{row['load'][0]:>6.1f}-{row['load'][1]:<5.1f}")
     return rows
 
+
+
+# gym-pusht's own env, driven block by block from stdin in its own interpreter (its venv: it pins pymunk < 7);
+# each block's time is taken inside that process, so the pipe costs neither arm anything
+_GYM_PUSHT_CHILD = r"""
+import sys, time
+import numpy as np, gymnasium as gym, gym_pusht
+env = gym.make("gym_pusht/PushT-v0", obs_type=sys.argv[1], render_mode="rgb_array")
+actions = np.random.default_rng(0).uniform(0, 512, (int(sys.argv[2]), 2)).astype(np.float32)
+env.reset(seed=0)
+i = 0
+print("ready", flush=True)
+for line in sys.stdin:
+    n = int(line)
+    t0, c0 = time.perf_counter(), time.process_time()
+    for _ in range(n):
+        _, _, terminated, truncated, _ = env.step(actions[i % len(actions)])
+        i += 1
+        if terminated or truncated:
+            env.reset()
+    print(time.perf_counter() - t0, time.process_time() - c0, flush=True)
+"""
+
+
+def bench_gym_pusht(python: str, steps: int = 1000, budget_s: float = 10.0, block: int = 50,
+                    obs_types: tuple[str, ...] = ("pixels_agent_pos", "state")) -> list[dict]:
+    """Steps/s of our standard PushT against gym-pusht 0.1.8's own env (run by ``python``, the interpreter of a
+    venv that has gym-pusht: `make interop` builds .cache/interop/gym_pusht), interleaved in blocks of ``block``
+    steps of the same uniform random targets, per gym-pusht ``obs_type`` (``pixels_agent_pos``: the 96 px image
+    observation included); rates from the median block time, wall clock and CPU time (each process's own: on a
+    loaded machine the wall clock also counts the time another process held the core)."""
+    import subprocess
+
+    rows = []
+    actions = np.random.default_rng(0).uniform(0, 512, (max(steps, block) + 1000, 2)).astype(np.float32)
+    for obs_type in obs_types:
+        child = subprocess.Popen([python, "-c", _GYM_PUSHT_CHILD, obs_type, str(len(actions))], stdin=subprocess.PIPE,
+                                 stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        try:
+            if child.stdout.readline().strip() != "ready":
+                child.stdin.close()
+                why = (child.stderr.read().strip().splitlines() or ["it exited"])[-1]
+                raise ValueError(f"gym-pusht did not start in {python} ({why}); pass the python of a venv with "
+                                 "gym-pusht 0.1.8 (`make interop` builds .cache/interop/gym_pusht/bin/python)")
+            env = gym.make("JEPA/PushTStandard-v0", obs_type=obs_type)
+            env.reset(seed=0)
+            i = 0
+
+            def ours():
+                nonlocal i
+                _, _, terminated, truncated, _ = env.step(actions[i % len(actions)])
+                i += 1
+                if terminated or truncated:
+                    env.reset()
+
+            times: dict[str, list[float]] = {"gym-pusht": [], "ours": []}
+            cpu: dict[str, list[float]] = {"gym-pusht": [], "ours": []}
+            load_before = os.getloadavg()[0]
+            start = time.perf_counter()
+            while (min(len(v) for v in times.values()) * block < steps
+                   and time.perf_counter() - start < budget_s) or not times["ours"]:
+                child.stdin.write(f"{block}\n")
+                child.stdin.flush()
+                wall, cpu_s = map(float, child.stdout.readline().split())
+                times["gym-pusht"].append(wall)
+                cpu["gym-pusht"].append(cpu_s)
+                t0, c0 = time.perf_counter(), time.process_time()
+                for _ in range(block):
+                    ours()
+                times["ours"].append(time.perf_counter() - t0)
+                cpu["ours"].append(time.process_time() - c0)
+            env.close()
+        finally:
+            if not child.stdin.closed:
+                child.stdin.close()
+            child.wait(timeout=30)
+        rate = {k: block / float(np.median(v)) for k, v in times.items()}
+        rate_cpu = {k: block / max(float(np.median(v)), 1e-9) for k, v in cpu.items()}
+        rows.append({"obs_type": obs_type, "gym_pusht": rate["gym-pusht"], "ours": rate["ours"],
+                     "ratio": rate["ours"] / rate["gym-pusht"], "gym_pusht_cpu": rate_cpu["gym-pusht"],
+                     "ours_cpu": rate_cpu["ours"], "ratio_cpu": rate_cpu["ours"] / rate_cpu["gym-pusht"],
+                     "blocks": len(times["ours"]),
+                     "load": (load_before, os.getloadavg()[0])})
+    return rows
+
+
+def run_bench_gym_pusht(python: str, steps: int = 1000, budget_s: float = 10.0) -> list[dict]:
+    """Measure and print the table of ``bench_gym_pusht``."""
+    print(f"jepa-envs bench --gym-pusht: our PushTStandard beside gym-pusht's own env ({python}), same random "
+          f"targets, interleaved blocks of 50 steps, up to {steps} steps or {budget_s:.0f} s per row; "
+          f"{os.cpu_count()} cores, load = 1-minute load average around the row")
+    print(f"{'obs_type':<18}{'gym-pusht st/s wall':>20}{'ours':>8}{'ratio':>8}{'gym-pusht st/s CPU':>20}{'ours':>8}"
+          f"{'ratio':>8}{'load':>12}")
+    rows = bench_gym_pusht(python, steps, budget_s)
+    for r in rows:
+        print(f"{r['obs_type']:<18}{r['gym_pusht']:>20.1f}{r['ours']:>8.1f}{r['ratio']:>7.2f}x{r['gym_pusht_cpu']:>20.1f}"
+              f"{r['ours_cpu']:>8.1f}{r['ratio_cpu']:>7.2f}x{r['load'][0]:>6.1f}-{r['load'][1]:<5.1f}")
+    return rows

@@ -129,6 +129,9 @@ def _bench_args(p: argparse.ArgumentParser) -> None:
                    help="instead: ms per 84 px frame of every OpenGL backend (osmesa, EGL) and Mesa thread count, "
                         "whether its frames are identical, and the one in use")
     p.add_argument("--frames", type=int, default=20, help="frames per backend (--renderers)")
+    p.add_argument("--gym-pusht", metavar="PYTHON",
+                   help="instead: our PushTStandard's steps/s beside gym-pusht's own env, run by this interpreter "
+                        "(a venv with gym-pusht 0.1.8; `make interop` builds .cache/interop/gym_pusht)")
 
 
 @subcommand("bench", "steps/s raw backend vs our interface, and render-every-step vs render-on-demand", _bench_args)
@@ -137,6 +140,11 @@ def bench(args: argparse.Namespace) -> int:
         from jepa_envs.tasks.render import bench_renderers
 
         bench_renderers(frames=args.frames)
+        return 0
+    if args.gym_pusht:
+        from jepa_envs.bench import run_bench_gym_pusht
+
+        run_bench_gym_pusht(args.gym_pusht, args.steps, args.seconds if args.seconds != 3.0 else 10.0)
         return 0
     from jepa_envs.bench import run_bench
 

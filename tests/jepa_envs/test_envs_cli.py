@@ -2,6 +2,8 @@
 from __future__ import annotations
 
 import json
+import sys
+from pathlib import Path
 
 import pytest
 
@@ -57,4 +59,24 @@ def test_bench_prints_a_row_per_task(capsys):
     out = capsys.readouterr().out
     row = next(line for line in out.splitlines() if line.startswith("PushT "))
     raw, ours = (float(v) for v in row.split()[1:3])
-    assert raw > 0 and ours > 0 and row.rstrip().endswith("%")
+    assert raw > 0 and ours > 0 and row.split()[3].endswith("%")   # the overhead column (the load follows)
+
+
+GYM_PUSHT_PYTHON = Path(__file__).resolve().parents[2] / ".cache" / "interop" / "gym_pusht" / "bin" / "python"
+
+
+def test_bench_against_gym_pusht_refuses_an_interpreter_without_it_in_one_line(capsys):
+    assert main(["bench", "--gym-pusht", sys.executable]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "gym-pusht did not start in" in err[0] and "No module named 'gym_pusht'" in err[0]
+
+
+@pytest.mark.skipif(not GYM_PUSHT_PYTHON.exists(), reason="gym-pusht's venv is built by `make interop`")
+def test_bench_against_gym_pusht_prints_both_rates_per_obs_type(capsys):
+    from jepa_envs.bench import bench_gym_pusht
+
+    rows = bench_gym_pusht(str(GYM_PUSHT_PYTHON), steps=100, budget_s=2.0)
+    assert [r["obs_type"] for r in rows] == ["pixels_agent_pos", "state"]
+    for r in rows:
+        assert r["gym_pusht"] > 0 and r["ours"] > 0 and r["ratio"] == pytest.approx(r["ours"] / r["gym_pusht"])
+        assert r["blocks"] >= 1 and len(r["load"]) == 2
