@@ -88,6 +88,10 @@ def cmd_eval(args) -> int:
                       max_steps=args.max_steps, video_dir=args.video, out=args.out, workers=args.workers,
                       save_rollouts=args.save_rollouts, residual_calibration=calibration)
     summary = {k: v for k, v in report.items() if k != "records"}
+    from jepa_policy.published import PUBLISHED_TASKS, published_metrics
+
+    if report["task"] in PUBLISHED_TASKS:   # the standard Push-T: its published metrics beside the published figures
+        summary["published_metrics"] = published_metrics(report["records"])
     print(json.dumps(summary))
     return 0
 
