@@ -23,6 +23,7 @@ import numpy as np
 import torch
 import websockets
 from torch.optim.swa_utils import AveragedModel, get_ema_multi_avg_fn
+from tqdm import tqdm
 from websockets.sync.client import connect
 
 from jepa_envs.rollouts.pool import available_cores
@@ -248,12 +249,33 @@ def format_train(result: dict) -> str:
             f"{result['samples_per_s']:.1f} samples/s, {mem}")
 
 
+def rollouts_plan(task: str, size: int, episodes: int, num_envs: int, max_steps: int, repeats: int,
+                  pools: list[int]) -> str:
+    """What ``bench_rollouts`` is about to run, in one line (it is printed before anything starts)."""
+    evaluations = len(pools) * repeats
+    steps = evaluations * episodes * max_steps   # a round's spare environments are frozen, not stepped
+    return (f"bench rollouts: {task} at {size} px, {evaluations} timed evaluations ({repeats} each with "
+            f"{', '.join(map(str, pools))} workers) of {episodes} episodes of <= {max_steps} steps in rounds of "
+            f"{num_envs}: up to {steps:,} env steps (the worker pools start first)")
+
+
+def rollouts_estimate(step_s: float, episodes: int, num_envs: int, max_steps: int, repeats: int,
+                      pools: list[int]) -> float:
+    """Seconds the timed evaluations take at ``step_s`` per env step (a worker's measured step) if every
+    episode runs to ``max_steps``, env time only: 0 and 1 worker step the envs one after the other, N workers
+    ``min(N, num_envs)`` at a time."""
+    per_eval = episodes * max_steps * step_s
+    return repeats * sum(per_eval / max(1, min(n, num_envs)) for n in pools)
+
+
 def bench_rollouts(task: str = "PushT", workers: int | None = None, episodes: int = 8, num_envs: int = 4,
-                   max_steps: int = 60, repeats: int = 2, preset: str = "cpu", image_size: int | None = None) -> dict:
+                   max_steps: int = 60, repeats: int = 2, preset: str = "cpu", image_size: int | None = None,
+                   progress: bool = False) -> dict:
     """Episodes per minute of full rollouts (env steps and frames in the workers, a JEPA model acting on each
     round's batch in this process) with 1 worker and with ``workers`` workers, interleaved; persistent pools,
     so process start-up is reported apart. A randomly initialised model of the preset's shape acts: the
-    throughput of evaluation, not a success rate. Also checks that both pools give identical records."""
+    throughput of evaluation, not a success rate. Also checks that both pools give identical records.
+    ``progress``: print the plan, the estimated time and a progress bar (episodes) on stderr."""
     torch.set_num_threads(1)   # the policy's share; the workers get the rest of the cores
     workers = available_cores() if workers is None else workers
     spec = get_task_spec(task)
@@ -263,20 +285,39 @@ def bench_rollouts(task: str = "PushT", workers: int | None = None, episodes: in
     model = _ema_model(spec, "jepa", torch.device("cpu"), **{k: v for k, v in cfg.model.items()
                                                             if k not in ("image_size",)})
     policy = Policy(model, spec)
+    counts = sorted({0, 1, workers})
+    if progress:
+        print(rollouts_plan(task, size, episodes, num_envs, max_steps, repeats, counts), file=sys.stderr, flush=True)
     pools, startup = {}, {}
-    for n in sorted({0, 1, workers}):
+    for n in counts:
         t0 = time.perf_counter()
         pools[n] = make_pool(policy, num_envs, workers=n, max_steps=max_steps)
         startup[n] = time.perf_counter() - t0
     seconds: dict[int, list[float]] = {n: [] for n in pools}
     records: dict[int, list] = {}
     try:
-        for _ in range(repeats):
-            for n, pool in pools.items():
-                t0 = time.perf_counter()
-                report = evaluate(policy, episodes=episodes, seed=0, pool=pool)
-                seconds[n].append(time.perf_counter() - t0)
-                records[n] = report["records"]
+        step_s = pools[1].describe()["step_s"][0]
+        if progress:
+            estimate = rollouts_estimate(step_s, episodes, num_envs, max_steps, repeats, counts)
+            print(f"pools started in {sum(startup.values()):.1f} s; one {task} step takes {step_s * 1e3:.1f} ms in a "
+                  f"worker, so the evaluations take about {estimate / 60:.1f} min of env time (plus the policy's)",
+                  file=sys.stderr, flush=True)
+        with tqdm(total=len(pools) * repeats * episodes, unit="ep", desc=f"{task} rollouts", disable=not progress,
+                  file=sys.stderr) as bar:
+            for _ in range(repeats):
+                for n, pool in pools.items():
+                    bar.set_postfix_str(f"workers={n}")
+                    done: set[int] = set()
+
+                    def episode_seen(event, done=done):   # events arrive once a round is complete
+                        if event.episode not in done:
+                            done.add(event.episode)
+                            bar.update(1)
+                    t0 = time.perf_counter()
+                    report = evaluate(policy, episodes=episodes, seed=0, pool=pool, on_decision=episode_seen)
+                    seconds[n].append(time.perf_counter() - t0)
+                    bar.update(episodes - len(done))   # episodes that ended before their first decision's event
+                    records[n] = report["records"]
     finally:
         for pool in pools.values():
             pool.close()

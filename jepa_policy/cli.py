@@ -206,7 +206,8 @@ def cmd_bench_rollouts(args) -> int:
     from jepa_policy.bench import bench_rollouts, format_rollouts
 
     result = bench_rollouts(args.task, workers=args.workers, episodes=args.episodes, num_envs=args.num_envs,
-                            max_steps=args.max_steps, repeats=args.repeats, preset=args.preset)
+                            max_steps=args.max_steps, repeats=args.repeats, preset=args.preset,
+                            progress=not args.quiet)
     print(json.dumps(result, default=str) if args.json else format_rollouts(result))
     return 0
 
@@ -425,6 +426,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--max-steps", type=int, default=60, help="episode step limit")
     p.add_argument("--repeats", type=int, default=2, help="timed evaluations per pool, interleaved")
     p.add_argument("--preset", default="cpu", help="model shapes of this preset")
+    p.add_argument("--quiet", action="store_true", help="no plan, time estimate or progress bar on stderr")
     p.add_argument("--json", action="store_true", help="print JSON instead of a line")
     p.set_defaults(func=cmd_bench_rollouts)
 

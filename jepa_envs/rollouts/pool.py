@@ -439,6 +439,7 @@ class EnvPool:
     def describe(self) -> dict:
         return {"env_id": self.env_id, "num_envs": self.num_envs, "workers": self.workers, "renderer": self.renderer,
                 "pids": [w.pid for w in self._workers], "restarts": [e.__dict__ for e in self.events],
+                "step_s": [w.seconds.get("step") for w in self._workers],
                 "step_timeout_s": [self.command_timeout(w, "step")[0] for w in self._workers]}
 
 

@@ -1,5 +1,6 @@
 """``jepa-policy`` smoke paths: describe --json, bench with tiny counts, train -> eval -> protocols."""
 import json
+import re
 
 import pytest
 
@@ -35,6 +36,24 @@ def test_bench_train_reports_throughput_and_memory(capsys):
     result = json.loads(capsys.readouterr().out)
     assert result["batch_size"] == 8 and result["image_size"] == 32
     assert result["samples_per_s"] > 0 and result["peak_rss_mib"] > 0
+
+
+def test_bench_rollouts_prints_its_plan_an_estimate_and_a_progress_bar(capsys):
+    """Square's default ran ~3.5 minutes in silence: the plan, the expected time and a bar of episodes go to
+    stderr (stdout keeps the result line); --quiet keeps stderr clean."""
+    argv = ["bench", "rollouts", "--task", "PushT", "--workers", "1", "--episodes", "3", "--num-envs", "2",
+            "--max-steps", "10", "--repeats", "1"]
+    assert main(argv) == 0
+    out, err = capsys.readouterr()
+    lines = err.replace("\r", "\n").splitlines()
+    assert lines[0] == ("bench rollouts: PushT at 48 px, 2 timed evaluations (1 each with 0, 1 workers) of 3 episodes "
+                        "of <= 10 steps in rounds of 2: up to 60 env steps (the worker pools start first)")
+    assert re.fullmatch(r"pools started in [\d.]+ s; one PushT step takes [\d.]+ ms in a worker, so the evaluations "
+                        r"take about [\d.]+ min of env time \(plus the policy's\)", lines[1])
+    assert any(re.match(r"PushT rollouts: 100%.* 6/6 ", line) for line in lines), err   # 2 evaluations x 3 episodes
+    assert out.startswith("PushT rollouts (3 episodes of <= 10 steps") and "records identical: True" in out
+    assert main(argv + ["--quiet"]) == 0
+    assert capsys.readouterr().err == ""
 
 
 def test_train_eval_protocols_from_the_command_line(pusht_demo_file, tmp_path, capsys):
