@@ -392,3 +392,49 @@ def test_runnable_snippet_runs_as_written(snippet, reader_folder, tmp_path):
     done = subprocess.run([sys.executable, str(script)], cwd=reader_folder, env=env, capture_output=True,
                           text=True, timeout=240)
     assert done.returncode == 0, f"{snippet.where}: the snippet failed:\n{done.stderr[-3000:]}"
+
+
+def _free_port() -> int:
+    import socket
+
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        return sock.getsockname()[1]
+
+
+@pytest.mark.timeout(300)
+def test_the_readme_bridge_and_robot_pair_runs_as_written(reader_folder, tmp_path):
+    """README's simulated bridge line, started as written (on free ports), serves what the README's cpu-preset
+    checkpoint acts on, and its `jepa-policy robot` line runs an episode on it (the bridge at its default 84 px
+    refused the 48 px checkpoint until the line said --image-size 48)."""
+    import json
+
+    from jepa_policy.cli import main as policy_main
+
+    readme = [c for c in COMMANDS if c.doc.name == "README.md"]
+    bridge = next(c for c in readme if c.cli == "jepa-robot-bridge" and c.argv[:1] == ("serve",)
+                  and "sim" in c.argv)
+    robot = next(c for c in readme if c.cli == "jepa-policy" and c.argv[:1] == ("robot",))
+    control, operator = f"tcp://127.0.0.1:{_free_port()}", f"tcp://127.0.0.1:{_free_port()}"
+    process = subprocess.Popen([sys.executable, "-m", "jepa_envs.real_robot.cli", *bridge.argv, "--bind", control,
+                                "--operator-bind", operator, "--no-prompt", "--record-dir", str(tmp_path / "rec"),
+                                "--chunk-budget", "3"],   # a short episode: what is checked is the pairing
+                               cwd=reader_folder, env={**os.environ, "OMP_NUM_THREADS": "1"},
+                               stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    try:
+        argv = [a.replace("...", "runs/jepa/checkpoints/latest.pt") for a in robot.argv]
+        argv[argv.index("--episodes") + 1] = "1"                      # one of the README's 10 episodes
+        summary = tmp_path / "summary.json"
+        cwd = os.getcwd()
+        os.chdir(reader_folder)
+        try:
+            code = policy_main([*argv, "--address", control, "--no-wait", "--json", str(summary)])
+        finally:
+            os.chdir(cwd)
+        assert code == 0
+        episode = json.loads(summary.read_text())["episodes"][0]
+        assert episode["steps"] == 24 and episode["interrupted"] == ""     # 3 chunks of 8 actions
+    finally:
+        process.terminate()
+        _, err = process.communicate(timeout=30)
+    assert "Traceback" not in err, err[-2000:]
