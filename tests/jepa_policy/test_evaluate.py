@@ -326,3 +326,21 @@ def test_saved_rollouts_carry_frames_actions_and_outcomes_into_a_lerobot_dataset
     with h5py.File(tmp_path / "back.hdf5") as f:
         assert [bool(f[f"data/demo_{i}"].attrs["success"]) for i in range(3)] == [r["success"] for r in
                                                                                    report["records"]]
+
+
+def test_JEPA_POOL_TIMEOUT_S_reaches_the_pools_of_eval_train_and_bench(checkpoint, monkeypatch, capsys):
+    """make_pool (eval, train's evaluations, protocols --select, bench rollouts, jepa-demo) passed a fixed 300 s
+    that overrode the variable; it now leaves the limit to the pool: the variable, else derived from the task."""
+    from jepa_policy.cli import main as policy_main
+    from jepa_policy.evaluate import make_pool
+    from jepa_policy.policy import Policy
+
+    policy = Policy.from_checkpoint(checkpoint)
+    monkeypatch.setenv("JEPA_POOL_TIMEOUT_S", "2.5")
+    with make_pool(policy, 2, workers=1, max_steps=30) as pool:
+        assert pool.describe()["step_timeout_s"] == [2.5]
+    monkeypatch.setenv("JEPA_POOL_TIMEOUT_S", "soon")
+    assert policy_main(["eval", "--checkpoint", str(checkpoint), "--episodes", "1", "--num-envs", "1",
+                        "--workers", "1", "--max-steps", "5"]) == 2
+    assert capsys.readouterr().err.strip().splitlines()[-1].startswith(
+        "jepa-policy eval: error: JEPA_POOL_TIMEOUT_S='soon' is not a number of seconds > 0")
