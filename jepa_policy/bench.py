@@ -114,12 +114,65 @@ def time_calls(calls: dict, warmup: int = 30, iters: int = 300, device=None) -> 
     return rows
 
 
+def _score_call(model, obs, want: bool, detectors, shift: int):
+    """One decision with every failure score the acting runtime adds (``Policy._scores``): the same pass
+    returning c_t, STAC against the previous chunk, the embedding detectors (RND, PCA-kmeans, Mahalanobis) and,
+    with a future head, the whitened NMSE of z_hat (against a stand-in for the realized latent)."""
+    from jepa_policy.detectors import stac, whitened_error
+
+    state = {"previous": None}
+
+    def call():
+        actions, z_hat, c = model.predict_embedded(obs, want_future=want)
+        chunk = actions.float().cpu().numpy()
+        out = {"stac": stac(chunk, state["previous"], shift) if state["previous"] is not None else None}
+        state["previous"] = chunk
+        out.update(detectors.score(c.cpu().numpy()))
+        if z_hat is not None and detectors.future_scale is not None:
+            z = z_hat.float().cpu().numpy()
+            out["nmse_white"] = whitened_error(z, 0.9 * z, detectors.future_scale)
+        return out
+    return call
+
+
+def _bench_detectors(model, spec, dev, seed: int, want: bool):
+    """Embedding detectors fitted on this model's own c_t of random inputs (their cost does not depend on
+    what they were fitted on, only on the widths: 64 k-means centres, <= 32 PCA directions, the RND nets)."""
+    from jepa_policy.detectors import fit_embedding_detectors
+
+    gen = torch.Generator().manual_seed(seed + 1)
+    cs, errs = [], []
+    with torch.inference_mode():
+        while not cs or sum(len(x) for x in cs) < max(2 * 64, cs[0].shape[1] + 2):   # fit_embedding_detectors' need
+            obs = _synthetic_obs(spec, 64, spec.obs_steps, dev, gen)
+            _a, z, c = model.predict_embedded(obs, want_future=want)
+            cs.append(c.double().cpu().numpy())
+            if z is not None:
+                errs.append(z.double().cpu().numpy() * 0.1)
+    c = np.concatenate(cs)
+    c = c + 1e-3 * np.random.default_rng(seed).standard_normal(c.shape)   # random weights: keep it full rank
+    return fit_embedding_detectors(c, np.concatenate(errs) if errs else None, seed=seed)
+
+
 def bench_latency(task: str = "ToolHang", arms=("mip", "jepa", "diffusion"), warmup: int = 30, iters: int = 300,
-                  dp_steps=(100, 16), device: str = "auto", seed: int = 0) -> dict:
-    """Time one decision (``model.predict`` at batch 1) per arm; the diffusion arm once per sampler length."""
+                  dp_steps=(100, 16), device: str = "auto", seed: int = 0, scores: bool = False,
+                  preset: str | None = None) -> dict:
+    """Time one decision (``model.predict`` at batch 1) per arm; the diffusion arm once per sampler length.
+    ``scores``: also each arm with an embedding (jepa, mip, ...) with every failure score the acting runtime
+    adds (STAC, RND, PCA-kmeans, Mahalanobis, whitened NMSE), timed in the same interleaved rounds; the ratios
+    then include ``<label>+scores_over_<label>``. ``preset``: the model shapes of that preset of
+    configs/<task>.json (e.g. PushT's ``cpu``, the main job's) instead of the paper's."""
     if warmup < 0 or iters < 1:
         raise ValueError(f"need warmup >= 0 and iters >= 1, got {warmup}, {iters}")
     spec = get_task_spec(task)
+    shapes = {}
+    if preset is not None:
+        from jepa_policy.train import load_config
+
+        cfg = load_config(spec.name, preset)
+        shapes = dict(cfg.model)
+        if cfg.image_size:
+            spec = spec.with_image_size(cfg.image_size)
     dev = resolve_device(device)
     torch.manual_seed(seed)
     # (label, arm, model, want_future). JEPA's control path skips the future head in its second pass (Table 5);
@@ -128,11 +181,11 @@ def bench_latency(task: str = "ToolHang", arms=("mip", "jepa", "diffusion"), war
     for arm in arms:
         if arm == "diffusion":
             for steps in dp_steps:
-                model = _ema_model(spec, arm, dev, diffusion_infer_steps=int(steps),
-                                   diffusion_train_steps=max(100, int(steps)))
+                model = _ema_model(spec, arm, dev, **{**shapes, "diffusion_infer_steps": int(steps),
+                                                      "diffusion_train_steps": max(100, int(steps))})
                 variants.append((f"diffusion-{steps}", arm, model, False))
         else:
-            model = _ema_model(spec, arm, dev)
+            model = _ema_model(spec, arm, dev, **shapes)
             variants.append((arm, arm, model, False))
             if arm == "jepa":
                 variants.append(("jepa+monitor", arm, model, True))
@@ -146,15 +199,25 @@ def bench_latency(task: str = "ToolHang", arms=("mip", "jepa", "diffusion"), war
         rows[label] = {"arm": arm, "want_future": want, "params_m": sum(p.numel() for p in model.parameters()) / 1e6,
                        "passes": passes, "network_passes": max(passes.values())}
     calls = {label: (lambda m=model, w=want: m.predict(obs, want_future=w)) for label, _a, model, want in variants}
+    if scores:
+        for label, arm, model, want in list(variants):
+            if not hasattr(model, "predict_embedded"):
+                continue
+            detectors = _bench_detectors(model, spec, dev, seed, want)
+            calls[f"{label}+scores"] = _score_call(model, obs, want, detectors, spec.n_action_steps)
+            rows[f"{label}+scores"] = {**rows[label], "scores": True}
     for label, row in time_calls(calls, warmup, iters, dev).items():
         rows[label].update(row)
     ratios = {}
     if "jepa" in rows and "mip" in rows:
         ratios["jepa_over_mip"] = rows["jepa"]["mean_ms"] / rows["mip"]["mean_ms"]
+    for label in [r for r in rows if r.endswith("+scores")]:
+        ratios[f"{label}_over_{label[:-len('+scores')]}"] = rows[label]["mean_ms"] / rows[label[:-7]]["mean_ms"]
     for steps in dp_steps:
         if f"diffusion-{steps}" in rows and "jepa" in rows:
             ratios[f"dp{steps}_over_jepa"] = rows[f"diffusion-{steps}"]["mean_ms"] / rows["jepa"]["mean_ms"]
-    return {"task": spec.name, "device": str(dev), "device_name": _device_name(dev), "warmup": warmup,
+    return {"task": spec.name, "preset": preset or "paper", "device": str(dev), "device_name": _device_name(dev),
+            "warmup": warmup,
             "iters": iters, "torch": torch.__version__, "threads": torch.get_num_threads(), "arms": rows,
             "ratios": ratios}
 
@@ -167,12 +230,13 @@ def _device_name(dev) -> str:
 
 
 def format_latency(result: dict) -> str:
-    lines = [f"decision latency, {result['task']}, batch 1, EMA weights, {result['device']} "
+    lines = [f"decision latency, {result['task']} ({result.get('preset', 'paper')} shapes), batch 1, EMA weights, "
+             f"{result['device']} "
              f"({result['device_name']}), {result['warmup']} warm-up + {result['iters']} timed calls, interleaved",
-             f"{'arm':<16}{'params':>9}{'mean ms':>10}{'p95 ms':>10}{'max Hz':>9}  passes"]
+             f"{'arm':<20}{'params':>9}{'mean ms':>10}{'p95 ms':>10}{'max Hz':>9}  passes"]
     for label, row in result["arms"].items():
         passes = ", ".join(f"{k}x{v}" for k, v in row["passes"].items())
-        lines.append(f"{label:<16}{row['params_m']:>8.2f}M{row['mean_ms']:>10.2f}{row['p95_ms']:>10.2f}"
+        lines.append(f"{label:<20}{row['params_m']:>8.2f}M{row['mean_ms']:>10.2f}{row['p95_ms']:>10.2f}"
                      f"{row['max_hz']:>9.1f}  {passes}")
     for name, value in result["ratios"].items():
         lines.append(f"{name}: {value:.3f}")

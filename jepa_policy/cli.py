@@ -187,7 +187,7 @@ def cmd_bench_latency(args) -> int:
 
     result = bench_latency(args.task, arms=args.arms.split(","), warmup=args.warmup, iters=args.iters,
                            dp_steps=tuple(int(s) for s in args.dp_steps.split(",")), device=args.device,
-                           seed=args.seed)
+                           seed=args.seed, scores=args.scores, preset=args.preset)
     print(json.dumps(result, indent=2) if args.json else format_latency(result))
     return 0
 
@@ -388,6 +388,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--warmup", type=int, default=30, help="untimed calls first (paper: 30)")
     p.add_argument("--iters", type=int, default=300, help="timed calls (paper: 300)")
     p.add_argument("--dp-steps", default="100,16", help="DDPM sampler lengths timed for the diffusion arm")
+    p.add_argument("--preset", default=None,
+                   help="model shapes of this preset of configs/<task>.json (e.g. PushT cpu: the main job's; "
+                        "default: the paper's)")
+    p.add_argument("--scores", action="store_true",
+                   help="also time each arm with every failure score the runtime adds (STAC, RND, PCA-kmeans, "
+                        "Mahalanobis, whitened NMSE), interleaved with the same arm without them (issue 38)")
     p.add_argument("--device", default="auto", help="auto | cpu | cuda | cuda:N")
     p.add_argument("--seed", type=int, default=0, help="seed of the random weights and inputs")
     p.add_argument("--json", action="store_true", help="print JSON instead of a table")

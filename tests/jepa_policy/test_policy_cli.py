@@ -30,6 +30,19 @@ def test_bench_latency_counts_passes(capsys):
     assert all(row["mean_ms"] > 0 and row["p95_ms"] >= row["median_ms"] for row in arms.values())
 
 
+def test_bench_latency_times_the_failure_scores_beside_the_same_arm(capsys):
+    assert main(["bench", "latency", "--task", "PushT", "--preset", "quick", "--arms", "mip,jepa", "--warmup", "1",
+                 "--iters", "2", "--device", "cpu", "--scores", "--json"]) == 0
+    result = json.loads(capsys.readouterr().out)
+    arms = result["arms"]
+    assert result["preset"] == "quick" and arms["jepa"]["params_m"] < 1     # the quick preset's shapes
+    assert set(arms) == {"mip", "jepa", "jepa+monitor", "mip+scores", "jepa+scores", "jepa+monitor+scores"}
+    for label in ("mip", "jepa", "jepa+monitor"):
+        assert arms[f"{label}+scores"]["passes"] == arms[label]["passes"]      # the same network passes
+        ratio = result["ratios"][f"{label}+scores_over_{label}"]
+        assert ratio == arms[f"{label}+scores"]["mean_ms"] / arms[label]["mean_ms"]
+
+
 def test_bench_train_reports_throughput_and_memory(capsys):
     assert main(["bench", "train", "--task", "PushT", "--preset", "quick", "--steps", "1", "--warmup", "0",
                  "--device", "cpu", "--json"]) == 0
