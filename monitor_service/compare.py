@@ -153,10 +153,25 @@ def assign_folds(episodes: list[Episode], k: int, seed: int = 0) -> None:
             e.fold = twins.get((e.group, e.seed), e.seed % k)
 
 
-def episode_score(values: np.ndarray) -> float | None:
-    """The ranking score of one episode's signal values: their mean (NaNs left out); None if none."""
+AGGREGATES = ("mean", "max", "median", "max3")
+
+
+def episode_score(values: np.ndarray, how: str = "mean") -> float | None:
+    """The ranking score of one episode's signal values (NaNs left out; None if none): their ``mean``, ``max``,
+    ``median``, or ``max3`` (the largest mean of 3 consecutive values: a short window's peak)."""
     finite = values[np.isfinite(values)]
-    return float(finite.mean()) if finite.size else None
+    if not finite.size:
+        return None
+    if how == "mean":
+        return float(finite.mean())
+    if how == "max":
+        return float(finite.max())
+    if how == "median":
+        return float(np.median(finite))
+    if how == "max3":
+        w = min(3, finite.size)
+        return float(np.convolve(finite, np.ones(w) / w, "valid").max())
+    raise ValueError(f"unknown aggregate {how!r}; choose from {list(AGGREGATES)}")
 
 
 def view_of(episodes: list[Episode], view: str, prefix: int) -> tuple[list[Episode], int | None]:
@@ -176,14 +191,15 @@ def _quartiles(values) -> dict | None:
 
 
 def ranking(episodes: list[Episode], signals, regime: str, cut: int | None, n_bootstrap: int, seed: int,
-            with_roc: bool = False) -> dict:
+            with_roc: bool = False, aggregate: str = "mean") -> dict:
     """AUROC [95 % CI] per signal: the regime's failures against the natural successes (``with_roc``: and the ROC
     curve's points, for figures)."""
     positives = [e for e in episodes if e.regime == regime and not e.success]
     negatives = [e for e in episodes if e.regime == "natural" and e.success]
     out = {}
     for signal in signals:
-        scored = [(episode_score(e.values[signal][:cut]), label) for label, group in ((1, positives), (0, negatives))
+        scored = [(episode_score(e.values[signal][:cut], aggregate), label) for label, group in ((1, positives),
+                                                                                                  (0, negatives))
                   for e in group if signal in e.values]
         scored = [(s, y) for s, y in scored if s is not None]
         r = stats.auroc_with_ci(np.array([s for s, _ in scored]), np.array([y for _, y in scored]), n_bootstrap,
@@ -266,17 +282,19 @@ def detection_figures(episodes: list[Episode], judged: dict[int, dict], regime: 
 
 def compare(episodes: list[Episode], alpha: float = 0.1, folds: int = 5, prefix: int = PREFIX, seed: int = 0,
             n_bootstrap: int = 2000, rule_names=("default", "fast"), views=("prefix", "whole"),
-            signals: list[str] | None = None) -> dict:
+            signals: list[str] | None = None, aggregate: str = "mean") -> dict:
     """Every signal and detector on the same episodes and folds, per checkpoint (group), view and regime."""
     if not 0 < alpha < 1:
         raise ValueError(f"alpha must lie in (0, 1), got {alpha}")
+    if aggregate not in AGGREGATES:
+        raise ValueError(f"unknown aggregate {aggregate!r}; choose from {list(AGGREGATES)}")
     unknown = [r for r in rule_names if r not in RULES]
     if unknown:
         raise ValueError(f"unknown rule setting(s) {unknown}; choose from {sorted(RULES)}")
     assign_folds(episodes, folds, seed)
     result: dict = {"settings": {"alpha": alpha, "folds": folds, "prefix": prefix, "seed": seed,
                                  "n_bootstrap": n_bootstrap, "rules": {r: RULES[r].to_dict() for r in rule_names},
-                                 "ranking_score": "mean of the signal over the view's decisions",
+                                 "ranking_score": f"{aggregate} of the signal over the view's decisions",
                                  "negatives": "natural successes"},
                     "groups": {}}
     for group in sorted({e.group for e in episodes}):
@@ -294,7 +312,8 @@ def compare(episodes: list[Episode], alpha: float = 0.1, folds: int = 5, prefix:
             eps, cut = view_of(members, view, prefix)
             v = {"episodes": len(eps), "decisions": cut, "ranking": {}, "detection": {}}
             for regime in regimes:
-                v["ranking"][regime] = ranking(eps, chosen, regime, cut, n_bootstrap, seed, regime == "natural")
+                v["ranking"][regime] = ranking(eps, chosen, regime, cut, n_bootstrap, seed, regime == "natural",
+                                               aggregate)
             for rule_name in rule_names:
                 d = detection(eps, chosen, cut, alpha, RULES[rule_name], folds, seed)
                 rows = {}

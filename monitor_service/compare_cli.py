@@ -27,6 +27,9 @@ def add_parser(sub) -> argparse.ArgumentParser:
                         "debounce 1)")
     s.add_argument("--views", default="prefix,whole", help="prefix (length-controlled) and/or whole episodes")
     s.add_argument("--signals", help="comma-separated signals to compare (default: every one the records hold)")
+    s.add_argument("--aggregate", default="mean", choices=("mean", "max", "median", "max3"),
+                   help="the ranking score of an episode: the signal's mean (default), max, median or max3 (the "
+                        "peak of a 3-decision running mean) over the view's decisions")
     s.add_argument("--bootstrap", type=int, default=2000, help="AUROC bootstrap resamples (default 2000)")
     s.add_argument("--seed", type=int, default=0, help="seed of the folds, the band split and the bootstrap")
     s.add_argument("--json", metavar="FILE", help="write every figure as JSON (with the natural-failure ROC "
@@ -56,7 +59,8 @@ def run(args) -> int:
     episodes = load_records(args.records, where)
     result = compare(episodes, alpha=args.alpha, folds=args.folds, prefix=args.prefix, seed=args.seed,
                      n_bootstrap=args.bootstrap, rule_names=tuple(r.strip() for r in args.rules.split(",")),
-                     views=views, signals=[s.strip() for s in args.signals.split(",")] if args.signals else None)
+                     views=views, signals=[s.strip() for s in args.signals.split(",")] if args.signals else None,
+                     aggregate=args.aggregate)
     result["seconds"] = round(time.perf_counter() - t0, 1)
     if args.json:
         Path(args.json).write_text(json.dumps(result, indent=1))

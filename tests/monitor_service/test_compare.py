@@ -219,3 +219,11 @@ def test_figures_are_drawn_from_the_json_alone(tmp_path):
         assert (tmp_path / "fig" / name).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     (tmp_path / "x.json").write_text("{}")
     assert figures_main([str(tmp_path / "x.json"), "--out", str(tmp_path / "fig")]) == 2
+
+
+def test_episode_scores_aggregate_as_documented():
+    v = np.array([1.0, np.nan, 3.0, 8.0, 2.0])
+    assert [cmp.episode_score(v, how) for how in cmp.AGGREGATES] == [3.5, 8.0, 2.5, pytest.approx(13 / 3)]
+    assert cmp.episode_score(np.array([np.nan])) is None
+    with pytest.raises(ValueError, match="unknown aggregate"):
+        cmp.episode_score(v, "sum")
