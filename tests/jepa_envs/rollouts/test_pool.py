@@ -98,7 +98,7 @@ def test_the_fixed_limit_from_timeout_s_or_the_environment(monkeypatch):
     with EnvPool("JEPA/PushT-v0", 1, workers=1, env_kwargs=KW) as pool:
         assert pool.describe()["step_timeout_s"] == [1.5]
         pool.reset([0])
-        pool.inject(0, "hang", 30.0)
+        pool.inject(0, "hang", 3.0)                      # past the limit, and over soon after (close waits for it)
         started = time.monotonic()
         with pytest.raises(WorkerFailure, match=r"within 1.5s \(hung; the fixed limit \(timeout_s / JEPA_POOL_TIMEOUT_S"):
             pool.step(np.zeros((1, 2), np.float32))
