@@ -387,24 +387,41 @@ def detection_table(result: dict, view: str, rule: str, regime: str) -> list[str
     return lines
 
 
+CONTROLS = (RANDOM, "nmse_persistence")   # the chance row and the control that predicts nothing
+
+
+def is_control(detector_name: str) -> bool:
+    """Whether a detector (by its name, e.g. ``fiper(nmse+random) band``) reads a control signal."""
+    base = detector_name.split(" ")[0]
+    inner = base[base.index("(") + 1:-1].split("+") if "(" in base else [base]
+    return any(s in CONTROLS for s in inner)
+
+
 def best_rows(result: dict, view: str, rule: str) -> list[dict]:
-    """Per checkpoint and regime: the single signal with the highest AUROC, the detector with the highest
-    balanced accuracy, and where our NMSE stands (for the summary)."""
+    """Per checkpoint and regime: the signal with the highest AUROC and the detector with the highest balanced
+    accuracy, controls (``random``, ``nmse_persistence``) left out of the choice; beside them our NMSE's AUROC
+    and the chance row's detection with the best detector's calibration (``random band`` or ``random band
+    [labelled]``): a detector that does not beat it measures the episodes' lengths, not a signal."""
     out = []
     for group, g in result["groups"].items():
         v = g["views"].get(view)
         if v is None:
             continue
+        rows = v["detection"][rule]["detectors"]
         for regime, ranks in v["ranking"].items():
-            real = {s: r for s, r in ranks.items() if r.get("auroc") is not None}
-            det = {n: per[regime] for n, per in v["detection"][rule]["detectors"].items()
-                   if per.get(regime, {}).get("balanced_accuracy") is not None}
+            real = {s: r for s, r in ranks.items() if r.get("auroc") is not None and s not in CONTROLS}
+            det = {n: per[regime] for n, per in rows.items()
+                   if per.get(regime, {}).get("balanced_accuracy") is not None and not is_control(n)}
             best_signal = max(real, key=lambda s: real[s]["auroc"]) if real else None
             best_det = max(det, key=lambda n: det[n]["balanced_accuracy"]) if det else None
+            chance = None
+            if best_det is not None:
+                name = f"{RANDOM} {RULES[rule].kind}" + (" [labelled]" if "[labelled]" in best_det else "")
+                chance = rows.get(name, {}).get(regime)
             out.append({"group": group, "regime": regime, "best_signal": best_signal,
                         "best_auroc": real[best_signal] if best_signal else None,
-                        "nmse_auroc": real.get(OURS), "best_detector": best_det,
-                        "best_detection": det[best_det] if best_det else None})
+                        "nmse_auroc": ranks.get(OURS), "random_auroc": ranks.get(RANDOM), "best_detector": best_det,
+                        "best_detection": det[best_det] if best_det else None, "chance_detection": chance})
     return out
 
 
@@ -430,9 +447,12 @@ def summary_text(result: dict) -> str:
                     q = d.get("lead_steps") if row["regime"] == "natural" else d.get("delay_decisions")
                     when = "" if q is None else (f", lead {q['median']:.0f} steps" if row["regime"] == "natural"
                                                  else f", median delay {q['median']:.2f} decisions")
+                    c = row["chance_detection"]
+                    chance = "" if not c or c["balanced_accuracy"] is None else \
+                        f"; chance row (random, same calibration) {c['balanced_accuracy']:.3f}"
                     lines.append(f"    [{rule}] {row['regime']:<16} best {row['best_detector']}: balanced acc "
                                  f"{d['balanced_accuracy']:.3f} (TPR {_rate(d['true_alerts'], d['failures'])}, "
-                                 f"false alerts {_rate(d['false_alerts'], d['successes'])}){when}")
+                                 f"false alerts {_rate(d['false_alerts'], d['successes'])}){when}{chance}")
     return "\n".join(lines)
 
 

@@ -227,3 +227,23 @@ def test_episode_scores_aggregate_as_documented():
     assert cmp.episode_score(np.array([np.nan])) is None
     with pytest.raises(ValueError, match="unknown aggregate"):
         cmp.episode_score(v, "sum")
+
+
+def test_the_best_rows_leave_the_controls_out_and_show_the_chance_row_beside():
+    assert cmp.is_control("random band [labelled]") and cmp.is_control("fiper(nmse_persistence+stac) band")
+    assert not cmp.is_control("bonferroni(nmse+stac) band") and not cmp.is_control("rnd band")
+    rows = natural(stac=lambda failed, i, s, g: g.random() + 2 * failed,
+                   nmse=lambda failed, i, s, g: g.random() + 0.3 * failed)
+    result = run(rows, views=("whole",), signals=["stac", "nmse", "nmse_persistence", "random"])
+    (row,) = cmp.best_rows(result, "whole", "fast")
+    assert row["best_signal"] == "stac" and row["best_auroc"]["auroc"] == 1.0
+    assert row["random_auroc"]["auroc"] == result["groups"]["jepa:jepa.pt"]["views"]["whole"]["ranking"][
+        "natural"]["random"]["auroc"]
+    assert not cmp.is_control(row["best_detector"])
+    name = "random band" + (" [labelled]" if "[labelled]" in row["best_detector"] else "")
+    assert row["chance_detection"] == single_or_labelled(result, name)
+    assert "chance row (random, same calibration)" in cmp.summary_text(result)
+
+
+def single_or_labelled(result, name):
+    return result["groups"]["jepa:jepa.pt"]["views"]["whole"]["detection"]["fast"]["detectors"][name]["natural"]
