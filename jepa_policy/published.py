@@ -16,7 +16,7 @@ from jepa_policy.selection import wilson_ci
 # (source, average max reward, success rate, episodes, what was trained)
 PUBLISHED_PUSHT = (
     ("LeRobot diffusion_pusht", 0.959, 0.638, 500, "200k steps, 7 h on an RTX 3090"),
-    ("Diffusion Policy (original code)", 0.957, 0.642, 500, "its published checkpoint"),
+    ("Diffusion Policy (original code)", 0.957, 0.642, 500, "published figure"),
 )
 PUBLISHED_TASKS = ("PushTStandard",)
 
