@@ -114,10 +114,11 @@ def time_calls(calls: dict, warmup: int = 30, iters: int = 300, device=None) -> 
     return rows
 
 
-def _score_call(model, obs, want: bool, detectors, shift: int):
-    """One decision with every failure score the acting runtime adds (``Policy._scores``): the same pass
-    returning c_t, STAC against the previous chunk, the embedding detectors (RND, PCA-kmeans, Mahalanobis) and,
-    with a future head, the whitened NMSE of z_hat (against a stand-in for the realized latent)."""
+def _runtime_call(model, obs, want: bool, detectors=None, shift: int = 8):
+    """One decision as the acting runtime makes it (``policy.decide_frames``: the pass that also returns c_t, the
+    chunk, z_hat and c_t brought to numpy) and, with ``detectors``, every failure score it adds
+    (``Policy._scores``): STAC against the previous chunk, the embedding detectors (RND, PCA-kmeans, Mahalanobis)
+    and, with a future head, the whitened NMSE of z_hat (against a stand-in for the realized latent)."""
     from jepa_policy.detectors import stac, whitened_error
 
     state = {"previous": None}
@@ -125,11 +126,14 @@ def _score_call(model, obs, want: bool, detectors, shift: int):
     def call():
         actions, z_hat, c = model.predict_embedded(obs, want_future=want)
         chunk = actions.float().cpu().numpy()
-        out = {"stac": stac(chunk, state["previous"], shift) if state["previous"] is not None else None}
+        z = None if z_hat is None else z_hat.float().cpu().numpy()
+        c = c.cpu().numpy()
+        if detectors is None:
+            return chunk, z, c
+        out = {"stac": stac(chunk, state["previous"], shift)}
         state["previous"] = chunk
-        out.update(detectors.score(c.cpu().numpy()))
-        if z_hat is not None and detectors.future_scale is not None:
-            z = z_hat.float().cpu().numpy()
+        out.update(detectors.score(c))
+        if z is not None and detectors.future_scale is not None:
             out["nmse_white"] = whitened_error(z, 0.9 * z, detectors.future_scale)
         return out
     return call
@@ -158,9 +162,10 @@ def bench_latency(task: str = "ToolHang", arms=("mip", "jepa", "diffusion"), war
                   dp_steps=(100, 16), device: str = "auto", seed: int = 0, scores: bool = False,
                   preset: str | None = None) -> dict:
     """Time one decision (``model.predict`` at batch 1) per arm; the diffusion arm once per sampler length.
-    ``scores``: also each arm with an embedding (jepa, mip, ...) with every failure score the acting runtime
-    adds (STAC, RND, PCA-kmeans, Mahalanobis, whitened NMSE), timed in the same interleaved rounds; the ratios
-    then include ``<label>+scores_over_<label>``. ``preset``: the model shapes of that preset of
+    ``scores``: also each arm with an embedding (jepa, mip, ...) as the acting runtime decides (``<label>
+    runtime``: the pass that returns c_t, its outputs to numpy) and the same with every failure score it adds
+    (``<label> runtime+scores``: STAC, RND, PCA-kmeans, Mahalanobis, whitened NMSE), timed in the same interleaved
+    rounds; ``<label>+scores_over_<label>`` is the ratio of the two. ``preset``: the model shapes of that preset of
     configs/<task>.json (e.g. PushT's ``cpu``, the main job's) instead of the paper's."""
     if warmup < 0 or iters < 1:
         raise ValueError(f"need warmup >= 0 and iters >= 1, got {warmup}, {iters}")
@@ -204,15 +209,18 @@ def bench_latency(task: str = "ToolHang", arms=("mip", "jepa", "diffusion"), war
             if not hasattr(model, "predict_embedded"):
                 continue
             detectors = _bench_detectors(model, spec, dev, seed, want)
-            calls[f"{label}+scores"] = _score_call(model, obs, want, detectors, spec.n_action_steps)
-            rows[f"{label}+scores"] = {**rows[label], "scores": True}
+            calls[f"{label} runtime"] = _runtime_call(model, obs, want)
+            calls[f"{label} runtime+scores"] = _runtime_call(model, obs, want, detectors, spec.n_action_steps)
+            rows[f"{label} runtime"] = {**rows[label], "scores": False}
+            rows[f"{label} runtime+scores"] = {**rows[label], "scores": True}
     for label, row in time_calls(calls, warmup, iters, dev).items():
         rows[label].update(row)
     ratios = {}
     if "jepa" in rows and "mip" in rows:
         ratios["jepa_over_mip"] = rows["jepa"]["mean_ms"] / rows["mip"]["mean_ms"]
-    for label in [r for r in rows if r.endswith("+scores")]:
-        ratios[f"{label}_over_{label[:-len('+scores')]}"] = rows[label]["mean_ms"] / rows[label[:-7]]["mean_ms"]
+    for label in [r for r in rows if r.endswith(" runtime+scores")]:   # the scores' cost on the runtime's decision
+        base = label[:-len(" runtime+scores")]
+        ratios[f"{base}+scores_over_{base}"] = rows[label]["mean_ms"] / rows[f"{base} runtime"]["mean_ms"]
     for steps in dp_steps:
         if f"diffusion-{steps}" in rows and "jepa" in rows:
             ratios[f"dp{steps}_over_jepa"] = rows[f"diffusion-{steps}"]["mean_ms"] / rows["jepa"]["mean_ms"]
@@ -233,10 +241,10 @@ def format_latency(result: dict) -> str:
     lines = [f"decision latency, {result['task']} ({result.get('preset', 'paper')} shapes), batch 1, EMA weights, "
              f"{result['device']} "
              f"({result['device_name']}), {result['warmup']} warm-up + {result['iters']} timed calls, interleaved",
-             f"{'arm':<20}{'params':>9}{'mean ms':>10}{'p95 ms':>10}{'max Hz':>9}  passes"]
+             f"{'arm':<26}{'params':>9}{'mean ms':>10}{'p95 ms':>10}{'max Hz':>9}  passes"]
     for label, row in result["arms"].items():
         passes = ", ".join(f"{k}x{v}" for k, v in row["passes"].items())
-        lines.append(f"{label:<20}{row['params_m']:>8.2f}M{row['mean_ms']:>10.2f}{row['p95_ms']:>10.2f}"
+        lines.append(f"{label:<26}{row['params_m']:>8.2f}M{row['mean_ms']:>10.2f}{row['p95_ms']:>10.2f}"
                      f"{row['max_hz']:>9.1f}  {passes}")
     for name, value in result["ratios"].items():
         lines.append(f"{name}: {value:.3f}")
