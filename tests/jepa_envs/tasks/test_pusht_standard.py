@@ -200,6 +200,20 @@ def test_render_gives_the_visualisation_frame_with_the_action_marked():
         env.close()
 
 
+def test_render_takes_any_visualisation_size_and_marks_the_action_where_gym_pusht_does():
+    """gym-pusht scales the marker's x by the frame's height and its y by its width (``action / 512 * [height,
+    width]``); on a non-square frame ours puts it at the same pixel (make interop compares the frames)."""
+    env = _make(render_mode="rgb_array", visualization_width=384, visualization_height=256)
+    try:
+        env.reset(seed=0)
+        env.step([256.0, 128.0])
+        frame = env.render()
+        assert frame.shape == (256, 384, 3)
+        assert tuple(frame[int(128 / 512 * 384), int(256 / 512 * 256)]) == std.COLORS["marker"]
+    finally:
+        env.close()
+
+
 def test_variants_are_one_keyword_apart_and_unknown_ones_are_named():
     standard = gym.make("JEPA/PushT-v0", variant="standard")
     embedded = gym.make("JEPA/PushT-v0")
