@@ -230,6 +230,6 @@ def run_bench_gym_pusht(python: str, steps: int = 1000, budget_s: float = 10.0) 
           f"{'ratio':>8}{'load':>12}")
     rows = bench_gym_pusht(python, steps, budget_s)
     for r in rows:
-        print(f"{r['obs_type']:<18}{r['gym_pusht']:>20.1f}{r['ours']:>8.1f}{r['ratio']:>7.2f}x{r['gym_pusht_cpu']:>20.1f}"
-              f"{r['ours_cpu']:>8.1f}{r['ratio_cpu']:>7.2f}x{r['load'][0]:>6.1f}-{r['load'][1]:<5.1f}")
+        print(f"{r['obs_type']:<18}{r['gym_pusht']:>20.1f}{r['ours']:>8.1f}{r['ratio']:>7.2f}x"
+              f"{r['gym_pusht_cpu']:>20.1f}{r['ours_cpu']:>8.1f}{r['ratio_cpu']:>7.2f}x{r['load'][0]:>6.1f}-{r['load'][1]:<5.1f}")
     return rows
