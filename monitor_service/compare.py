@@ -9,7 +9,8 @@ number of files): {"seed", "success", "length", "regime" ("natural" or a fault's
 
 Signals. Target-time signals (known at t + k, when their target frame arrives): ``nmse`` (ours),
 ``nmse_persistence`` (the control that predicts nothing), ``nmse_white`` (an attempt at a sharper NMSE, per-dim
-whitened). Decision-time signals (known at t): every name in ``scores``, and ``random`` (uniform, seeded by
+whitened), ``nmse_ratio`` (NMSE over the persistence control's NMSE of the same decision: our error per unit of
+the scene's own change, an attempt at a per-step normalisation). Decision-time signals (known at t): every name in ``scores``, and ``random`` (uniform, seeded by
 the episode's seed and the step: the chance row). Every signal is judged on the same episodes and folds.
 
 Two views of each episode: ``whole`` (every decision) and ``prefix`` (the first ``prefix`` decisions of the
@@ -46,6 +47,7 @@ from monitor_service import detectors, rules, stats
 
 TARGET_TIME = ("nmse", "nmse_persistence", "nmse_white")
 RANDOM = "random"
+RATIO = "nmse_ratio"
 OURS = "nmse"
 PREFIX = 10            # decisions of the length-controlled view (80 env steps of PushT)
 N_ACTION_STEPS = 8     # env steps between decisions (the paper's chunk execution)
@@ -103,6 +105,11 @@ def episode_of(row: dict, where: str = "") -> Episode:
         raw = [d.get(name) if name in TARGET_TIME else (d.get("scores") or {}).get(name) for d in decisions]
         values[name] = np.array([np.nan if v is None else float(v) for v in raw], dtype=np.float64)
         known[name] = target if name in TARGET_TIME else steps
+    if "nmse" in values and "nmse_persistence" in values:
+        with np.errstate(divide="ignore", invalid="ignore"):
+            ratio = values["nmse"] / values["nmse_persistence"]
+        values[RATIO] = np.where(np.isfinite(ratio), ratio, np.nan)
+        known[RATIO] = target
     values[RANDOM] = np.array([random_score(seed, s) for s in steps], dtype=np.float64)
     known[RANDOM] = steps
     regime = str(row.get("regime", "natural"))
@@ -216,7 +223,7 @@ def detector_specs(signals, params: rules.RuleParams) -> list[detectors.Detector
     """Each signal alone, calibrated both ways; FIPER's rule on an OOD score with STAC and on NMSE with STAC and
     RND; the Bonferroni fusion of every non-control signal, and of NMSE with STAC."""
     signals = [s for s in signals]
-    real = [s for s in signals if s not in (RANDOM, "nmse_persistence", "nmse_white")]
+    real = [s for s in signals if s not in (RANDOM, "nmse_persistence", "nmse_white", RATIO)]
     specs = [detectors.DetectorSpec((s,), "single", cal, params) for s in signals for cal in detectors.CALIBRATIONS]
     pairs = [("rnd", "stac"), ("pca_kmeans", "stac"), ("mahalanobis", "stac"), (OURS, "stac"), (OURS, "rnd")]
     specs += [detectors.DetectorSpec(p, "fiper", "successes", params) for p in pairs if set(p) <= set(signals)]

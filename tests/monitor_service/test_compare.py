@@ -247,3 +247,14 @@ def test_the_best_rows_leave_the_controls_out_and_show_the_chance_row_beside():
 
 def single_or_labelled(result, name):
     return result["groups"]["jepa:jepa.pt"]["views"]["whole"]["detection"]["fast"]["detectors"][name]["natural"]
+
+
+def test_nmse_ratio_is_nmse_over_persistence_known_at_the_target_step():
+    row = record(3, True, 4)
+    row["decisions"][2]["nmse_persistence"] = 0.0          # no defined ratio there: missing, not infinite
+    e = cmp.episode_of(row)
+    want = [d["nmse"] / d["nmse_persistence"] if d["nmse_persistence"] else np.nan for d in row["decisions"]]
+    np.testing.assert_array_equal(e.values["nmse_ratio"], np.array(want))
+    np.testing.assert_array_equal(e.known_at["nmse_ratio"], [4, 12, 20, 28])
+    assert "nmse_ratio" not in cmp.episode_of(record(3, True, 4, arm="mip") | {"decisions": [
+        {"step": 0, "scores": {"stac": None}}]}).values
