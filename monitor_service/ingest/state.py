@@ -8,6 +8,7 @@ on *drafts* (:meth:`EpisodeState.draft`) and the store keeps the originals until
 from __future__ import annotations
 
 import copy
+import itertools
 import math
 from dataclasses import dataclass, field
 
@@ -133,8 +134,12 @@ class EpisodeState:
             self.gaps, self.gap_steps = 0, []
             return
         self.gaps = (self.last_step - self.origin) // self.cadence + 1 - len(steps)
-        self.gap_steps = [s for s in range(self.origin, self.last_step, self.cadence)
-                          if s not in self.decisions][:GAP_STEPS_SHOWN] if self.gaps else []
+        self.gap_steps = self.missing(self.origin, self.last_step, GAP_STEPS_SHOWN) if self.gaps else []
+
+    def missing(self, start: int, stop: int, most: int) -> list[int]:
+        """Up to ``most`` grid points in [start, stop) without a decision. Lazy: a step sent far ahead (a robot key
+        may send step 2**30 after step 1) costs at most len(decisions) + most look-ups, never the whole grid."""
+        return list(itertools.islice((s for s in range(start, stop, self.cadence) if s not in self.decisions), most))
 
     def add_step(self, step: int) -> tuple[int, bool]:
         """Account for a new decision at ``step`` (already in ``decisions``): (grid points it skipped, whether it
@@ -146,8 +151,8 @@ class EpisodeState:
         elif step > self.last_step:
             skipped = (step - self.last_step) // self.cadence - 1
             if skipped and len(self.gap_steps) < GAP_STEPS_SHOWN:
-                self.gap_steps += list(range(self.last_step + self.cadence, step, self.cadence))
-                del self.gap_steps[GAP_STEPS_SHOWN:]
+                self.gap_steps += self.missing(self.last_step + self.cadence, step,
+                                               GAP_STEPS_SHOWN - len(self.gap_steps))
             self.gaps += skipped
             self.last_step = step
         else:   # fills a gap

@@ -54,3 +54,39 @@ def test_an_early_score_changed_by_a_late_decision_is_marked_revised(client, rob
     ep = client.get("/v1/episodes/r", headers=operator).json()
     assert ep["early_score"] == pytest.approx(2.0, rel=1e-4) and ep["early_revisions"] == 1
     assert ep["late_decisions"] == 1 and ep["gaps"] == 0
+
+
+def test_a_step_sent_far_ahead_costs_no_memory_for_its_gap():
+    """A robot key sent decisions at steps 0, 1 and then 2**30: the server built the whole grid of missing steps
+    (2**30 ints) and was OOM-killed at 22.9 GB. The gap count is exact, the listed steps the first 50, and the
+    work is bounded by the decisions received, for a new far step and for a grid recomputed from scratch."""
+    import tracemalloc
+
+    from monitor_service.ingest.state import GAP_STEPS_SHOWN, EpisodeState
+
+    far = 10 ** 7   # enough to measure (the old path: a 10-million-element list, hundreds of MB)
+    ep = EpisodeState(id="e", task="t", robot="r", checkpoint=None, group=None, held_out=False)
+    tracemalloc.start()
+    try:
+        for step in (0, 1, far):
+            ep.decisions[step] = None
+            ep.add_step(step)
+        ep.decisions[far + 3] = None
+        ep.add_step(far + 3)          # cadence unchanged; and off the grid: recomputed from scratch
+        ep.decisions[far + 5] = None
+        ep.count_gaps()
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert ep.gaps == far + 5 + 1 - 5
+    assert ep.gap_steps == list(range(2, 2 + GAP_STEPS_SHOWN))
+    assert peak < 1_000_000, f"{peak / 1e6:.0f} MB for the gap of one far step"
+
+
+def test_a_decision_at_the_largest_step_is_answered_and_counted(client, robot, operator):
+    register_task(client, "Square")
+    rng = np.random.default_rng(3)
+    _send(client, robot, "far", [0, 1], [0.1, 0.2], rng)
+    _send(client, robot, "far", [2 ** 30], [0.3], rng)
+    ep = client.get("/v1/episodes/far", headers=operator).json()
+    assert ep["gaps"] == 2 ** 30 - 2 and ep["gap_steps"][:3] == [2, 3, 4] and len(ep["gap_steps"]) == 50
