@@ -135,13 +135,27 @@ def _read_toml(path: str | None) -> dict:
         raise SystemExit(f"{path} is not valid TOML: {exc}") from None
 
 
+def _unknown_tables(raw: dict) -> list[str]:
+    """A sim or replay config holds a [safety] table and nothing else: a misspelt one ([saftey], [Safety]) would
+    otherwise leave every rule at its default without a word."""
+    unknown = sorted(k for k in raw if k != "safety")
+    if not unknown:
+        return [] if isinstance(raw.get("safety", {}), dict) else ["safety must be a [safety] table, not a value"]
+    return [f"unknown top-level table or key {', '.join(repr(k[:40]) for k in unknown)}: a sim or replay config "
+            "holds only a [safety] table (an ARX-5 set-up has [[arms]], [[cameras]] and [safety]); check the spelling"]
+
+
 def _safety_from_toml(path: str | None):
     """The [safety] table of a TOML file (defaults without one); SetupRefused with one line per bad field."""
     from pydantic import ValidationError
 
     from jepa_envs.real_robot.safety import SafetyConfig, config_errors
+    raw = _read_toml(path)
+    problems = _unknown_tables(raw)
+    if problems:
+        raise SetupRefused("\n".join(problems))
     try:
-        return SafetyConfig.model_validate(_read_toml(path).get("safety", {}))
+        return SafetyConfig.model_validate(raw.get("safety", {}))
     except ValidationError as exc:
         raise SetupRefused("\n".join(config_errors(exc))) from None
 
@@ -345,11 +359,13 @@ def check(args) -> int:
         if not args.task:
             raise SystemExit("a file without [[arms]] is a [safety] table for a simulation task: add --task NAME")
         task = _known_task(args.task)
-        try:
-            safety = SafetyConfig.model_validate(raw.get("safety", {}))
-        except ValidationError as exc:
-            errors += config_errors(exc)
-        else:
+        safety, errors = None, _unknown_tables(raw)
+        if not errors:
+            try:
+                safety = SafetyConfig.model_validate(raw.get("safety", {}))
+            except ValidationError as exc:
+                errors += config_errors(exc)
+        if safety is not None:
             from jepa_envs.real_robot.backends.sim import SimBackend
             backend = SimBackend(task)
             spec = backend.task_spec

@@ -30,7 +30,9 @@ class EStop:
         self.stop_robot = stop_robot
         self.state_file = Path(state_file) if state_file else None
         self._latch = threading.Event()
-        self._lock = threading.Lock()          # press (operator thread) and clear (event loop) write the state
+        # press (operator thread) and clear (event loop) set the latch and its facts under it; it is held for a
+        # few assignments only, never around the robot's stop or the state file, so a press never waits long
+        self._lock = threading.Lock()
         self.latched_at: float | None = None   # wall clock, comparable with the operator's
         self.reason: str | None = None
 
@@ -40,10 +42,11 @@ class EStop:
 
     def press(self, reason: str = "emergency stop from the operator") -> dict:
         """Latch and stop the robot now; the facts of the press (the operator's answer)."""
-        self._latch.set()   # first: the loop refuses every action it decides from here on
-        with self._lock:
+        with self._lock:   # the latch and its facts together: a clear racing this press sees both or neither
+            self._latch.set()   # the loop refuses every action it decides from here on
             if self.latched_at is None:
                 self.latched_at, self.reason = time.time(), reason
+            facts = {"estop": True, "latched_at": self.latched_at, "reason": self.reason}
         try:
             self.stop_robot()
             held = True
@@ -51,7 +54,7 @@ class EStop:
             log.exception("the backend's emergency stop failed; the latch is set")
             held = False
         self._write(running=True)
-        return {"estop": True, "latched_at": self.latched_at, "reason": self.reason, "held": held}
+        return {**facts, "held": held}
 
     def clear(self) -> None:
         """The operator's release (``clear-estop``)."""

@@ -22,6 +22,21 @@ class InvalidAction(ValueError):
 # beyond these a rule is switched off in all but name: a watchdog that waits an hour is no watchdog
 MAX_COMMAND_DEADLINE_S = 600.0
 MAX_LINK_SECONDS = 600.0
+# ... and below these the bridge cannot keep them: pings every microsecond wedge its loop (issue 35, F4)
+MIN_HEARTBEAT_S = 0.001
+MIN_LINK_TIMEOUT_S = 0.005
+MIN_COMMAND_DEADLINE_S = 0.01
+_NUMBER_FIELDS = ("action_low", "action_high", "max_step_delta", "joint_low", "joint_high", "command_deadline_s",
+                  "link_timeout_s", "heartbeat_interval_s", "link_grace_s")
+
+
+def refuse_non_numbers(v):
+    """A number field takes numbers (or lists of them) only: TOML ``true`` is not 1.0 and ``"inf"`` is not a
+    number (pydantic's lax mode would convert both)."""
+    for item in (v if isinstance(v, list) else [v]):
+        if item is not None and (isinstance(item, bool) or not isinstance(item, (int, float))):
+            raise ValueError(f"must be a number, not {type(item).__name__} {item!r:.30}")
+    return v
 
 
 class SafetyConfig(BaseModel):
@@ -45,12 +60,20 @@ class SafetyConfig(BaseModel):
     heartbeat_interval_s: float | None = None  # the bridge's link pings: default a quarter of the above
     link_grace_s: float = 5.0             # a lost link holds the robot; control is released after this long
 
+    @field_validator(*_NUMBER_FIELDS, mode="before")
+    @classmethod
+    def _numbers_only(cls, v):
+        return refuse_non_numbers(v)
+
     @field_validator("command_deadline_s")
     @classmethod
     def _watchdog_on(cls, v: float) -> float:
         if not 0 < v <= MAX_COMMAND_DEADLINE_S:
             raise ValueError(f"must be > 0 and at most {MAX_COMMAND_DEADLINE_S:g} seconds (the command watchdog "
                              "cannot be switched off)")
+        if v < MIN_COMMAND_DEADLINE_S:
+            raise ValueError(f"must be at least {MIN_COMMAND_DEADLINE_S:g} seconds (and one control period): a "
+                             "shorter watchdog interrupts every episode before its first action")
         return v
 
     @field_validator("link_grace_s")
@@ -67,11 +90,29 @@ class SafetyConfig(BaseModel):
             raise ValueError(f"must be > 0 and at most {MAX_LINK_SECONDS:g} seconds (or left out for the default)")
         return v
 
+    @field_validator("heartbeat_interval_s")
+    @classmethod
+    def _heartbeat_floor(cls, v: float | None) -> float | None:
+        if v is not None and v < MIN_HEARTBEAT_S:
+            raise ValueError(f"must be at least {MIN_HEARTBEAT_S:g} seconds: faster pings would keep the bridge's "
+                             "loop from anything else")
+        return v
+
+    @field_validator("link_timeout_s")
+    @classmethod
+    def _link_timeout_floor(cls, v: float | None) -> float | None:
+        if v is not None and v < MIN_LINK_TIMEOUT_S:
+            raise ValueError(f"must be at least {MIN_LINK_TIMEOUT_S:g} seconds: a shorter one holds a live link "
+                             "between two of its echoes")
+        return v
+
     def problems(self, action_dim: int, n_joints: int | None, control_hz: float | None = None,
-                 action_range: tuple[np.ndarray, np.ndarray] | None = None) -> list[str]:
+                 action_range: tuple[np.ndarray, np.ndarray] | None = None,
+                 joint_range: tuple[float, float] | None = None) -> list[str]:
         """Every length or bound that does not fit a robot with ``action_dim`` actions and ``n_joints`` joints,
-        every workspace bound outside the backend's own ``action_range`` (when given), and every timing rule that
-        contradicts another at ``control_hz`` (when given).
+        every workspace bound outside the backend's own ``action_range`` (when given), a jump limit as wide as the
+        action range (it could never fire), joint limits outside the backend's ``joint_range`` (when given), and
+        every timing rule that contradicts another at ``control_hz`` (when given).
 
         ``n_joints`` None: the backend measures no joints (PushT), so joint limits must be absent. Checked by
         the bridge before it opens any socket and by ``jepa-robot-bridge check`` before any hardware is touched.
@@ -105,6 +146,27 @@ class SafetyConfig(BaseModel):
                     out.append(f"safety.{name} leaves the backend's own action range at indices {outside} (e.g. "
                                f"{value[i]:g} outside [{action_range[0][i]:g}, {action_range[1][i]:g}]); a "
                                "configured bound may only narrow it")
+        if action_range is not None and delta is not None and np.all(np.isfinite(delta)):
+            low = np.asarray(self.action_low if self.action_low is not None and len(self.action_low) == action_dim
+                             else action_range[0], np.float64)
+            high = np.asarray(self.action_high if self.action_high is not None and len(self.action_high) == action_dim
+                              else action_range[1], np.float64)
+            width = high - low
+            limit = np.broadcast_to(np.asarray(delta, np.float64), width.shape) if not isinstance(delta, list) or len(
+                delta) == action_dim else None
+            wide = [] if limit is None else np.flatnonzero(limit >= width).tolist()
+            if wide:
+                i = wide[0]
+                out.append(f"safety.max_step_delta is at or beyond the action range's width at indices {wide} (e.g. "
+                           f"{limit[i]:g} >= {width[i]:g}): such a jump limit never fires; set a real limit or "
+                           "leave max_step_delta out (check then says no jump limit is set)")
+        if joint_range is not None and n_joints is not None:
+            for name, value in (("joint_low", self.joint_low), ("joint_high", self.joint_high)):
+                outside = [] if value is None else [i for i, v in enumerate(value)
+                                                    if not joint_range[0] <= v <= joint_range[1]]
+                if outside:
+                    out.append(f"safety.{name} leaves the robot's joint range [{joint_range[0]:g}, {joint_range[1]:g}]"
+                               f" rad at joints {outside} (e.g. {value[outside[0]]:g}): such a limit never fires")
         if self.action_low is not None and self.action_high is not None and len(self.action_low) == len(
                 self.action_high) and any(lo > hi for lo, hi in zip(self.action_low, self.action_high)):
             out.append("safety.action_low must be <= action_high in every dimension")
@@ -121,12 +183,13 @@ class SafetyConfig(BaseModel):
             if not 0 <= rot <= action_dim - 6:
                 out.append(f"safety.rotation6d_starts entry {rot} leaves no room for 6 rotation numbers "
                            f"in a {action_dim}-D action")
-        if self.heartbeat_interval_s and self.link_timeout_s and self.heartbeat_interval_s >= self.link_timeout_s:
-            out.append("safety.heartbeat_interval_s must be below link_timeout_s (several heartbeats per timeout)")
+        if self.heartbeat_interval_s and self.link_timeout_s and 2 * self.heartbeat_interval_s > self.link_timeout_s:
+            out.append("safety.heartbeat_interval_s must be at most half of link_timeout_s (several heartbeats per "
+                       "timeout)")
         if control_hz is not None and self.heartbeat_interval_s and not self.link_timeout_s and (
-                self.heartbeat_interval_s >= self.resolved_link_timeout(control_hz)):
-            out.append(f"safety.heartbeat_interval_s ({self.heartbeat_interval_s:g}s) must be below the link timeout "
-                       f"({self.resolved_link_timeout(control_hz):g}s, one control period by default)")
+                2 * self.heartbeat_interval_s > self.resolved_link_timeout(control_hz)):
+            out.append(f"safety.heartbeat_interval_s ({self.heartbeat_interval_s:g}s) must be at most half the link "
+                       f"timeout ({self.resolved_link_timeout(control_hz):g}s, one control period by default)")
         if control_hz is not None:
             # one rule (docs/real_robot.md, "Lost link and the command watchdog"): a link that goes silent is
             # held for link_grace_s; the watchdog only judges a live link, so it must not fire before a silent
@@ -136,6 +199,9 @@ class SafetyConfig(BaseModel):
                 out.append(f"safety.link_timeout_s ({link_timeout:g}s) must be below command_deadline_s "
                            f"({self.command_deadline_s:g}s): a silent link would trip the command watchdog before "
                            "it is detected as lost, and link_grace_s could never apply")
+            elif self.command_deadline_s < 1.0 / control_hz:
+                out.append(f"safety.command_deadline_s ({self.command_deadline_s:g}s) must be at least one control "
+                           f"period ({1.0 / control_hz:g}s): the watchdog would fire between two actions")
         return out
 
     def resolved_link_timeout(self, control_hz: float) -> float:

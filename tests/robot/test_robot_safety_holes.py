@@ -308,3 +308,37 @@ def test_dry_run_never_runs_without_bounds(robot, tmp_path):
     old_path.write_text(json.dumps(old))
     with pytest.raises(ValueError, match="pass --config SETUP.toml"):
         ReplayBackend(old_path)
+
+
+def test_estop_press_and_clear_are_atomic():
+    """The latch and its facts (``latched_at``, ``reason``) change together under the lock (issue 35, F10: the
+    press used to set the latch before taking the lock, and 8 of 20,000 press/clear races ended unlatched with
+    ``latched_at`` set). Deterministic part: while the lock is held, a press does not set the latch either.
+    Then press/clear races with a tiny switch interval: the state is consistent after every one."""
+    from jepa_envs.real_robot.estop import EStop
+    stops = []
+    estop = EStop(lambda: stops.append(1))
+    with estop._lock:
+        presser = threading.Thread(target=estop.press)
+        presser.start()
+        presser.join(timeout=0.2)
+        assert presser.is_alive() and not estop.latched and estop.latched_at is None
+    presser.join(timeout=5)
+    assert estop.latched and estop.latched_at is not None and stops == [1]
+    interval = sys.getswitchinterval()
+    sys.setswitchinterval(1e-6)
+    try:
+        inconsistent = 0
+        for _ in range(1500):
+            e = EStop(lambda: None)
+            go = threading.Barrier(2)
+            threads = [threading.Thread(target=lambda: (go.wait(), e.press())),
+                       threading.Thread(target=lambda: (go.wait(), e.clear()))]
+            for t in threads:
+                t.start()
+            for t in threads:
+                t.join()
+            inconsistent += (e.latched_at is not None) != e.latched or (e.reason is not None) != e.latched
+    finally:
+        sys.setswitchinterval(interval)
+    assert inconsistent == 0

@@ -48,6 +48,8 @@ def import_hardware_sdks():
 
 
 JOINTS_PER_ARM = 6   # X5 and L5 arms: six revolute joints (the gripper is not a joint here)
+# no X5/L5 joint turns a full turn either way: a configured joint limit beyond this never fires
+JOINT_RANGE_RAD = (-2 * np.pi, 2 * np.pi)
 
 
 class ArmConfig(BaseModel):
@@ -108,7 +110,7 @@ class ARX5Config(BaseModel):
         if any(lo >= hi for lo, hi in zip(self.workspace_low, self.workspace_high)):
             raise ValueError("workspace_low must be below workspace_high on x, y and z")
         problems = self.safety.problems(spec.action_dim, JOINTS_PER_ARM * len(self.arms), spec.control_hz,
-                                        action_range=arx5_action_bounds(self))
+                                        action_range=arx5_action_bounds(self), joint_range=JOINT_RANGE_RAD)
         if problems:
             raise ValueError("\n".join(problems))   # one line each (safety.config_errors)
         if (self.curve_secret_key is None) != (self.curve_authorized_dir is None):
