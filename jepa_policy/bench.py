@@ -30,6 +30,7 @@ from jepa_envs.rollouts.pool import available_cores
 from jepa_envs.tasks.spec import get_task_spec
 from jepa_policy.checkpoint import save_eval_snapshot
 from jepa_policy.config import ModelConfig
+from jepa_policy.detectors import fit_embedding_detectors, stac, whitened_error
 from jepa_policy.evaluate import evaluate, make_pool
 from jepa_policy.model import build_model
 from jepa_policy.policy import Policy
@@ -119,8 +120,6 @@ def _runtime_call(model, obs, want: bool, detectors=None, shift: int = 8):
     chunk, z_hat and c_t brought to numpy) and, with ``detectors``, every failure score it adds
     (``Policy._scores``): STAC against the previous chunk, the embedding detectors (RND, PCA-kmeans, Mahalanobis)
     and, with a future head, the whitened NMSE of z_hat (against a stand-in for the realized latent)."""
-    from jepa_policy.detectors import stac, whitened_error
-
     state = {"previous": None}
 
     def call():
@@ -142,8 +141,6 @@ def _runtime_call(model, obs, want: bool, detectors=None, shift: int = 8):
 def _bench_detectors(model, spec, dev, seed: int, want: bool):
     """Embedding detectors fitted on this model's own c_t of random inputs (their cost does not depend on
     what they were fitted on, only on the widths: 64 k-means centres, <= 32 PCA directions, the RND nets)."""
-    from jepa_policy.detectors import fit_embedding_detectors
-
     gen = torch.Generator().manual_seed(seed + 1)
     cs, errs = [], []
     with torch.inference_mode():
@@ -172,8 +169,6 @@ def bench_latency(task: str = "ToolHang", arms=("mip", "jepa", "diffusion"), war
     spec = get_task_spec(task)
     shapes = {}
     if preset is not None:
-        from jepa_policy.train import load_config
-
         cfg = load_config(spec.name, preset)
         shapes = dict(cfg.model)
         if cfg.image_size:

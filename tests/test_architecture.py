@@ -144,8 +144,9 @@ def layer_violations(edges: list[Edge]) -> list[str]:
                 bad.append(f"{where}: only the main job runs the monitor; the policy may use its client and its "
                            "scores (the one d_NMSE)")
         elif src.startswith("jepa_policy.demo") and dst.startswith("monitor_service") and \
-                dst not in ("monitor_service.client", "monitor_service.server", "monitor_service.study"):
-            bad.append(f"{where}: the main job uses the monitor's client, server and study only")
+                dst not in ("monitor_service.client", "monitor_service.server", "monitor_service.study",
+                            "monitor_service.compare"):
+            bad.append(f"{where}: the main job uses the monitor's client, server, study and compare only")
     return bad
 
 

@@ -41,11 +41,14 @@ from jepa_policy.audit import audit_checkpoint, gradient_audit, retrieval_audit
 from jepa_policy.bench import count_passes, time_calls
 from jepa_policy.checkpoint import load_checkpoint
 from jepa_policy.demo.ceiling import evaluate_state_policy, state_ceiling, train_state_policy
-from jepa_policy.demo.failure import run_failure_study
 from jepa_policy.demo.report import write_report
+from jepa_policy.detectors import fit_detectors, load_detectors
 from jepa_policy.evaluate import env_kwargs_for, evaluate, make_pool
 from jepa_policy.policy import Policy
 from jepa_policy.selection import select_checkpoint, wilson_ci
+from monitor_service.compare import compare as compare_signals
+from monitor_service.compare import episode_of
+from monitor_service.compare import markdown as compare_markdown
 from jepa_policy.train import load_config, train
 from monitor_service.client import MonitorClient
 from monitor_service.server import provision, start_server
@@ -81,7 +84,7 @@ class DemoConfig:
     audit_samples: int = 4096
     audit_pool: int = 256
     selection_ladder: tuple[int, ...] = (32, 64, 128)
-    # failure prediction compared (jepa_policy/demo/failure.py): natural rollouts per arm on a seed block of their
+    # failure prediction compared (run_failure_study): natural rollouts per arm on a seed block of their
     # own, rollouts per fault, the training windows the embedding detectors are fitted on, bootstrap resamples
     failure_episodes: int = 0
     failure_fault_episodes: int = 0
@@ -379,6 +382,76 @@ def rollout_frames(policy, seed: int, count: int = 5) -> list[tuple[str, np.ndar
 
 
 # ----------------------------------------------------------------------------- the job
+
+# ----------------------------------------------------------------------------- step 6: failure prediction compared
+# (issue 38) enough labelled episodes to tell a failure signal from chance, and every signal compared on them.
+# Per arm of the first training seed: the embedding detectors fitted into <out>/failure/ (not beside the
+# checkpoint, so the other steps act exactly as before); natural rollouts on a seed block of their own and rollouts
+# per fault on the first of those seeds (each with a natural twin up to its onset); every decision carries NMSE,
+# the persistence control, the whitened NMSE, STAC and the embedding scores; jepa-monitor compare on them.
+
+FAILURE_SEED = 30_000   # rollout seeds of this step: no overlap with the calibration (10,000) and live (20,000) blocks
+PREFIX = 10
+
+
+def run_failure_study(cfg, dataset: Path, checkpoints: dict, arms: tuple[str, ...], out: Path) -> dict | None:
+    """Record the episodes, compare every signal on them, write the files; the summary's ``failure`` entry
+    (None when the mode records none)."""
+    if not cfg.failure_episodes:
+        return None
+    seed = cfg.seeds[0]
+    folder = out / "failure"
+    folder.mkdir(parents=True, exist_ok=True)
+    records, timing = [], {}
+    demos = None
+    for arm in arms:
+        checkpoint = Path(checkpoints[arm, seed])
+        policy = Policy.from_checkpoint(checkpoint, detectors=False)
+        if demos is None:
+            demos = load_dataset(dataset, task=policy.spec.name, image_size=policy.spec.image_size)
+        t0 = time.perf_counter()
+        path = fit_detectors(policy, checkpoint, demos, samples=cfg.failure_detector_samples, seed=0,
+                             out=folder / f"{arm}_seed{seed}.detectors.npz")
+        policy.detectors = load_detectors(path, checkpoint=checkpoint)
+        timing[f"{arm} detectors"] = time.perf_counter() - t0
+        for fault in (None, *cfg.failure_faults):
+            t0 = time.perf_counter()
+            n = cfg.failure_episodes if fault is None else cfg.failure_fault_episodes
+            report = evaluate(policy, episodes=n, seed=FAILURE_SEED, num_envs=cfg.num_envs, workers=cfg.workers,
+                              fault=None if fault is None else {"name": fault})
+            regime = fault or "natural"
+            for rec in report["records"]:
+                rec.update(regime=regime, arm=arm, checkpoint=f"{arm}_seed{seed}", train_seed=seed)
+            records += report["records"]
+            timing[f"{arm} {regime}"] = time.perf_counter() - t0
+            print(f"   {arm} {regime}: {sum(r['success'] for r in report['records'])}/{n} successes "
+                  f"({timing[f'{arm} {regime}']:.1f} s)", flush=True)
+    with open(out / "failure_records.jsonl", "w") as f:
+        for rec in records:
+            f.write(json.dumps(rec) + "\n")
+    t0 = time.perf_counter()
+    episodes = [episode_of(r) for r in records]
+    result = compare_signals(episodes, alpha=0.1, folds=5, prefix=PREFIX, seed=0, n_bootstrap=cfg.failure_bootstrap,
+                         rule_names=("default",), views=("prefix", "whole"))
+    timing["compare"] = time.perf_counter() - t0
+    (out / "failure_compare.json").write_text(json.dumps(result, indent=1))
+    (out / "failure_compare.md").write_text(compare_markdown(result))
+    return {"seed_block": FAILURE_SEED, "train_seed": seed, "natural_episodes": cfg.failure_episodes,
+            "fault_episodes": cfg.failure_fault_episodes, "faults": list(cfg.failure_faults),
+            "episodes": len(records), "timing_s": {k: round(v, 1) for k, v in timing.items()},
+            "result": strip_roc(result)}
+
+
+def strip_roc(result: dict) -> dict:
+    """The comparison without its ROC points (they stay in failure_compare.json)."""
+    out = json.loads(json.dumps(result))
+    for g in out["groups"].values():
+        for v in g["views"].values():
+            for per in v["ranking"].values():
+                for r in per.values():
+                    r.pop("roc", None)
+    return out
+
 
 def run(cfg: DemoConfig, out: Path, fresh: bool = False) -> dict:
     """Run the main job and return the summary (also written to ``out/summary.json``)."""
