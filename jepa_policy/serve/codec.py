@@ -20,7 +20,8 @@ import numpy as np
 MAX_REQUEST_BYTES = 8 * 2**20   # websockets refuses a larger frame from its header, before reading it (code 1009)
 MAX_ARRAYS = 64                 # arrays and numpy scalars per request (a task has a few observation keys)
 MAX_MAPS = 256                  # maps per request, arrays' own maps included
-MAX_LIST_ITEMS = 65_536         # items of all lists of a request together (low-dim values sent as lists)
+MAX_LIST_ITEMS = 4096           # items of all lists of a request together (low-dim values sent as lists; a list
+                                # longer than this is refused from its header, before msgpack builds its items)
 MAX_DIMS = 8
 # the dtypes openpi-client packs for observations, as ``dtype.str`` writes them on a little-endian machine
 NUMERIC_DTYPES = {np.dtype(t).str: np.dtype(t) for t in (
@@ -134,5 +135,12 @@ def unpack(data: bytes):
         if "exceeds max_" in str(exc):   # msgpack's own per-container limits, checked from the header
             raise RequestError(f"a list or map of the request is above what a request of this server can hold "
                                f"({exc}); send the task's observation keys only (see the metadata)") from None
+        reason = str(exc)[:120] or _EMPTY_REASONS.get(type(exc).__name__, "bad bytes")
         raise RequestError(f"the request is not msgpack as openpi-client packs it ({type(exc).__name__}: "
-                           f"{str(exc)[:120]})") from None
+                           f"{reason})") from None
+
+
+# msgpack raises these with an empty message
+_EMPTY_REASONS = {"FormatError": "a byte that starts no msgpack value (such as 0xc1)",
+                  "StackError": "values nested too deep",
+                  "ExtraData": "bytes after the first value"}

@@ -5,6 +5,13 @@ Memory is bounded before anything is read: websockets refuses a frame above ``MA
 (close code 1009), reads a connection's next frame only once the previous one is taken (``max_queue=0``), and a
 connection beyond ``--max-connections`` is refused at the handshake (HTTP 503), so buffered requests stay under
 about 2 x ``max_connections`` x ``MAX_REQUEST_BYTES``.
+
+Refused requests are paced: each one adds 1 to its connection's penalty (which halves every ``PENALTY_HALF_LIFE_S``
+seconds); from the second one on, the connection's next frame is read only after a pause that doubles with the
+penalty (``PACE_FIRST_S`` up to ``PACE_MAX_S``), and the eighth refused in a row closes the connection (1008) after
+the longest pause. A robot whose one frame is wrong hears of it at once; a client that sends junk in a loop gets
+about 8 frames per connection in 5 s instead of as many as the server can decode. The penalty is the
+connection's own: another robot of the same host is never slowed by it.
 """
 from __future__ import annotations
 
@@ -34,6 +41,12 @@ from jepa_policy.serve.request import RequestSchema, decode_request
 from jepa_policy.serve.sessions import Session
 from monitor_service.client import MonitorClient
 from monitor_service.scoring import nmse
+
+
+PENALTY_HALF_LIFE_S = 60.0
+PENALTY_CLOSE = 7.5         # refused requests (decayed) at which a connection is closed: the 8th in a row
+PACE_FIRST_S = 0.05         # the pause after the second refused request; it doubles with each next one
+PACE_MAX_S = 2.0
 
 
 def _peer(connection: ServerConnection) -> str:
@@ -121,6 +134,7 @@ class PolicyServer:
                 except RequestError as exc:
                     self.events.emit("rejected", peer=session.peer, session=session.id, problem=str(exc)[:300])
                     await ws.send(f"jepa-policy serve: {exc}")
+                    await self._pace(ws, session)
                     continue
                 except Exception as exc:   # a bug of ours: the robot hears of it, the log keeps the traceback
                     self.events.emit("error", peer=session.peer, session=session.id, exc_info=exc,
@@ -140,6 +154,14 @@ class PolicyServer:
                              seconds=round(time.monotonic() - opened, 3),
                              close_sent=sent.code if sent else None, close_received=received.code if received else None,
                              reason=(sent and sent.reason) or (received and received.reason) or None)
+
+    async def _pace(self, ws: ServerConnection, session: Session) -> None:
+        """After a refused request: pause before reading the connection's next frame, or close it (1008)."""
+        penalty = session.refused(time.monotonic(), PENALTY_HALF_LIFE_S)
+        if penalty >= 2:
+            await asyncio.sleep(min(PACE_MAX_S, PACE_FIRST_S * 2 ** (penalty - 2)))
+        if penalty >= PENALTY_CLOSE:
+            await ws.close(1008, "8 requests refused in a row; fix the client (see the text replies)")
 
     async def _answer(self, session: Session, message) -> dict:
         parsed = await asyncio.get_running_loop().run_in_executor(self.decoder, decode_request, message, self.schema)

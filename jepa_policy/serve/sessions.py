@@ -27,6 +27,14 @@ class Session:
     step: int = -1                                   # episode step of the newest frame seen
     pending: dict[int, tuple[int, np.ndarray]] = field(default_factory=dict)   # target step -> (t, z_hat)
     prev_total_ms: float | None = None
+    penalty: float = 0.0                             # refused requests, halving every half-life (server pacing)
+    penalty_at: float = 0.0
+
+    def refused(self, now: float, half_life: float) -> float:
+        """Count one refused request; returns the connection's penalty (older refusals count less)."""
+        self.penalty = self.penalty * 0.5 ** ((now - self.penalty_at) / half_life) + 1.0
+        self.penalty_at = now
+        return self.penalty
 
     def new_episode(self, episode: str | None) -> None:
         self.episodes += 1

@@ -48,12 +48,13 @@ def test_hostile_scalars_and_arrays_are_refused_before_anything_is_allocated(ser
     """The 7 KB frame whose numpy scalar made the server build 400 MB (3 s) is refused, as is every other dtype,
     shape or size trick, while the process allocates next to nothing."""
     server = serve()
-    ws, _ = client(server)
     frames = [pack(request) for request, _ in HOSTILE]
     tracemalloc.start()
     try:
         replies = []
-        for frame in frames:
+        for i, frame in enumerate(frames):
+            if i % 4 == 0:   # a connection is closed at its 8th refused request in a row
+                ws, _ = client(server)
             ws.send(frame)
             replies.append(ws.recv(timeout=30))
         peak = tracemalloc.get_traced_memory()[1]
@@ -88,12 +89,15 @@ def test_a_frame_of_190000_tiny_arrays_is_refused_and_other_robots_are_served(se
     assert 6 * 2**20 < len(frame) <= MAX_REQUEST_BYTES
     hostile, _ = client(server)
     robot, _ = client(server)
-    answers, stop = [], threading.Event()
+    answers, stop, closed = [], threading.Event(), []
 
     def attack():
-        while not stop.is_set():
-            hostile.send(frame)
-            answers.append(hostile.recv(timeout=60))
+        try:
+            while not stop.is_set():
+                hostile.send(frame)
+                answers.append(hostile.recv(timeout=60))
+        except websockets.ConnectionClosed as exc:   # paced, then closed at the 8th refused in a row
+            closed.append(exc.rcvd.code if exc.rcvd else None)
     attacker = threading.Thread(target=attack)
     attacker.start()
     try:
@@ -104,6 +108,7 @@ def test_a_frame_of_190000_tiny_arrays_is_refused_and_other_robots_are_served(se
         stop.set()
         attacker.join()
     assert answers and all(isinstance(a, str) and message in a for a in answers), str(answers[:1])[:300]
+    assert len(answers) <= 8 and closed in ([], [1008])
     hostile.close()
     robot.close()
 
@@ -217,8 +222,14 @@ def test_the_codec_refuses_what_openpi_never_sends():
         unpack(msgpack.packb({"x": msgpack.ExtType(7, b"")}))
     with pytest.raises(RequestError, match="more than 256 maps"):
         unpack(pack([{"a": 1}] * 300))
-    with pytest.raises(RequestError, match="lists hold more than 65536 items"):
-        unpack(pack([[0] * 60_000, [0] * 10_000]))
+    with pytest.raises(RequestError, match="lists hold more than 4096 items"):
+        unpack(pack([[0] * 3_000, [0] * 2_000]))
+    with pytest.raises(RequestError, match="above what a request of this server can hold"):   # from its header
+        unpack(pack({"top_image": [b"x" * 120] * 65_000}))
+    with pytest.raises(RequestError, match=r"FormatError: a byte that starts no msgpack value \(such as 0xc1\)"):
+        unpack(b"\xc1" * 1000)
+    with pytest.raises(RequestError, match="StackError: values nested too deep"):
+        unpack(b"\x91" * 100_000 + b"\x01")
     with pytest.raises(RequestError, match="above what a request of this server can hold"):
         unpack(pack({f"k{i}": 0 for i in range(300)}))
 
@@ -230,3 +241,35 @@ def test_the_event_log_rate_limits_each_kind_on_its_own():
     assert log.emit("connect")   # another kind has its own bucket
     now[0] = 0.5   # one token back
     assert log.emit("rejected") and not log.emit("rejected")
+
+
+def test_a_client_whose_requests_are_refused_in_a_row_is_paced_then_closed(serve, events, monkeypatch):
+    """Junk in a loop (the hostile tester's 8 MiB frames) no longer runs at the server's decode speed: from the
+    second refused request on, the connection's next frame waits a pause that doubles, and the 8th refused in a row
+    closes it (1008) with a reason naming the fix. Another robot of the same host is not slowed by it."""
+    import jepa_policy.serve.server as server_module
+    monkeypatch.setattr(server_module, "PACE_FIRST_S", 0.01)   # 0.01 .. 0.32 s: the test stays short
+    server = serve()
+    hostile, _ = client(server)
+    robot, _ = client(server)
+    junk = b"\xc1" * 2**20
+    replies, times = [], []
+    with pytest.raises(websockets.ConnectionClosed) as closed:
+        for _ in range(20):
+            start = time.monotonic()
+            hostile.send(junk)
+            replies.append(hostile.recv(timeout=30))
+            robot.send(pack(GOOD))   # the robot's decision is not held up by the pauses
+            assert unpack(robot.recv(timeout=30))["actions"].shape == (8, 2)
+            times.append(time.monotonic() - start)
+    assert len(replies) == 8 and all("is not msgpack" in r for r in replies), replies[:1]
+    assert closed.value.rcvd.code == 1008 and "8 requests refused in a row" in closed.value.rcvd.reason
+    # each round trip after the k-th refusal waited its pause (0.01 * 2^(k-2) s from the 2nd on)
+    assert times[1] < 0.5 and sum(times) >= 0.01 * (2 ** 6 - 1) * 0.9, times
+    robot.send(pack(GOOD))
+    assert unpack(robot.recv(timeout=30))["actions"].shape == (8, 2)
+    robot.close()
+    deadline = time.monotonic() + 5
+    while not [e for e in events() if e["event"] == "disconnect" and e.get("close_sent") == 1008]:
+        assert time.monotonic() < deadline, events()
+        time.sleep(0.05)
