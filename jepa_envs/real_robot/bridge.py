@@ -66,6 +66,7 @@ log = logging.getLogger(__name__)
 IDLE_TURN = (64, 16)        # (control messages, operator commands) served per loop turn ...
 CHUNK_TURN = (8, 1)         # ... and between two actions of a chunk
 TURN_BUDGET_S = 0.002       # a turn stops reading after this long
+DROPPED_PER_MESSAGE = 8     # messages dropped unread (cost: a receive) count this much less than one served
 BETWEEN_ACTIONS_S = 0.001   # back-to-back simulated actions serve the sockets at most this often
 
 
@@ -244,8 +245,13 @@ class RobotBridge:
             self._pump(timeout_s, CHUNK_TURN)
 
     def _serve_control(self, messages: int) -> None:
+        """Up to ``messages`` decoded (or answered) control messages, and up to DROPPED_PER_MESSAGE times as many
+        dropped unread (a flood's, or the link's echoes), so the session's requests and its link's echoes, behind
+        one message of each connection in the ROUTER's turn, come up within a few turns."""
         deadline = time.monotonic() + TURN_BUDGET_S
-        for _ in range(messages):
+        reads = messages * DROPPED_PER_MESSAGE
+        while messages > 0 and reads > 0:
+            reads -= 1
             now = time.monotonic()
             s = self.sessions.session
             incoming = self._wire.receive(s and s.identity, s and s.link_identity, now)
@@ -256,8 +262,10 @@ class RobotBridge:
                 self._link_resumed(resumed)
             self._apply_estop_if_latched()
             if incoming.refusal is not None:
+                messages -= 1
                 self._wire.send(incoming.identity, incoming.refusal, incoming.envelope)
             elif incoming.message is not None:
+                messages -= 1
                 self._on_control(incoming)
             if time.monotonic() > deadline:
                 return

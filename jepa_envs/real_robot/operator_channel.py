@@ -2,9 +2,20 @@
 
 The socket is a ROUTER (operators connect with REQ, ``jepa_operator.OperatorClient``), so one operator's request
 never waits for another's answer. Each turn the thread reads every request that is waiting (up to
-``TURN_REQUESTS``) and handles the e-stops among them first: ``EStop.press`` latches and stops the robot in this
-thread and the answer goes out at once, before any other request of the turn is looked at. It never waits for
-the event loop, the control socket or another operator request.
+``TURN_REQUESTS``), and an e-stop is pressed the moment its frame is read: a frame of at most
+``ESTOP_FRAME_BYTES`` that names ``estop`` is decoded at once (an e-stop request is a 15-byte map), and when it
+is one, ``EStop.press`` latches and stops the robot in this thread and the answer goes out before the next frame
+is read. No other frame is decoded before the turn's reads are done, so the e-stop waits for at most one receive
+per connection ahead of it (the ROUTER takes one message per connection in turn), never for a decode. It never
+waits for the event loop, the control socket or another operator request.
+
+Then the turn's other frames are decoded within two budgets (issue 35, F3: 300 connections of 4 KiB junk used
+to make the thread decode 256 of them per turn before pressing an e-stop): ``OPERATOR_PEER_RATE`` requests a
+second per connection (beyond it, one prepared ``rate_limited`` answer, unread) and ``OPERATOR_BYTES_RATE``
+bytes a second for all connections together (beyond it, a flood: dropped unread and unanswered, counted as
+``operator_dropped``). After a full turn of refused frames the thread pauses ``FLOOD_PAUSE_S``, so a flood takes
+a bounded share of the CPU and the GIL from the event loop; an e-stop then waits at most that pause plus one
+receive per connection.
 
 Every other command (status, confirm, home, clear_estop, shutdown) runs on the event loop, which owns the robot:
 the thread forwards it over an inproc socket the loop polls, and sends the loop's answer back when it comes,
@@ -31,9 +42,25 @@ from jepa_envs.real_robot.wire import decode_request, encode_reply
 log = logging.getLogger(__name__)
 
 OPERATOR_COMMANDS = (P.OP_ESTOP, P.OP_CLEAR_ESTOP, P.OP_CONFIRM, P.OP_HOME, P.OP_STATUS, P.OP_SHUTDOWN)
-TURN_REQUESTS = 256     # requests read per turn (the e-stops among them are answered first)
+TURN_REQUESTS = 512     # requests read per turn (each e-stop among them pressed as soon as it is read)
+FLOOD_PAUSE_S = 0.001  # after a full turn of refused frames (a flood): the thread's share of CPU and GIL is bounded
 MAX_PENDING = 64        # operator commands waiting for the event loop
+ESTOP_FRAME_BYTES = 64  # an e-stop request is ~15 bytes; a frame up to this size naming "estop" is decoded at once
+OPERATOR_PEER_RATE = 100.0      # requests a second one operator connection gets decoded (bursts of ...)
+OPERATOR_PEER_BURST = 50
+OPERATOR_BYTES_RATE = 256 * 1024.0   # bytes a second decoded for all operator connections together (bursts of ...)
+OPERATOR_BYTES_BURST = 64 * 1024
+REMEMBERED_OPERATORS = 4096
+_OPERATOR_RATE_LIMITED = P.encode(P.error(
+    P.ERR_RATE, f"the operator socket decodes up to {OPERATOR_PEER_RATE:g} requests a second per connection and "
+                f"{OPERATOR_BYTES_RATE / 1024:g} KiB a second in all; this one was refused unread (an e-stop never "
+                "is); try again"))
 _ids = itertools.count()
+
+
+def _route(frames: list[bytes]) -> list[bytes]:
+    """The sender's identity and, for a REQ socket, its empty delimiter: what the answer goes back with."""
+    return frames[:2] if len(frames) >= 3 and frames[1] == b"" else frames[:1]
 
 
 class OperatorChannel:
@@ -52,6 +79,8 @@ class OperatorChannel:
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self._pending = 0
+        self._buckets: collections.OrderedDict[bytes, list[float]] = collections.OrderedDict()   # [tokens, time]
+        self._global = [float(OPERATOR_BYTES_BURST), time.monotonic()]
         self.sock = ctx.socket(zmq.ROUTER)
         self.sock.setsockopt(zmq.LINGER, 0)
         self.sock.setsockopt(zmq.MAXMSGSIZE, P.MAX_OPERATOR_MESSAGE_BYTES)
@@ -98,8 +127,11 @@ class OperatorChannel:
         try:
             while not self._stop.is_set():
                 events = dict(poller.poll(50))
-                if self.sock in events:
-                    self._serve_requests()
+                if self.sock in events and self._serve_requests() >= TURN_REQUESTS and FLOOD_PAUSE_S:
+                    # a full turn of refused frames: a flood. Pausing costs an e-stop at most this long (it is
+                    # then at most one frame per connection behind) and keeps this thread from taking the
+                    # event loop's CPU and the GIL at the flood's rate
+                    time.sleep(FLOOD_PAUSE_S)
                 if self._from_loop in events:
                     self._send_answers()
             if self._from_loop.poll(200):   # the loop's last answer (a shutdown) was sent just before it stopped
@@ -107,29 +139,76 @@ class OperatorChannel:
         finally:
             self._close_thread_sockets()
 
-    def _serve_requests(self) -> None:
-        waiting = []
+    def _serve_requests(self) -> int:
+        """One turn: read what is waiting, pressing each e-stop the moment its frame is read and dropping a
+        flood's frames unread; then the rest, within the per-peer budget (module docstring). Returns how many
+        frames were refused."""
+        later, dropped = [], 0
+        g = self._global   # all connections' decoding budget, refilled once a turn
+        now = time.monotonic()
+        g[0] = min(float(OPERATOR_BYTES_BURST), g[0] + (now - g[1]) * OPERATOR_BYTES_RATE)
+        g[1] = now
         for _ in range(TURN_REQUESTS):
             try:
-                waiting.append(self.sock.recv_multipart(zmq.NOBLOCK))
+                frames = self.sock.recv_multipart(zmq.NOBLOCK)
             except zmq.Again:
                 break
-        decoded = [self._decode(frames) for frames in waiting]
-        for route, message, refusal in decoded:   # the e-stops first, each answered at once
-            if message is not None and message["type"] == P.OP_ESTOP:
-                self._send(route, self._press())
-        for route, message, refusal in decoded:
-            if refusal is not None:
-                self._send(route, refusal)
-            elif message["type"] == P.OP_ESTOP:
+            body = frames[-1]
+            # an e-stop is a small map naming "estop": recognised without decoding anything bigger
+            if len(body) <= ESTOP_FRAME_BYTES and b"estop" in body:
+                decoded = self._decode(frames)
+                route, message, _ = decoded
+                if message is not None and message["type"] == P.OP_ESTOP:
+                    self._send(route, self._press())
+                    continue
+            elif g[0] < max(len(body), 64):   # all connections' budget is spent: a flood, dropped unread
+                dropped += 1
                 continue
-            elif self._pending >= MAX_PENDING:
-                self._count("operator_busy")
-                self._send(route, P.error(P.ERR_BUSY, f"{self._pending} operator commands are waiting for the "
-                                                      "bridge's event loop; try again (the e-stop never waits)"))
             else:
-                self._pending += 1
-                self._to_loop.send_multipart([*route, P.encode(message)])
+                decoded = None
+            g[0] -= max(len(body), 64)
+            later.append((frames, decoded))
+        refused = dropped
+        for frames, decoded in later:
+            if decoded is None:
+                if self._peer_over_rate(frames[0], now):   # this connection's own limit: told so, unread
+                    refused += 1
+                    self._send(_route(frames), _OPERATOR_RATE_LIMITED)
+                    continue
+                decoded = self._decode(frames)
+            self._handle(*decoded)
+        if refused:
+            with self._lock:
+                for name, count in (("operator_dropped", dropped), ("operator_rate_limited", refused - dropped)):
+                    if count:
+                        self.counters[name] += count
+        return refused
+
+    def _handle(self, route: list[bytes], message: dict | None, refusal: dict | None) -> None:
+        if refusal is not None:
+            self._send(route, refusal)
+        elif message["type"] == P.OP_ESTOP:   # one that did not look like one (padded, reordered): pressed now
+            self._send(route, self._press())
+        elif self._pending >= MAX_PENDING:
+            self._count("operator_busy")
+            self._send(route, P.error(P.ERR_BUSY, f"{self._pending} operator commands are waiting for the "
+                                                  "bridge's event loop; try again (the e-stop never waits)"))
+        else:
+            self._pending += 1
+            self._to_loop.send_multipart([*route, P.encode(message)])
+
+    def _peer_over_rate(self, identity: bytes, now: float) -> bool:
+        """One connection's token bucket: OPERATOR_PEER_RATE requests a second, bursts of OPERATOR_PEER_BURST."""
+        bucket = self._buckets.pop(identity, None) or [float(OPERATOR_PEER_BURST), now]
+        bucket[0] = min(float(OPERATOR_PEER_BURST), bucket[0] + (now - bucket[1]) * OPERATOR_PEER_RATE)
+        bucket[1] = now
+        self._buckets[identity] = bucket   # most recent last: the oldest is forgotten first
+        while len(self._buckets) > REMEMBERED_OPERATORS:
+            self._buckets.popitem(last=False)
+        if bucket[0] < 1.0:
+            return True
+        bucket[0] -= 1.0
+        return False
 
     def _send_answers(self) -> None:
         while True:
@@ -150,7 +229,7 @@ class OperatorChannel:
     def _decode(self, frames: list[bytes]) -> tuple[list[bytes], dict | None, dict | None]:
         """(route, message, None) for a known operator command, else (route, None, the refusal that answers it);
         the route is the sender's identity and, for a REQ socket, its empty delimiter."""
-        route = frames[:2] if len(frames) >= 3 and frames[1] == b"" else frames[:1]
+        route = _route(frames)
         body = frames[len(route):]
         if len(body) != 1:
             self._count("malformed")

@@ -6,7 +6,11 @@ each stranger's; the bridge reads a bounded number per turn (``RobotBridge._pump
 the session's (a *stranger*) is limited before any byte is decoded: a message above
 ``MAX_STRANGER_MESSAGE_BYTES`` is refused undecoded, and beyond ``STRANGER_RATE`` messages a second (a burst of
 ``STRANGER_BURST``) each gets one prepared ``rate_limited`` refusal, unread, and is counted: a message then
-costs the bridge a receive and a send, never a decode. The session's own link connection (the echo of the
+costs the bridge a receive and a send, never a decode. All strangers together get ``STRANGERS_BYTES_RATE`` bytes
+decoded a second (bursts of ``STRANGERS_BYTES_BURST``, about half a millisecond of decoding): beyond it a
+stranger's message is dropped unread and unanswered (``strangers_dropped``), so 300 connections buy no more than
+one (issue 35, F2: 300 connections of 16,000-byte slow-to-decode arrays, each within its own limit, used to
+keep the loop decoding and the link's echoes waiting). The session's own link connection (the echo of the
 bridge's pings) is never decoded at all: its arrival is what counts.
 
 The control socket is a ROUTER: a DEALER client's message arrives as ``[identity, payload]``, a REQ client's
@@ -31,6 +35,8 @@ log = logging.getLogger(__name__)
 
 STRANGER_RATE = 1000.0     # a stranger's messages answered per second: fuzzers and scanners, not a flood
 STRANGER_BURST = 200
+STRANGERS_BYTES_RATE = 256 * 1024.0   # bytes a second decoded for all strangers together (a message counts >= 64)
+STRANGERS_BYTES_BURST = 32 * 1024     # ... and at most this much at once: ~0.5 ms of decoding in any loop turn
 REMEMBERED_STRANGERS = 4096
 
 
@@ -93,6 +99,7 @@ class ControlWire:
         self.sock = sock
         self.counters = counters
         self._buckets: collections.OrderedDict[bytes, list[float]] = collections.OrderedDict()  # [tokens, time]
+        self._all_strangers = [float(STRANGERS_BYTES_BURST), 0.0]   # every stranger's decoding: [bytes, time]
 
     def receive(self, session: bytes | None, link: bytes | None, now: float) -> Incoming | None:
         """The next waiting message, None when none is; the ``session`` connection's is decoded, the ``link``
@@ -106,10 +113,13 @@ class ControlWire:
             return Incoming(identity)
         if len(parts) >= 2 and len(parts[0]) == 0:   # a REQ socket: empty delimiter, then the request
             envelope, parts = [b""], parts[1:]
-        if identity != session and not self._admit(identity, now):
-            self.counters["rate_limited"] += 1
-            self._send_payload(identity, envelope, _RATE_LIMITED, count=True)
-            return Incoming(identity, envelope)
+        if identity != session:
+            over = self._over_budget(identity, len(parts[-1]) if parts else 0, now)
+            if over is not None:
+                self.counters[over] += 1
+                if over == "rate_limited":   # this connection's own limit: told so, unread
+                    self._send_payload(identity, envelope, _RATE_LIMITED, count=True)
+                return Incoming(identity, envelope)   # all strangers' budget spent (a flood): dropped unread
         if len(parts) != 1:
             self.counters["malformed"] += 1
             return Incoming(identity, envelope, refusal=P.error(
@@ -125,8 +135,10 @@ class ControlWire:
             self.counters["malformed"] += 1
         return Incoming(identity, envelope, _source_fd(parts[0]), message, refusal)
 
-    def _admit(self, identity: bytes, now: float) -> bool:
-        """A stranger's token bucket: STRANGER_RATE a second, bursts of STRANGER_BURST."""
+    def _over_budget(self, identity: bytes, size: int, now: float) -> str | None:
+        """None when a stranger's message may be decoded, else the counter it is refused under: its own token
+        bucket (STRANGER_RATE a second, bursts of STRANGER_BURST) and one for all strangers together
+        (STRANGERS_BYTES_RATE bytes a second), so no number of connections buys more decoding."""
         bucket = self._buckets.pop(identity, None) or [float(STRANGER_BURST), now]
         bucket[0] = min(float(STRANGER_BURST), bucket[0] + (now - bucket[1]) * STRANGER_RATE)
         bucket[1] = now
@@ -134,9 +146,15 @@ class ControlWire:
         while len(self._buckets) > REMEMBERED_STRANGERS:
             self._buckets.popitem(last=False)
         if bucket[0] < 1.0:
-            return False
+            return "rate_limited"
+        g, cost = self._all_strangers, max(size, 64)
+        g[0] = min(STRANGERS_BYTES_BURST, g[0] + (now - g[1]) * STRANGERS_BYTES_RATE)
+        g[1] = now
+        if g[0] < cost:
+            return "strangers_dropped"
         bucket[0] -= 1.0
-        return True
+        g[0] -= cost
+        return None
 
     def send(self, identity: bytes, message: dict, envelope: list = (), count: bool = True) -> bool:
         """Send one message; False when the client is gone (or not reading), which is never an error here."""
