@@ -18,8 +18,12 @@ def _settings(args, database: str | None = None):
     from monitor_service.settings import MonitorSettings
 
     overrides = {}
-    if getattr(args, "database_url", None):
-        overrides["database_url"] = args.database_url
+    url = getattr(args, "database_url", None)
+    if url is not None and not url.strip():
+        raise ValueError("--database-url is empty; give sqlite:///jepa_monitor.db, sqlite:////absolute/path.db or "
+                         "postgresql+psycopg2://user@host/db, or leave the option out (JEPA_MONITOR_DATABASE_URL)")
+    if url:
+        overrides["database_url"] = url
     settings = MonitorSettings(**overrides)
     if database is not None:
         db.check_database_url(settings.database_url, create=database == "create")
@@ -40,9 +44,9 @@ def cmd_serve(args) -> int:
 
     from monitor_service import db
 
+    settings = _settings(args, "create" if args.create else "existing")
     if args.database_url:
         os.environ["JEPA_MONITOR_DATABASE_URL"] = args.database_url
-    settings = _settings(args, "create" if args.create else "existing")
     db.upgrade(db.make_engine(settings.database_url))  # once, before any worker starts (it creates the file)
     if args.workers > 1:   # each worker exits when this supervising process dies (app.exit_with_parent)
         os.environ["JEPA_MONITOR_SUPERVISOR_PID"] = str(os.getpid())

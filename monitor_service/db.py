@@ -199,8 +199,9 @@ def check_database_url(url: str, *, create: bool = False) -> None:
     backend = parsed.get_backend_name()
     if backend == "sqlite":
         path = sqlite_file(url)
-        if path is None:
-            return
+        if path is None:   # make_engine's pool needs a file, and an in-memory database ends with its process
+            raise ValueError(f"database URL {url!r} is an in-memory SQLite database, which keeps nothing once the "
+                             "process ends; give a file: sqlite:///jepa_monitor.db or sqlite:////absolute/path.db")
         if not path.parent.is_dir():
             raise ValueError(f"the folder {path.parent} of the database {path} does not exist; create it "
                              f"(mkdir -p {path.parent}) or fix the database URL {url!r}")
@@ -329,8 +330,18 @@ def backup_sqlite(url: str, target: str) -> None:
     source = _sqlite_path(url, "backup")
     if not Path(source).is_file():
         raise SystemExit(f"no database at {source}; check JEPA_MONITOR_DATABASE_URL / --database-url")
-    with sqlite3.connect(source) as src, sqlite3.connect(target) as dst:
-        src.backup(dst)
+    folder = Path(target).parent
+    if not folder.is_dir():
+        raise SystemExit(f"the folder {folder} of the backup {target} does not exist; create it (mkdir -p {folder}) "
+                         "or give another path")
+    if Path(target).is_dir():
+        raise SystemExit(f"the backup {target} is a folder; give a file path, e.g. {Path(target) / 'monitor.db'}")
+    try:
+        with sqlite3.connect(source) as src, sqlite3.connect(target) as dst:
+            src.backup(dst)
+    except sqlite3.Error as exc:
+        raise SystemExit(f"db backup to {target} failed: {exc}; check that the folder is writable and has room"
+                         ) from None
 
 
 def restore_sqlite(url: str, backup: str) -> None:

@@ -85,6 +85,14 @@ BAD_INVOCATIONS = [
     ("jepa-monitor", ["--database-url", "sqlite:///{d}/m.db", "db", "restore", "{d}/junk.hdf5"],
      "not an SQLite database"),
     ("jepa-monitor", ["--database-url", "sqlite:///{d}/m.db", "calibrate", "--task", "Nope"], "register it"),
+    ("jepa-monitor", ["--database-url", "sqlite://", "db", "current"], "give a file: sqlite:///"),
+    ("jepa-monitor", ["--database-url", "sqlite:///", "db", "upgrade"], "give a file: sqlite:///"),
+    ("jepa-monitor", ["--database-url", "sqlite:///:memory:", "serve", "--port", "0"], "give a file: sqlite:///"),
+    ("jepa-monitor", ["--database-url", "", "db", "current"], "--database-url is empty; give sqlite:///"),
+    ("jepa-monitor", ["--database-url", "", "serve", "--create"], "--database-url is empty; give sqlite:///"),
+    ("jepa-monitor", ["--database-url", "sqlite:///{d}/m.db", "db", "backup", "{d}/nofolder/b.db"],
+     "does not exist; create it (mkdir -p"),
+    ("jepa-monitor", ["--database-url", "sqlite:///{d}/m.db", "db", "backup", "{d}"], "is a folder; give a file"),
     ("jepa-robot-bridge", ["serve", "--backend", "sim", "--task", "Nope"], "known tasks"),
     ("jepa-robot-bridge", ["serve", "--backend", "arx5"], "needs --config"),
     ("jepa-robot-bridge", ["serve", "--backend", "replay", "--episode", "{d}/missing.json"], "not found"),
@@ -130,3 +138,18 @@ def test_console_scripts_exit_without_a_traceback(argv, files):
                          timeout=120)
     assert out.returncode != 0 and "Traceback" not in out.stderr + out.stdout
     assert len((out.stderr.strip() or out.stdout.strip()).splitlines()) == 1, out.stderr
+
+
+@pytest.mark.parametrize("argv", [
+    ["--database-url", "", "db", "upgrade"],             # used to fall back to ./jepa_monitor.db and create it
+    ["--database-url", "sqlite://", "db", "upgrade"],
+    ["--database-url", "sqlite:///:memory:", "serve", "--create", "--port", "0"],
+])
+def test_a_refused_database_url_creates_nothing(argv, tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.delenv("JEPA_MONITOR_DATABASE_URL", raising=False)
+    err = io.StringIO()
+    with contextlib.redirect_stderr(err):
+        assert monitor_main(argv) == 2
+    assert len(err.getvalue().strip().splitlines()) == 1 and "Traceback" not in err.getvalue()
+    assert list(tmp_path.iterdir()) == []
