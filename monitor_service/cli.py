@@ -119,6 +119,13 @@ def cmd_tasks(args) -> int:
             if "nmse" in signals:
                 raise ValueError("nmse is the service's own signal (computed from the latents); --signals names the "
                                  "scores robots send")
+            clash = [(name, t.latent_dim) for name in args.names if (t := session.get(Task, name)) is not None
+                     and args.latent_dim is not None and t.latent_dim != args.latent_dim]
+            if clash:   # checked before anything is added: the command changes all of its tasks or none
+                name, dim = clash[0]
+                raise ValueError(f"task {name} exists with latent_dim {dim}, not {args.latent_dim}: its records and "
+                                 f"calibrations are {dim}-d; register the new model's task under another name (e.g. "
+                                 f"{name}-{args.latent_dim}), or drop --latent-dim to add only signals")
             for name in args.names:
                 task = session.get(Task, name)
                 if task is None:

@@ -133,3 +133,19 @@ def test_an_unknown_setting_variable_is_a_warning_naming_the_setting(tmp_path, m
     monkeypatch.setenv("JEPA_MONITOR_ALHPA", "0.2")
     assert main(["--database-url", f"sqlite:///{tmp_path / 'jepa_monitor.db'}", "tasks", "list"]) == 0
     assert "did you mean JEPA_MONITOR_ALPHA?" in capsys.readouterr().err
+
+
+def test_tasks_add_refuses_another_latent_dim_for_an_existing_task(tmp_path, capsys):
+    """`tasks add Square PushT --latent-dim 1024` left an existing 8-d PushT at 8 without a word; now the command
+    is refused (nothing added) naming the fix, and adding only signals to it still works."""
+    url = ["--database-url", make_settings(tmp_path).database_url]
+    assert main(url + ["db", "upgrade"]) == 0
+    assert main(url + ["tasks", "add", "PushT", "--latent-dim", "8"]) == 0
+    capsys.readouterr()
+    assert main(url + ["tasks", "add", "Square", "PushT", "--latent-dim", "1024", "--signals", "stac,rnd"]) == 2
+    err = capsys.readouterr().err
+    assert "task PushT exists with latent_dim 8, not 1024" in err and "another name (e.g. PushT-1024)" in err
+    assert main(url + ["tasks", "list"]) == 0
+    assert capsys.readouterr().out.splitlines() == ["PushT\tlatent_dim=8\tsignals=-"]   # Square not added either
+    assert main(url + ["tasks", "add", "PushT", "--latent-dim", "8", "--signals", "stac"]) == 0
+    assert "PushT\tlatent_dim=8\tsignals=stac" in capsys.readouterr().out
