@@ -107,8 +107,9 @@ def _parser() -> argparse.ArgumentParser:
     bench.add_argument("--estop-runs", type=int, default=10, help="time the e-stop command this many times")
     bench.add_argument("--json", help="also write the numbers to this file")
     bench.add_argument("--load", metavar="SCENARIOS",
-                       help="instead: the bridge under local load, comma-separated from flood, operators, big, "
-                            "aborts (e-stop latency, controller chunk rate, bridge aborts; issue 35)")
+                       help="instead: the bridge under local load, comma-separated from flood, operators, "
+                            "operators+flood, big, flood-elsewhere, many-strangers, operator-flood, aborts (e-stop "
+                            "latency, controller chunk rate, bridge aborts; issue 35)")
     bench.add_argument("--trials", type=int, default=20, help="--load: e-stops per scenario")
     bench.add_argument("--window", type=float, default=4.0,
                        help="--load: seconds the controller's chunk rate is counted alone, then under the load")

@@ -16,6 +16,10 @@ bridges at the priority the systemd unit gives them (negative values need root).
   the controller's bridge. Its rate ratio is what the machine allows; ``flood``'s beside it is what the bridge
   adds.
 * ``big``: a stranger keeps sending a 16 MiB message that is slow to decode (16 M one-byte integers).
+* ``many-strangers``: 300 DEALER connections on the control socket, each sending 16,000-byte msgpack arrays
+  (slow to decode, under the stranger size limit) as fast as they go and reading the replies.
+* ``operator-flood``: the same with 300 connections on the operator socket and 3,995-byte arrays (under its
+  4 KiB limit).
 * ``aborts``: ``--abort-runs`` fresh bridges, each with a controller, flooded for ``--flood-seconds``; counts the
   bridges that died (libzmq's ``!_io_error`` abort is exit -6) and the controller links held or lost meanwhile.
 
@@ -46,8 +50,13 @@ FLOOD_HEARTBEATS = "JEPA_FLOOD_ZMTP_HEARTBEATS"   # set: the flood's sockets sen
 OPERATOR_CONNECTIONS = 50
 BIG_MESSAGE = msgpack.packb([1] * (16 * 1024 * 1024 - 16))   # 16 MiB of one-byte integers: slow to decode
 # each scenario's load processes (``aborts`` is its own loop of fresh bridges)
+MANY_CONNECTIONS = 300
+# slow to decode and within the size limits: 15,990 one-byte integers (control: under the stranger limit of 16 KiB)
+# and 3,990 (operator: under its 4 KiB limit)
+STRANGER_JUNK = b"\xdd" + (15990).to_bytes(4, "big") + b"\x01" * 15990
+OPERATOR_JUNK = b"\xdd" + (3990).to_bytes(4, "big") + b"\x01" * 3990
 LOADS = {"flood": ["flood"], "operators": ["operators"], "operators+flood": ["operators", "flood"], "big": ["big"],
-         "flood-elsewhere": ["flood"]}
+         "flood-elsewhere": ["flood"], "many-strangers": ["strangers"], "operator-flood": ["opflood"]}
 SCENARIOS = (*LOADS, "aborts")
 
 
@@ -88,6 +97,38 @@ def run_flood(address: str, sockets: int = FLOOD_SOCKETS) -> None:
                 except zmq.Again:
                     pass
             for _ in range(8):
+                try:
+                    sock.recv(zmq.NOBLOCK)
+                    received += 1
+                except zmq.Again:
+                    break
+    print(json.dumps({"sent": sent, "received": received}), flush=True)
+    for sock in socks:
+        sock.close(linger=0)
+    ctx.term()
+
+
+def run_many(address: str, payload: bytes, connections: int = MANY_CONNECTIONS) -> None:
+    """``connections`` DEALER sockets, each sending ``payload`` as fast as its pipe takes it and reading replies."""
+    stop = _until_stdin_closes()
+    ctx = zmq.Context()
+    socks = []
+    for _ in range(connections):
+        sock = ctx.socket(zmq.DEALER)
+        sock.setsockopt(zmq.LINGER, 0)
+        sock.setsockopt(zmq.SNDHWM, 1000)
+        sock.connect(address)
+        socks.append(sock)
+    sent = received = 0
+    while not stop.is_set():
+        for sock in socks:
+            for _ in range(4):
+                try:
+                    sock.send(payload, zmq.NOBLOCK)
+                    sent += 1
+                except zmq.Again:
+                    break
+            for _ in range(16):
                 try:
                     sock.recv(zmq.NOBLOCK)
                     received += 1
@@ -171,7 +212,9 @@ def run_controller(address: str) -> None:
     env.close()
 
 
-ROLES = {"flood": run_flood, "operators": run_operators, "big": run_big, "controller": run_controller}
+ROLES = {"flood": run_flood, "operators": run_operators, "big": run_big, "controller": run_controller,
+         "strangers": lambda address: run_many(address, STRANGER_JUNK),
+         "opflood": lambda address: run_many(address, OPERATOR_JUNK)}
 
 
 # ----------------------------------------------------------------------------- the stack under test
@@ -301,7 +344,7 @@ def scenario(name: str, trials: int, window_s: float, realtime: bool = False, ni
         alone = (started, time.time())
         target = other or bridge
         for role in LOADS[name]:
-            loads.append(Child(role, target.operator if role == "operators" else target.control))
+            loads.append(Child(role, target.operator if role in ("operators", "opflood") else target.control))
         time.sleep(0.3)
         loaded_from = time.time()
         time.sleep(window_s)   # the controller under the load

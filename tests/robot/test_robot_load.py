@@ -144,3 +144,78 @@ def test_a_silent_session_is_held_and_its_next_request_resumes_it(robot, ctx):
     raw.send(P.encode({"type": P.OBSERVE, "session": token, "seq": 2}))
     assert recv_reply(raw)["type"] == P.RESULT
     assert [e["kind"] for e in op.status()["events"]].count("link_resumed") == 1
+
+
+def _junk(items: int) -> bytes:
+    """A msgpack array of ``items`` one-byte integers: valid, slow to decode (the hostile tester's payload)."""
+    return b"\xdd" + items.to_bytes(4, "big") + b"\x01" * items
+
+
+def test_many_strangers_buy_no_more_decoding_than_one(robot, ctx):
+    """100 stranger connections each queue 10 messages of 16,000 bytes (slow to decode, each connection within
+    its own rate limit): all strangers together are decoded within one budget (issue 35, F2: 300 such
+    connections used to keep the loop decoding, the e-stop answered at p50 126 ms and the controller's link
+    held 8 times). The rest is dropped unread; the controller keeps control and runs its chunk; an e-stop in
+    the middle is answered and holds the robot."""
+    from jepa_envs.real_robot.wire import STRANGERS_BYTES_BURST, STRANGERS_BYTES_RATE
+    bridge = robot.bridge()
+    env = robot.client(bridge)
+    obs, _ = env.reset(seed=0)
+    controller = robot.operator(bridge).status()["client"]
+    junk = _junk(15990)
+    strangers = [raw_socket(ctx, zmq.DEALER, bridge.control_endpoint) for _ in range(100)]
+    start = time.monotonic()
+    for sock in strangers:
+        for _ in range(10):
+            sock.send(junk)
+    assert env.step_chunk(np.tile(obs["agent_pos"], (8, 1)))[4]["executed"] == 8
+    with OperatorClient(bridge.operator_endpoint, timeout_s=5.0) as op:
+        assert op.estop()["held"] is True
+        op.clear_estop()
+    counters = wait_for(lambda: (c := robot.operator(bridge).status()["counters"]).get("strangers_dropped", 0)
+                        + c.get("malformed", 0) >= 1000 and c, timeout_s=20)
+    elapsed = time.monotonic() - start
+    decoded = counters.get("malformed", 0)
+    assert decoded <= (STRANGERS_BYTES_BURST + STRANGERS_BYTES_RATE * elapsed) / len(junk) + 1, (decoded, elapsed)
+    assert counters["strangers_dropped"] >= 1000 - decoded
+    status = robot.operator(bridge).status()
+    assert controller is not None and status["client"] == controller and status["link"] == "up"
+
+
+def test_operator_flood_the_estop_is_pressed_before_the_queued_junk_is_decoded(robot, ctx):
+    """100 connections queue 20 frames of 3,995 bytes each on the operator socket (under its 4 KiB limit), then
+    an e-stop arrives behind them: it is pressed after at most a budget's worth of junk was decoded (issue 35,
+    F3: each turn used to decode up to 256 junk requests before pressing any e-stop: p50 127 ms), and the flood
+    as a whole is decoded within one budget for all connections, the rest dropped unread."""
+    from jepa_envs.real_robot.operator_channel import OPERATOR_BYTES_BURST, OPERATOR_BYTES_RATE
+    bridge = robot.bridge()
+    channel = bridge._operator
+    decoded, at_press = [], []
+    decode, press = channel._decode, bridge.estop.press
+
+    def counting_decode(frames):
+        if len(frames[-1]) > 1000:
+            decoded.append(1)
+        return decode(frames)
+
+    def noting_press(*args):
+        at_press.append(len(decoded))
+        return press(*args)
+    channel._decode, bridge.estop.press = counting_decode, noting_press
+    junk = _junk(3990)
+    flood = [raw_socket(ctx, zmq.DEALER, bridge.operator_endpoint) for _ in range(100)]
+    start = time.monotonic()
+    for sock in flood:
+        for _ in range(20):
+            sock.send(junk)
+    with OperatorClient(bridge.operator_endpoint, timeout_s=5.0) as op:
+        status = op.estop()
+    assert status["estop"] and status["held"] and bridge.estop.latched
+    counters = wait_for(lambda: (c := channel.counts()).get("operator_dropped", 0) + len(decoded) >= 2000 and c,
+                        timeout_s=20)
+    elapsed = time.monotonic() - start
+    budget = (OPERATOR_BYTES_BURST + OPERATOR_BYTES_RATE * elapsed) / len(junk) + 1
+    assert at_press == [at_press[0]] and at_press[0] <= budget, (at_press, budget)
+    assert len(decoded) <= budget and counters["operator_dropped"] >= 2000 - len(decoded)
+    with OperatorClient(bridge.operator_endpoint, timeout_s=5.0) as op:   # the socket still serves commands
+        assert op.status()["estop"] is True
