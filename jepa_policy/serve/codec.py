@@ -113,8 +113,9 @@ class _Decoder:
             raise RequestError(f"a numpy scalar of dtype {dtype} must carry "
                                f"{' or '.join(t.__name__ for t in allowed)}, got {type(data).__name__}")
         try:
-            return dtype.type(data)
-        except OverflowError:
+            with np.errstate(over="raise", invalid="raise"):   # a float beyond float16/32: refused, no warning
+                return dtype.type(data)
+        except (OverflowError, FloatingPointError):
             raise RequestError(f"the numpy scalar {data} does not fit dtype {dtype}") from None
 
 

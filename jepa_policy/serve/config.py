@@ -40,6 +40,9 @@ def check_config(config: ServeConfig) -> None:
         raise ValueError("TLS needs both --tls-cert and --tls-key")
     if config.tls_client_ca and not config.tls_cert:
         raise ValueError("--tls-client-ca (mutual TLS) needs the server's own --tls-cert/--tls-key")
+    if config.api_key is not None and not config.api_key.strip():
+        raise ValueError(f"the API key is blank (only whitespace); set {API_KEY_ENV} (or --api-key-file) to the key "
+                         "clients send, or unset it on loopback")
     if not is_loopback_host(config.host) and not (config.api_key or config.tls_client_ca):
         # TLS alone encrypts but lets anyone in: a client needs a key or a certificate of ours
         raise ValueError(f"--host {config.host} is reachable from the network: pass --api-key KEY (or "
@@ -60,9 +63,15 @@ def read_secret(flag: str, value: str | None, file: str | None, env: str) -> str
         raise ValueError(f"pass {flag} or {flag}-file, not both")
     if file is not None:
         path = Path(file)
+        if path.is_dir():
+            raise ValueError(f"{flag}-file {file} is a directory; give the file that holds the key (chmod 600)")
         if not path.is_file():
             raise FileNotFoundError(f"{flag}-file {file} does not exist; write the key into it (chmod 600)")
-        lines = path.read_text().splitlines()
+        try:
+            lines = path.read_text(encoding="utf-8").splitlines()
+        except UnicodeDecodeError:
+            raise ValueError(f"{flag}-file {file} is not UTF-8 text; write the key on its first line as text"
+                             ) from None
         secret = lines[0].strip() if lines else ""
         if not secret:
             raise ValueError(f"{flag}-file {file} is empty; write the key on its first line")
@@ -72,7 +81,10 @@ def read_secret(flag: str, value: str | None, file: str | None, env: str) -> str
     if value is not None:
         print(argv_secret_warning(flag, env), file=sys.stderr)
         return value
-    return os.environ.get(env) or None
+    secret = os.environ.get(env)
+    if secret is not None and secret and not secret.strip():
+        raise ValueError(f"{env} is blank (only whitespace); set it to the key, or unset it")
+    return secret or None
 
 
 def argv_secret_warning(flag: str, env: str) -> str:

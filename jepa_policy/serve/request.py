@@ -6,7 +6,7 @@ thread, so a slow or hostile frame never holds up the event loop that serves the
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -24,13 +24,23 @@ class RequestSchema:
     task: str
     shapes: dict[str, tuple[tuple[int, ...], str]]
     obs_steps: int
+    # low-dim keys: the range of the policy's training data (its normalizer's min and max), per dimension
+    ranges: dict[str, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)
 
     @classmethod
     def of(cls, policy: Policy) -> "RequestSchema":
         spec = policy.spec
         shapes = {k: ((spec.image_size, spec.image_size, 3), "uint8") for k in spec.image_keys}
         shapes.update({k: ((d,), "float32") for k, d in spec.lowdim})
-        return cls(spec.name, shapes, policy.obs_steps)
+        normalizer = getattr(policy.model, "normalizer", None)
+        ranges = {}
+        if normalizer is not None and bool(getattr(normalizer, "fitted", False)):
+            for key, _ in spec.lowdim:
+                if key in normalizer.fields:   # y = x * scale + offset maps the training range onto [-1, 1]
+                    scale = normalizer.fields[key].scale.detach().cpu().numpy().astype(np.float64)
+                    offset = normalizer.fields[key].offset.detach().cpu().numpy().astype(np.float64)
+                    ranges[key] = ((-1.0 - offset) / scale, (1.0 - offset) / scale)
+        return cls(spec.name, shapes, policy.obs_steps, ranges)
 
     def describe(self) -> str:
         return ", ".join(f"{k} {dt}{list(sh)}" for k, (sh, dt) in self.shapes.items())
@@ -92,7 +102,7 @@ def parse_request(msg, schema: RequestSchema) -> Parsed:
         if missing:
             raise RequestError(f"the observation lacks {missing}; task {schema.task} needs {schema.describe()} "
                                "(see the metadata's 'observation')")
-        arrays = {key: _observation(key, msg[key], shape, dtype, schema.obs_steps)
+        arrays = {key: _observation(key, msg[key], shape, dtype, schema.obs_steps, schema.ranges.get(key))
                   for key, (shape, dtype) in schema.shapes.items()}
         stacked = {k: len(a) for k, a in arrays.items()}
         if len(set(stacked.values())) > 1:
@@ -104,7 +114,13 @@ def parse_request(msg, schema: RequestSchema) -> Parsed:
                   control["outcome"], bool(control["observe"]), bool(control["full_chunk"]))
 
 
-def _observation(key: str, value, shape: tuple[int, ...], dtype: str, obs_steps: int) -> np.ndarray:
+# a low-dim value more than this many training ranges beyond its training range is refused (4.6e18 for a PushT
+# position in pixels was taken); the policy itself sees values a little outside it in normal use
+OUT_OF_RANGE_SPANS = 100.0
+
+
+def _observation(key: str, value, shape: tuple[int, ...], dtype: str, obs_steps: int,
+                 trained: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
     """One observation key as (n, *shape) of its dtype: the newest frame, or the newest n <= obs_steps stacked."""
     try:
         arr = np.asarray(value)
@@ -119,7 +135,17 @@ def _observation(key: str, value, shape: tuple[int, ...], dtype: str, obs_steps:
     if arr.dtype != np.dtype(dtype):
         if dtype == "uint8" or arr.dtype.kind not in "fiu":
             raise RequestError(f"{key} has dtype {arr.dtype}; send {dtype}")
-        arr = arr.astype(dtype)
+        with np.errstate(over="ignore", invalid="ignore"):   # a value beyond float32 becomes inf: refused below
+            arr = arr.astype(dtype)
     if arr.dtype.kind == "f" and not np.all(np.isfinite(arr)):
-        raise RequestError(f"{key} has NaN or infinite values; send finite values")
+        raise RequestError(f"{key} has NaN or infinite values (or values beyond {dtype}); send finite values")
+    if trained is not None:
+        lo, hi = trained
+        span = np.maximum(hi - lo, 1e-6) * OUT_OF_RANGE_SPANS
+        far = (arr < lo - span) | (arr > hi + span)
+        if far.any():
+            where = np.argwhere(far)[0]
+            raise RequestError(f"{key} holds {float(arr[tuple(where)]):.4g} at index {where[1:].tolist()}, far outside "
+                               f"the range the policy was trained on ({np.round(lo, 3).tolist()} to "
+                               f"{np.round(hi, 3).tolist()}); send the observation in the task's units")
     return arr

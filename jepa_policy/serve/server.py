@@ -72,6 +72,7 @@ class PolicyServer:
         self._admitted: set[ServerConnection] = set()
         self.port: int | None = None
         self.ready = threading.Event()
+        self.on_ready = None   # called with the bound port once the server listens (the CLI's banner)
         self._stop: asyncio.Event | None = None
         self._loop: asyncio.AbstractEventLoop | None = None
 
@@ -232,6 +233,8 @@ class PolicyServer:
                 self.port = next(s.getsockname()[1] for s in server.sockets if s.family in (socket.AF_INET,
                                                                                               socket.AF_INET6))
                 self.ready.set()
+                if self.on_ready is not None:
+                    self.on_ready(self.port)
                 await self._stop.wait()
         finally:
             self.batcher.task.cancel()
@@ -292,10 +295,11 @@ def serve_checkpoint(checkpoint: str, config: ServeConfig, device: str = "cpu", 
     policy = Policy.from_checkpoint(checkpoint, device=device)
     log_to_stderr()
     server = PolicyServer(policy, config, checkpoint)
-    print(f"jepa-policy serve: {policy.spec.name} ({policy.model.cfg.arm}, step {policy.checkpoint_step}) on "
-          f"{'wss' if config.tls_cert else 'ws'}://{config.host}:{config.port}"
-          + (" (clients need a certificate of --tls-client-ca)" if config.tls_client_ca else "")
-          + (f", monitor {config.monitor_url}" if config.monitor_url else ""), flush=True)
+    server.on_ready = lambda port: print(   # once bound: --port 0 prints the port it got
+        f"jepa-policy serve: {policy.spec.name} ({policy.model.cfg.arm}, step {policy.checkpoint_step}) on "
+        f"{'wss' if config.tls_cert else 'ws'}://{config.host}:{port}"
+        + (" (clients need a certificate of --tls-client-ca)" if config.tls_client_ca else "")
+        + (f", monitor {config.monitor_url}" if config.monitor_url else ""), flush=True)
     try:
         server.run()
     except KeyboardInterrupt:

@@ -114,6 +114,10 @@ BAD = [
     (pack({"top_image": np.zeros((32, 32, 3), np.uint8), "agent_pos": np.zeros(2, np.float32), "step": "x"}),
      "'step' must be int"),
     (pack([1, 2, 3]), "a request is a map of observation keys"),
+    (pack({**GOOD, "agent_pos": np.array([4.6e18, 1.0], np.float32)}),   # was taken: only finiteness was checked
+     "agent_pos holds 4.6e+18 at index [0], far outside the range the policy was trained on"),
+    (pack({**GOOD, "agent_pos": np.array([1e300, 1.0])}), "agent_pos has NaN or infinite values (or values beyond"),
+    (pack({**GOOD, "x": {b"__npgeneric__": True, b"data": 1e10, b"dtype": "<f2"}}), "does not fit dtype float16"),
     (pack({b"\xff\xfe": 1, **GOOD}), "the map key b'\\xff\\xfe' is not UTF-8 text"),
     (msgpack.packb({b"\xff": 1}, use_bin_type=False), "is not msgpack as openpi-client packs it"),   # str, not UTF-8
     (pack({**GOOD, "agent_pos": [[1.0, 2.0], [3.0]]}), "agent_pos is not an array (a ragged or mixed list?)"),

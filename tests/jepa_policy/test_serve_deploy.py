@@ -21,7 +21,7 @@ from websockets.sync.client import connect
 
 from jepa_policy.cli import main as policy_main
 from jepa_policy.policy import Policy
-from jepa_policy.serve import PolicyServer, ServeConfig, pack, read_secret, unpack
+from jepa_policy.serve import PolicyServer, ServeConfig, check_config, pack, read_secret, unpack
 
 pytestmark = pytest.mark.timeout(300)
 
@@ -99,6 +99,17 @@ def test_secrets_from_a_file_or_the_environment(tmp_path, monkeypatch, capsys):
     (tmp_path / "empty.key").chmod(0o600)
     with pytest.raises(ValueError, match="is empty"):
         read_secret("--monitor-key", None, str(tmp_path / "empty.key"), "JEPA_TEST_KEY")
+    with pytest.raises(ValueError, match=f"--api-key-file {tmp_path} is a directory"):   # said "does not exist"
+        read_secret("--api-key", None, str(tmp_path), "JEPA_TEST_KEY")
+    (tmp_path / "bin.key").write_bytes(b"\xff\xfe\x00key\n")
+    (tmp_path / "bin.key").chmod(0o600)
+    with pytest.raises(ValueError, match=f"--api-key-file {tmp_path / 'bin.key'} is not UTF-8 text"):
+        read_secret("--api-key", None, str(tmp_path / "bin.key"), "JEPA_TEST_KEY")
+    monkeypatch.setenv("JEPA_TEST_KEY", " \t ")   # a blank key used to let a 0.0.0.0 server start
+    with pytest.raises(ValueError, match="JEPA_TEST_KEY is blank"):
+        read_secret("--api-key", None, None, "JEPA_TEST_KEY")
+    with pytest.raises(ValueError, match="the API key is blank"):
+        check_config(ServeConfig(host="0.0.0.0", api_key="   "))
 
 
 def test_bad_key_files_are_one_line_errors(checkpoint, tmp_path, capsys):

@@ -273,3 +273,18 @@ def test_a_client_whose_requests_are_refused_in_a_row_is_paced_then_closed(serve
     while not [e for e in events() if e["event"] == "disconnect" and e.get("close_sent") == 1008]:
         assert time.monotonic() < deadline, events()
         time.sleep(0.05)
+
+
+def test_values_beyond_a_dtype_are_refused_without_a_numpy_warning():
+    """numpy's 'overflow encountered in cast' RuntimeWarning lines used to interleave with the JSON-lines event
+    log on stderr; now such values are a RequestError and numpy says nothing."""
+    import warnings
+
+    from jepa_policy.serve.request import RequestSchema, parse_request
+    schema = RequestSchema("PushT", {"agent_pos": ((2,), "float32")}, 2)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        with pytest.raises(RequestError, match="does not fit dtype float16"):
+            unpack(pack({"x": {b"__npgeneric__": True, b"data": 1e10, b"dtype": "<f2"}}))
+        with pytest.raises(RequestError, match="NaN or infinite values"):
+            parse_request({"agent_pos": np.array([1e300, 0.0])}, schema)
