@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import difflib
+import math
 import os
 from typing import Literal
 
@@ -45,6 +46,21 @@ class MonitorSettings(BaseSettings):
     run_migrations: bool = True
     create_database: bool = Field(False, description="create a missing SQLite file (`jepa-monitor serve --create`); "
                                   "otherwise a database that `jepa-monitor db upgrade` did not make is refused")
+
+    @field_validator("alpha", "alert_clear_ratio", "webhook_backoff_s", "webhook_timeout_s", "live_episode_s",
+                     "sse_poll_s", mode="before")
+    @classmethod
+    def _finite(cls, value, info):
+        """nan and inf fail the bounds with a misleading message ("Input should be less than 1"): say what is wrong."""
+        try:
+            number = float(value)
+        except (TypeError, ValueError):
+            return value   # pydantic's own message for what is not a number
+        if math.isfinite(number):
+            return value
+        bounds = {"alpha": "in [0.001, 1)", "alert_clear_ratio": "in (0, 1]", "webhook_backoff_s": ">= 0"}
+        raise ValueError(f"{info.field_name} must be a finite number {bounds.get(info.field_name, '> 0')}, "
+                         f"got {value!r}")
 
     @field_validator("database_url")
     @classmethod

@@ -149,3 +149,24 @@ def test_tasks_add_refuses_another_latent_dim_for_an_existing_task(tmp_path, cap
     assert capsys.readouterr().out.splitlines() == ["PushT\tlatent_dim=8\tsignals=-"]   # Square not added either
     assert main(url + ["tasks", "add", "PushT", "--latent-dim", "8", "--signals", "stac"]) == 0
     assert "PushT\tlatent_dim=8\tsignals=stac" in capsys.readouterr().out
+
+
+def test_bodies_with_a_duplicated_key_or_deep_nesting_are_refused_with_a_reason():
+    """A JSON object naming a key twice was taken (the last value won); a 100,000-deep msgpack body was refused
+    as 'malformed msgpack body ()'. A colon inside a string still takes the fast path's answer."""
+    for body in (b'{"records": [{"kind": "decision", "step": 1, "step": 2}]}',
+                 b'{"records": [], "records" : [1]}',                 # a space before the colon
+                 b'{"t": "12:00", "a": 1, "a": 2}',                   # a colon in a string as well
+                 b'{"a": NaN, "a": 1}'):                              # the standard parser's path
+        with pytest.raises(BodyError, match="names the key '(step|records|a)' twice; send each field once"):
+            decode_body(body, "application/json")
+    assert decode_body(b'{"t": "12:00", "a": [1, {"b": 2}]}', "application/json") == {"t": "12:00",
+                                                                                        "a": [1, {"b": 2}]}
+    with pytest.raises(BodyError, match=r"malformed msgpack body \(nested too deeply"):
+        decode_body(b"\x91" * 100_000 + b"\x01", "application/x-msgpack")
+
+
+def test_a_nan_setting_is_refused_as_not_finite(monkeypatch, capsys):
+    monkeypatch.setenv("JEPA_MONITOR_ALPHA", "nan")   # said "Input should be less than 1"
+    assert main(["--database-url", "sqlite:///nowhere.db", "db", "current"]) == 2
+    assert "alpha must be a finite number in [0.001, 1), got 'nan'" in capsys.readouterr().err
