@@ -52,7 +52,8 @@ from zmq.utils.monitor import parse_monitor_message
 
 from jepa_envs.real_robot import protocol as P
 from jepa_envs.real_robot.backends.base import RobotBackend
-from jepa_envs.real_robot.endpoints import BridgeConfig, is_loopback, network_bind_problem, open_control_socket
+from jepa_envs.real_robot.endpoints import (IO_THREADS, BridgeConfig, is_loopback, network_bind_problem,
+                                            open_control_socket)
 from jepa_envs.real_robot.episodes import check_manifest, latency_stats
 from jepa_envs.real_robot.estop import EStop
 from jepa_envs.real_robot.operator_channel import OperatorChannel
@@ -107,7 +108,7 @@ class RobotBridge:
         self.runner = EpisodeRunner(backend, self.safety, self.guard, self.estop, self.chunk_budget,
                                     self.config.record_dir, self._between_actions,
                                     self._apply_estop_if_latched)
-        self._ctx = zmq.Context()
+        self._ctx = zmq.Context(io_threads=IO_THREADS)
         self._auth = None
         self._control: zmq.Socket | None = None
         self._monitor: zmq.Socket | None = None

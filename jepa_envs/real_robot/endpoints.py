@@ -49,12 +49,19 @@ def network_bind_problem(control_address: str, curve: bool, insecure_network: bo
             "(docs/real_robot.md, 'Network security')")
 
 
+# the bridge's ZeroMQ context has two I/O threads: the control socket's connections use the first, the operator
+# socket's the second, so a flood of connections on one socket never queues the other's bytes (the e-stop's)
+IO_THREADS = 2
+CONTROL_IO_AFFINITY, OPERATOR_IO_AFFINITY = 1, 2
+
+
 def open_control_socket(ctx: zmq.Context, config: BridgeConfig) -> tuple[zmq.Socket, ThreadAuthenticator | None]:
     """The bound control ROUTER and, with CurveZMQ, the authenticator that admits the authorised clients."""
     sock = ctx.socket(zmq.ROUTER)
     sock.setsockopt(zmq.LINGER, 0)
     sock.setsockopt(zmq.ROUTER_MANDATORY, 1)
     sock.setsockopt(zmq.MAXMSGSIZE, P.MAX_CONTROL_MESSAGE_BYTES)
+    sock.setsockopt(zmq.AFFINITY, CONTROL_IO_AFFINITY)   # its connections' I/O never shares the operator's thread
     auth = None
     try:
         auth = _setup_curve(ctx, sock, config)

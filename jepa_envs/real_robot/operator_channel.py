@@ -36,6 +36,7 @@ from typing import Callable
 import zmq
 
 from jepa_envs.real_robot import protocol as P
+from jepa_envs.real_robot.endpoints import OPERATOR_IO_AFFINITY
 from jepa_envs.real_robot.estop import EStop
 from jepa_envs.real_robot.wire import decode_request, encode_reply
 
@@ -51,6 +52,7 @@ OPERATOR_PEER_BURST = 50
 OPERATOR_BYTES_RATE = 256 * 1024.0   # bytes a second decoded for all operator connections together (bursts of ...)
 OPERATOR_BYTES_BURST = 64 * 1024
 REMEMBERED_OPERATORS = 4096
+OPERATOR_RCVHWM = 8     # messages queued per operator connection
 _OPERATOR_RATE_LIMITED = P.encode(P.error(
     P.ERR_RATE, f"the operator socket decodes up to {OPERATOR_PEER_RATE:g} requests a second per connection and "
                 f"{OPERATOR_BYTES_RATE / 1024:g} KiB a second in all; this one was refused unread (an e-stop never "
@@ -84,6 +86,10 @@ class OperatorChannel:
         self.sock = ctx.socket(zmq.ROUTER)
         self.sock.setsockopt(zmq.LINGER, 0)
         self.sock.setsockopt(zmq.MAXMSGSIZE, P.MAX_OPERATOR_MESSAGE_BYTES)
+        self.sock.setsockopt(zmq.AFFINITY, OPERATOR_IO_AFFINITY)   # an I/O thread of its own (endpoints.py)
+        # an operator has one request in flight (REQ); a flood's connection is read only as fast as the thread
+        # drains it, so its I/O thread's turns stay short and the e-stop's bytes are not queued behind them
+        self.sock.setsockopt(zmq.RCVHWM, OPERATOR_RCVHWM)
         try:
             self.sock.bind(address)
         except zmq.ZMQError:
