@@ -49,6 +49,23 @@ PACE_FIRST_S = 0.05         # the pause after the second refused request; it dou
 PACE_MAX_S = 2.0
 
 
+class _Connection(ServerConnection):
+    """Once websockets closes a connection for a frame above ``max_size`` (1009), the rest of that frame is not
+    read: reading pauses (the client's sends stall on a full TCP window) and the socket is dropped after
+    ``OVERSIZE_DROP_S``; websockets would otherwise read and discard up to the whole frame on the event loop."""
+
+    def data_received(self, data: bytes) -> None:
+        super().data_received(data)
+        sent = self.protocol.close_sent
+        if sent is not None and sent.code == 1009 and not getattr(self, "_dropping", False):
+            self._dropping = True
+            self.transport.pause_reading()
+            self.loop.call_later(OVERSIZE_DROP_S, self.transport.abort)
+
+
+OVERSIZE_DROP_S = 1.0
+
+
 def _peer(connection: ServerConnection) -> str:
     address = connection.remote_address
     return f"{address[0]}:{address[1]}" if address else "?"
@@ -228,7 +245,7 @@ class PolicyServer:
         self.batcher.start()
         try:
             async with serve(self._handler, self.config.host, self.config.port, ssl=ctx, compression=None,
-                             max_size=MAX_REQUEST_BYTES, max_queue=0,
+                             max_size=MAX_REQUEST_BYTES, max_queue=0, create_connection=_Connection,
                              process_request=self._process_request) as server:
                 self.port = next(s.getsockname()[1] for s in server.sockets if s.family in (socket.AF_INET,
                                                                                               socket.AF_INET6))
