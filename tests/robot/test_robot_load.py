@@ -97,7 +97,10 @@ def test_a_flood_neither_kills_the_bridge_nor_starves_the_controller(tmp_path):
         status = bridge.status()
         assert status["client"] == "controller" and status["link"] == "up"
         assert not [e for e in status["events"] if e["kind"].startswith("link")], status["events"]
-        assert status["counters"].get("rate_limited", 0) + status["counters"].get("strangers_dropped", 0) > 0
+        # the flood reached the bridge (whether it also went past the strangers' limits depends on how fast this
+        # machine lets the bridge read; the limits themselves are tested by test_strangers_are_limited_* and
+        # test_many_strangers_buy_no_more_decoding_than_one)
+        assert status["counters"].get("malformed", 0) + status["counters"].get("not_controlling", 0) > 0
     finally:
         chunks = np.asarray(controller.finish().get("chunks", []))
         bridge.close()
