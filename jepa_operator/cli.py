@@ -15,6 +15,7 @@ import argparse
 import json
 import os
 import sys
+import time
 
 from jepa_operator import DEFAULT_OPERATOR, OperatorClient, OperatorError
 
@@ -43,13 +44,32 @@ def _parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _wait_gone(pid, timeout_s: float) -> bool | None:
+    """Whether the bridge's process ended within ``timeout_s`` (None: the bridge did not say its pid)."""
+    if not isinstance(pid, int) or pid <= 0:
+        return None
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        try:
+            os.kill(pid, 0)
+        except ProcessLookupError:
+            return True
+        except PermissionError:   # alive, another user's
+            pass
+        time.sleep(0.05)
+    return False
+
+
 def run_operator_command(argv: list[str]) -> int:
     args = _parser().parse_args(argv)
     with OperatorClient(args.operator, timeout_s=args.timeout) as op:
         try:
             if args.command == "shutdown":
+                pid = op.status().get("pid")
                 op.shutdown()
-                result = {"shutdown": True}
+                # answered is not gone: the bridge still holds its ports while it stops (a new bridge started
+                # at once could not bind them), so wait for its process (the operator socket is on this machine)
+                result = {"shutdown": True, "exited": _wait_gone(pid, args.timeout)}
             else:
                 calls = {"estop": op.estop, "clear-estop": op.clear_estop, "home": op.home, "status": op.status,
                          "confirm": lambda: op.confirm(args.outcome == "success")}
