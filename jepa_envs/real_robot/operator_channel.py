@@ -38,7 +38,7 @@ import zmq
 from jepa_envs.real_robot import protocol as P
 from jepa_envs.real_robot.endpoints import OPERATOR_IO_AFFINITY
 from jepa_envs.real_robot.estop import EStop
-from jepa_envs.real_robot.wire import decode_request, encode_reply
+from jepa_envs.real_robot.wire import PeerBuckets, decode_request, encode_reply
 
 log = logging.getLogger(__name__)
 
@@ -81,7 +81,7 @@ class OperatorChannel:
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self._pending = 0
-        self._buckets: collections.OrderedDict[bytes, list[float]] = collections.OrderedDict()   # [tokens, time]
+        self._peers = PeerBuckets(OPERATOR_PEER_RATE, OPERATOR_PEER_BURST, REMEMBERED_OPERATORS)
         self._global = [float(OPERATOR_BYTES_BURST), time.monotonic()]
         self.sock = ctx.socket(zmq.ROUTER)
         self.sock.setsockopt(zmq.LINGER, 0)
@@ -205,12 +205,7 @@ class OperatorChannel:
 
     def _peer_over_rate(self, identity: bytes, now: float) -> bool:
         """One connection's token bucket: OPERATOR_PEER_RATE requests a second, bursts of OPERATOR_PEER_BURST."""
-        bucket = self._buckets.pop(identity, None) or [float(OPERATOR_PEER_BURST), now]
-        bucket[0] = min(float(OPERATOR_PEER_BURST), bucket[0] + (now - bucket[1]) * OPERATOR_PEER_RATE)
-        bucket[1] = now
-        self._buckets[identity] = bucket   # most recent last: the oldest is forgotten first
-        while len(self._buckets) > REMEMBERED_OPERATORS:
-            self._buckets.popitem(last=False)
+        bucket = self._peers.refilled(identity, now)
         if bucket[0] < 1.0:
             return True
         bucket[0] -= 1.0

@@ -92,13 +92,33 @@ def encode_reply(message: dict | None) -> bytes:
                                 seq=message.get("seq") if isinstance(message, dict) else None))
 
 
+class PeerBuckets:
+    """A token bucket per connection (``rate`` tokens a second, bursts of ``burst``) for the ``remembered`` most
+    recently heard connections (the oldest is forgotten first). The control socket's strangers and the operator
+    socket's connections are limited with it."""
+
+    def __init__(self, rate: float, burst: float, remembered: int):
+        self.rate, self.burst, self.remembered = float(rate), float(burst), int(remembered)
+        self._buckets: collections.OrderedDict[bytes, list[float]] = collections.OrderedDict()   # [tokens, time]
+
+    def refilled(self, identity: bytes, now: float) -> list[float]:
+        """``identity``'s bucket [tokens, time], refilled to ``now``; the caller takes a token (``[0] -= 1``)."""
+        bucket = self._buckets.pop(identity, None) or [self.burst, now]
+        bucket[0] = min(self.burst, bucket[0] + (now - bucket[1]) * self.rate)
+        bucket[1] = now
+        self._buckets[identity] = bucket   # most recent last
+        while len(self._buckets) > self.remembered:
+            self._buckets.popitem(last=False)
+        return bucket
+
+
 class ControlWire:
     """Reads requests from and writes replies to the control socket; counts what it refuses or cannot send."""
 
     def __init__(self, sock: zmq.Socket, counters: collections.Counter):
         self.sock = sock
         self.counters = counters
-        self._buckets: collections.OrderedDict[bytes, list[float]] = collections.OrderedDict()  # [tokens, time]
+        self._strangers = PeerBuckets(STRANGER_RATE, STRANGER_BURST, REMEMBERED_STRANGERS)
         self._all_strangers = [float(STRANGERS_BYTES_BURST), 0.0]   # every stranger's decoding: [bytes, time]
 
     def receive(self, session: bytes | None, link: bytes | None, now: float) -> Incoming | None:
@@ -139,12 +159,7 @@ class ControlWire:
         """None when a stranger's message may be decoded, else the counter it is refused under: its own token
         bucket (STRANGER_RATE a second, bursts of STRANGER_BURST) and one for all strangers together
         (STRANGERS_BYTES_RATE bytes a second), so no number of connections buys more decoding."""
-        bucket = self._buckets.pop(identity, None) or [float(STRANGER_BURST), now]
-        bucket[0] = min(float(STRANGER_BURST), bucket[0] + (now - bucket[1]) * STRANGER_RATE)
-        bucket[1] = now
-        self._buckets[identity] = bucket   # most recent last: the oldest is forgotten first
-        while len(self._buckets) > REMEMBERED_STRANGERS:
-            self._buckets.popitem(last=False)
+        bucket = self._strangers.refilled(identity, now)
         if bucket[0] < 1.0:
             return "rate_limited"
         g, cost = self._all_strangers, max(size, 64)
