@@ -96,12 +96,21 @@ def run_flood(address: str, sockets: int = FLOOD_SOCKETS) -> None:
                     sent += 1
                 except zmq.Again:
                     pass
-            for _ in range(8):
-                try:
-                    sock.recv(zmq.NOBLOCK)
-                    received += 1
-                except zmq.Again:
-                    break
+            received += _read_replies(sock, 8)
+    _report_and_close(ctx, socks, sent, received)
+
+
+def _read_replies(sock: zmq.Socket, most: int) -> int:
+    """Up to ``most`` waiting replies read and dropped; how many there were."""
+    for n in range(most):
+        try:
+            sock.recv(zmq.NOBLOCK)
+        except zmq.Again:
+            return n
+    return most
+
+
+def _report_and_close(ctx: zmq.Context, socks: list, sent: int, received: int) -> None:
     print(json.dumps({"sent": sent, "received": received}), flush=True)
     for sock in socks:
         sock.close(linger=0)
@@ -128,16 +137,8 @@ def run_many(address: str, payload: bytes, connections: int = MANY_CONNECTIONS) 
                     sent += 1
                 except zmq.Again:
                     break
-            for _ in range(16):
-                try:
-                    sock.recv(zmq.NOBLOCK)
-                    received += 1
-                except zmq.Again:
-                    break
-    print(json.dumps({"sent": sent, "received": received}), flush=True)
-    for sock in socks:
-        sock.close(linger=0)
-    ctx.term()
+            received += _read_replies(sock, 16)
+    _report_and_close(ctx, socks, sent, received)
 
 
 def run_operators(address: str, connections: int = OPERATOR_CONNECTIONS) -> None:
