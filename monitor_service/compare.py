@@ -35,8 +35,6 @@ pooled across checkpoints):
 """
 from __future__ import annotations
 
-import gzip
-import json
 from collections import defaultdict
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -44,6 +42,7 @@ from pathlib import Path
 import numpy as np
 
 from monitor_service import detectors, rules, stats
+from monitor_service.encoding import jsonl_rows
 
 TARGET_TIME = ("nmse", "nmse_persistence", "nmse_white")
 RANDOM = "random"
@@ -122,23 +121,15 @@ def episode_of(row: dict, where: str = "") -> Episode:
 def load_records(paths, where: dict | None = None) -> list[Episode]:
     """Every episode record of the JSONL files (``.gz`` too); ``where``: keep records whose fields equal these."""
     out = []
-    for path in map(Path, paths):
-        if not path.is_file():
-            raise FileNotFoundError(f"{path} does not exist; write records with jepa-policy eval --faults all --out")
-        with (gzip.open(path, "rt") if path.suffix == ".gz" else path.open()) as f:
-            for n, line in enumerate(f, 1):
-                if not line.strip():
-                    continue
-                try:
-                    row = json.loads(line)
-                except json.JSONDecodeError as exc:
-                    raise ValueError(f"{path}:{n}: not JSON ({exc.msg}); one episode record per line") from None
-                if not isinstance(row, dict) or "decisions" not in row:
-                    raise ValueError(f"{path}:{n}: not an episode record (no 'decisions'); compare reads "
-                                     "jepa-policy eval --out records")
-                if where and any(str(row.get(k)) != v for k, v in where.items()):
-                    continue
-                out.append(episode_of(row, f"{path}:{n}"))
+    for path in paths:
+        for n, row in jsonl_rows(path, "write records with jepa-policy eval --faults all --out",
+                                 "one episode record per line"):
+            if not isinstance(row, dict) or "decisions" not in row:
+                raise ValueError(f"{path}:{n}: not an episode record (no 'decisions'); compare reads "
+                                 "jepa-policy eval --out records")
+            if where and any(str(row.get(k)) != v for k, v in where.items()):
+                continue
+            out.append(episode_of(row, f"{path}:{n}"))
     if not out:
         raise ValueError("no episode records to compare (check the files and --where)")
     return out

@@ -5,8 +5,11 @@ msgpack. JSON bodies carry arrays as lists of numbers and are decoded to the sam
 """
 from __future__ import annotations
 
+import gzip
 import json
 import math
+from collections.abc import Iterator
+from pathlib import Path
 from typing import Any
 
 import msgpack
@@ -144,3 +147,19 @@ def decode_body(body: bytes, content_type: str | None) -> Any:
             raise BodyError("JSON body nested too deeply; records are flat objects with latents as lists of "
                             "numbers") from None
     raise BodyError(f"content type {ctype!r} is not supported; use {JSON_CONTENT_TYPE} or {MSGPACK_CONTENT_TYPE}")
+
+
+def jsonl_rows(path: str | Path, missing: str, layout: str) -> Iterator[tuple[int, Any]]:
+    """(line number, value) of every non-blank line of a JSON-lines records file (``.gz`` too). ``missing``: the
+    fix named when the file does not exist; ``layout``: what a line must be, named when one is not JSON."""
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"{path} does not exist; {missing}")
+    with (gzip.open(path, "rt") if path.suffix == ".gz" else path.open()) as f:
+        for n, line in enumerate(f, 1):
+            if not line.strip():
+                continue
+            try:
+                yield n, json.loads(line)
+            except json.JSONDecodeError as exc:
+                raise ValueError(f"{path}:{n}: not JSON ({exc.msg}); {layout}") from None

@@ -16,14 +16,13 @@ shown beside them: that rule's guarantee covers one number per episode, not the 
 """
 from __future__ import annotations
 
-import gzip
-import json
 from pathlib import Path
 
 import numpy as np
 
 from monitor_service import rules, scoring, stats
 from monitor_service.calibration import LabelledEpisode
+from monitor_service.encoding import jsonl_rows
 from monitor_service.synthetic import mixed_length_episodes, synthetic_episodes
 
 OLD_RULE = "early-score threshold (former rule)"
@@ -34,31 +33,21 @@ def load_episodes(path: str | Path, where: dict | None = None) -> tuple[list[Lab
 
     ``where``: keep only episode records whose fields equal these values (e.g. {"arm": "jepa"}).
     """
-    path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"{path} does not exist; pass the records.jsonl of jepa-demo or jepa-policy eval")
     episodes, raw, skipped = [], {}, {"no outcome": 0, "no scored decision": 0, "filtered": 0}
-    with (gzip.open(path, "rt") if path.suffix == ".gz" else path.open()) as f:
-        for n, line in enumerate(f, 1):
-            if not line.strip():
+    for n, row in jsonl_rows(path, "pass the records.jsonl of jepa-demo or jepa-policy eval",
+                             "the file must hold one JSON object per line"):
+        if not isinstance(row, dict):
+            raise ValueError(f"{path}:{n}: expected a JSON object, got {type(row).__name__}")
+        if "kind" in row:
+            _collect_record(raw, row, f"{path}:{n}")
+        elif "decisions" in row:
+            if where and any(row.get(k) != v for k, v in where.items()):
+                skipped["filtered"] += 1
                 continue
-            try:
-                row = json.loads(line)
-            except json.JSONDecodeError as exc:
-                raise ValueError(f"{path}:{n}: not JSON ({exc.msg}); the file must hold one JSON object per line") \
-                    from None
-            if not isinstance(row, dict):
-                raise ValueError(f"{path}:{n}: expected a JSON object, got {type(row).__name__}")
-            if "kind" in row:
-                _collect_record(raw, row, f"{path}:{n}")
-            elif "decisions" in row:
-                if where and any(row.get(k) != v for k, v in where.items()):
-                    skipped["filtered"] += 1
-                    continue
-                episodes.append(_from_episode_record(row, n))
-            else:
-                raise ValueError(f"{path}:{n}: neither an episode record (with 'decisions') nor an ingest record "
-                                 "(with 'kind')")
+            episodes.append(_from_episode_record(row, n))
+        else:
+            raise ValueError(f"{path}:{n}: neither an episode record (with 'decisions') nor an ingest record "
+                             "(with 'kind')")
     episodes += [_from_ingest_records(eid, rec) for eid, rec in raw.items()]
     kept = []
     for e in episodes:
