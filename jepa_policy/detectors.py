@@ -340,7 +340,8 @@ def training_embeddings(policy, demos, samples: int = 8192, seed: int = 0, batch
     if not hasattr(model, "representations"):
         raise ValueError(f"arm {model.cfg.arm!r} has no fused embedding c_t to fit detectors on (the JEPA family "
                          "has: jepa, mip and the ablation arms)")
-    windows = WindowDataset.from_demos(demos)
+    cfg = model.cfg   # the windows the model was trained on: its history, chunk and future horizon k
+    windows = WindowDataset.from_demos(demos, obs_steps=cfg.obs_steps, horizon=cfg.horizon, future_k=cfg.future_k)
     rng = np.random.default_rng(seed)
     idx = np.sort(rng.choice(len(windows), size=min(samples, len(windows)), replace=False))
     cs, errors = [], []

@@ -60,9 +60,12 @@ class Policy:
                                if "action" in fields else None)
         self.env_args: dict | None = None   # the dataset's env_args, so evaluation rebuilds the same env
         self.checkpoint_step: int | None = None
-        self.obs_steps, self.n_action_steps, self.k = spec.obs_steps, spec.n_action_steps, spec.future_k
-        if not 1 <= self.n_action_steps <= spec.horizon:
-            raise ValueError(f"n_action_steps={self.n_action_steps} must be in [1, horizon={spec.horizon}]")
+        # history length, chunk length and future horizon k are the MODEL's (a checkpoint trained with
+        # --model '{"future_k": 8}' is scored against o_{t+8}, not the task spec's t+4); the spec gives the cadence
+        cfg = self.model.cfg
+        self.obs_steps, self.n_action_steps, self.k = int(cfg.obs_steps), spec.n_action_steps, int(cfg.future_k)
+        if not 1 <= self.n_action_steps <= cfg.horizon:
+            raise ValueError(f"n_action_steps={self.n_action_steps} must be in [1, horizon={cfg.horizon}]")
         self.reset()
 
     @classmethod

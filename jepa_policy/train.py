@@ -352,7 +352,12 @@ class TrainingData:
     def of(cls, cfg: TrainConfig, demos) -> "TrainingData":
         if demos.spec.name != get_task_spec(cfg.task).name:
             raise ValueError(f"dataset is for task {demos.spec.name!r} but the config trains {cfg.task!r}")
-        return cls(demos.spec, WindowDataset.from_demos(demos),
+        # windows follow the MODEL's sizes (a --model '{"future_k": 8}' override trains against o_{t+8}, not the
+        # task spec's t+4), the same values the network is built with in build_learner
+        model_cfg = ModelConfig.for_task(demos.spec, arm=cfg.arm, **cfg.model)
+        windows = WindowDataset.from_demos(demos, obs_steps=model_cfg.obs_steps, horizon=model_cfg.horizon,
+                                           future_k=model_cfg.future_k)
+        return cls(demos.spec, windows,
                    normalizer_stats(demos.actions, demos.obs, demos.spec.lowdim_keys, demos.spec.image_keys),
                    getattr(demos, "env_args", None))
 
