@@ -49,27 +49,33 @@ class LabelledEpisode:
         named score: of its first ``n_first`` values (a signal such as STAC has none at the first decision)."""
         ordered = sorted(self.decisions, key=lambda d: d["step"])
         values = [_value(d, key) for d in ordered]
-        if key not in ("nmse", "nmse_persistence"):
+        if key not in TARGET_TIME:
             values = [v for v in values if v is not None]
         return scoring.early_score(values, n_first)
 
     def signal_episode(self) -> detectors.SignalEpisode:
-        """Its decisions as per-signal arrays (NaN where a decision lacks a signal); NMSE known at t + k."""
+        """Its decisions as per-signal arrays (NaN where a decision lacks a signal); NMSE and nmse_ratio (the
+        service's signals, ``detectors.SERVICE_SIGNALS``) known at t + k."""
         ordered = sorted(self.decisions, key=lambda d: d["step"])
-        names = {"nmse"} if any(d.get("nmse") is not None for d in ordered) else set()
+        names = {s for s in detectors.SERVICE_SIGNALS if any(_value(d, s) is not None for d in ordered)}
         names |= {name for d in ordered for name in (d.get("scores") or {})}
         steps = np.array([d["step"] for d in ordered], dtype=np.int64)
         known = np.array([d.get("target_step") if d.get("target_step") is not None else d["step"] for d in ordered],
                          dtype=np.int64)
         scores = {name: np.array([np.nan if _value(d, name) is None else _value(d, name) for d in ordered],
                                  dtype=np.float64) for name in sorted(names)}
-        return detectors.SignalEpisode(scores, self.success, steps, {"nmse": known}, self.length, self.group,
-                                       self.episode)
+        return detectors.SignalEpisode(scores, self.success, steps, {s: known for s in detectors.SERVICE_SIGNALS},
+                                       self.length, self.group, self.episode)
+
+
+TARGET_TIME = ("nmse", "nmse_persistence", "nmse_ratio")   # per decision, known when its target arrives
 
 
 def _value(decision: dict, signal: str) -> float | None:
-    """A decision's NMSE (or persistence NMSE), or one of its named scores."""
-    if signal in ("nmse", "nmse_persistence"):
+    """A decision's NMSE (or persistence NMSE, or their ratio ``scoring.nmse_ratio``), or one of its named scores."""
+    if signal == detectors.RATIO:
+        return scoring.nmse_ratio_or_none(decision.get("nmse"), decision.get("nmse_persistence"))
+    if signal in TARGET_TIME:
         return decision.get(signal)
     return (decision.get("scores") or {}).get(signal)
 
@@ -141,6 +147,11 @@ def calibrate(episodes: list[LabelledEpisode], params: rules.RuleParams, alpha: 
     Raises ValueError with the fix when the data cannot support it: no usable early scores, one outcome class
     only, or too few successes for a signal's rule at alpha."""
     spec = detectors.DetectorSpec(tuple(signals), combination, "successes", params)
+    if detectors.RATIO in spec.signals and not any(e.signal_episode().scores.get(detectors.RATIO) is not None
+                                                   for e in episodes):
+        raise ValueError("no held-out episode has an nmse_ratio (NMSE over the persistence NMSE): its decisions sent "
+                         "no z_now; send z_now (the current latent) with each decision of the held-out episodes "
+                         "(MonitorClient.decision(..., z_now=...)), then recalibrate")
     ranking = "nmse" if any(e.early("nmse", early_decisions) is not None for e in episodes) else spec.signals[0]
     figures, skipped = early_figures(episodes, early_decisions, n_bootstrap, n_permutation, seed, ranking)
     judged = [e.signal_episode() for e in episodes]

@@ -111,14 +111,16 @@ def cmd_tasks(args) -> int:
     from sqlalchemy import select
 
     from monitor_service.db import Task
+    from monitor_service.detectors import SERVICE_SIGNALS
 
     _, make_session = _sessionmaker(args)
     with make_session() as session:
         if args.action == "add":
             signals = sorted({s.strip() for s in (args.signals or "").split(",") if s.strip()})
-            if "nmse" in signals:
-                raise ValueError("nmse is the service's own signal (computed from the latents); --signals names the "
-                                 "scores robots send")
+            own = [s for s in signals if s in SERVICE_SIGNALS]
+            if own:
+                raise ValueError(f"{own[0]} is the service's own signal (computed from the latents); --signals names "
+                                 "the scores robots send")
             clash = [(name, t.latent_dim) for name in args.names if (t := session.get(Task, name)) is not None
                      and args.latent_dim is not None and t.latent_dim != args.latent_dim]
             if clash:   # checked before anything is added: the command changes all of its tasks or none
@@ -300,7 +302,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--rule", choices=["running", "band"], help="alert rule (default: JEPA_MONITOR_ALERT_RULE)")
     s.add_argument("--shape", choices=["flat", "running-max"],
                    help="threshold shape over the decision index (default: JEPA_MONITOR_THRESHOLD_SHAPE)")
-    s.add_argument("--signals", help="comma-separated signals that alert (default nmse), e.g. stac or nmse,stac")
+    s.add_argument("--signals", help="comma-separated signals that alert (default nmse), e.g. stac, nmse,stac or "
+                   "nmse_ratio (NMSE over the persistence NMSE: needs z_now with each decision)")
     s.add_argument("--combination", choices=["single", "fiper", "bonferroni"],
                    help="how several signals alert: fiper (both over) or bonferroni (any, each at alpha/K)")
     s.add_argument("--folds", type=int, help="folds of the cross-fitted detection figures (default 5)")

@@ -10,7 +10,8 @@ number of files): {"seed", "success", "length", "regime" ("natural" or a fault's
 Signals. Target-time signals (known at t + k, when their target frame arrives): ``nmse`` (ours),
 ``nmse_persistence`` (the control that predicts nothing), ``nmse_white`` (an attempt at a sharper NMSE, per-dim
 whitened), ``nmse_ratio`` (NMSE over the persistence control's NMSE of the same decision: our error per unit of
-the scene's own change, an attempt at a per-step normalisation). Decision-time signals (known at t): every name in ``scores``, and ``random`` (uniform, seeded by
+the scene's own change, an attempt at a per-step normalisation; ``scoring.nmse_ratio``, the service's own
+definition, so none where the scene did not change). Decision-time signals (known at t): every name in ``scores``, and ``random`` (uniform, seeded by
 the episode's seed and the step: the chance row). Every signal is judged on the same episodes and folds.
 
 Two views of each episode: ``whole`` (every decision) and ``prefix`` (the first ``prefix`` decisions of the
@@ -41,12 +42,12 @@ from pathlib import Path
 
 import numpy as np
 
-from monitor_service import detectors, rules, stats
+from monitor_service import detectors, rules, scoring, stats
 from monitor_service.encoding import jsonl_rows
 
 TARGET_TIME = ("nmse", "nmse_persistence", "nmse_white")
 RANDOM = "random"
-RATIO = "nmse_ratio"
+RATIO = scoring.RATIO
 OURS = "nmse"
 PREFIX = 10            # decisions of the length-controlled view (80 env steps of PushT)
 N_ACTION_STEPS = 8     # env steps between decisions (the paper's chunk execution)
@@ -105,9 +106,7 @@ def episode_of(row: dict, where: str = "") -> Episode:
         values[name] = np.array([np.nan if v is None else float(v) for v in raw], dtype=np.float64)
         known[name] = target if name in TARGET_TIME else steps
     if "nmse" in values and "nmse_persistence" in values:
-        with np.errstate(divide="ignore", invalid="ignore"):
-            ratio = values["nmse"] / values["nmse_persistence"]
-        values[RATIO] = np.where(np.isfinite(ratio), ratio, np.nan)
+        values[RATIO] = scoring.nmse_ratio(values["nmse"], values["nmse_persistence"])   # the service's definition
         known[RATIO] = target
     values[RANDOM] = np.array([random_score(seed, s) for s in steps], dtype=np.float64)
     known[RANDOM] = steps

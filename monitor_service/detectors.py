@@ -2,7 +2,8 @@
 functions the service and an offline study share.
 
 A *signal* is one non-negative per-decision risk score, larger = riskier: ``nmse`` (the future-consistency error
-the service computes from the latents) or any score a robot loop sends by name (e.g. ``stac``, the distance
+the service computes from the latents), ``nmse_ratio`` (that error over the persistence control's, computed when
+a decision also sent z_now) or any score a robot loop sends by name (e.g. ``stac``, the distance
 between consecutive action chunks; ``rnd``, a random-network-distillation error on the embedding). Each signal
 gets its own calibrated rule (``rules.py``: running statistic, per-length threshold, debounce). A detector says
 which signals alert and how:
@@ -37,6 +38,8 @@ from monitor_service import rules
 COMBINATIONS: tuple[str, ...] = ("single", "fiper", "bonferroni")
 CALIBRATIONS: tuple[str, ...] = ("successes", "labelled")
 NMSE = "nmse"   # the signal the service computes from the latents; a robot cannot send a score of this name
+RATIO = "nmse_ratio"   # NMSE over the persistence NMSE (scoring.nmse_ratio): computed by the service too
+SERVICE_SIGNALS: tuple[str, ...] = (NMSE, RATIO)   # known at the target step t + k; never sent as named scores
 
 
 @dataclass

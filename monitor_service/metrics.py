@@ -31,7 +31,8 @@ LATE = Counter("jepa_monitor_late_decisions", "Decisions that arrived after a la
                ["task", "robot"])
 WEBHOOK_FAILURES = Counter("jepa_monitor_webhook_failures", "Failed webhook delivery attempts")
 SCORE_BUCKETS = (0.001, 0.003, 0.01, 0.03, 0.1, 0.3, 1.0, 3.0, 10.0, 30.0, 100.0, 300.0, 1000.0)
-SCORES = Histogram("jepa_monitor_score", "Named per-decision scores sent beside the latents (per signal)",
+SCORES = Histogram("jepa_monitor_score", "Named per-decision scores sent beside the latents, and the service's "
+                   "nmse_ratio (per signal)",
                    ["task", "robot", "signal"], buckets=SCORE_BUCKETS)
 SIGNAL_ALERTS = Counter("jepa_monitor_signal_alerts", "Alerts raised, per signal that raised them", ["task", "signal"])
 

@@ -9,6 +9,8 @@ from fastapi import Path as FastApiPath
 from pydantic import (AfterValidator, BaseModel, BeforeValidator, ConfigDict, Discriminator, Field, Tag, WithJsonSchema,
                       model_validator)
 
+from monitor_service.detectors import SERVICE_SIGNALS
+
 Name = Annotated[str, Field(min_length=1, max_length=128, pattern=r"^[A-Za-z0-9_.:\-]+$")]
 Role = Literal["robot", "operator", "admin"]
 # Integers are bounded so every one fits the database's 32-bit INTEGER columns (PostgreSQL), step + horizon too.
@@ -99,7 +101,7 @@ class _Strict(BaseModel):
 
 
 MAX_SIGNALS = 32
-RESERVED_SIGNALS = ("nmse",)   # computed by the service from the latents
+RESERVED_SIGNALS = SERVICE_SIGNALS   # nmse, nmse_ratio: computed by the service from the latents
 
 
 def _check_scores(value: Any) -> Any:
@@ -107,8 +109,9 @@ def _check_scores(value: Any) -> Any:
     if isinstance(value, dict):
         for name, v in value.items():
             if name in RESERVED_SIGNALS:
-                raise ValueError(f"score {name!r} is computed by the service from z_hat and the realized latent; "
-                                 "send the latents instead, or name your score differently")
+                raise ValueError(f"score {name!r} is computed by the service from z_hat"
+                                 + (", z_now" if name == "nmse_ratio" else "") + " and the realized latent; send "
+                                 "the latents instead, or name your score differently")
             if isinstance(v, bool) or not isinstance(v, (int, float)):
                 raise ValueError(f"score {name!r} must be a number, got {type(v).__name__}")
             if not np.isfinite(v):
@@ -250,6 +253,8 @@ class DecisionOut(BaseModel):
     target_step: int | None
     nmse: float | None
     nmse_persistence: float | None = Field(description="NMSE of z_t against the same target, when z_now was sent")
+    nmse_ratio: float | None = Field(None, description="nmse / nmse_persistence, the service's nmse_ratio signal "
+                                     "(null without z_now, before the target, or when the scene did not change)")
     scores: dict[str, float] | None = Field(description="the named scores sent with it")
 
 

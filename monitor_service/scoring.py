@@ -7,6 +7,8 @@ from collections.abc import Sequence
 import numpy as np
 
 RMS_FLOOR = 1e-6     # max(||z||_RMS, 1e-6) in d_NMSE (Sec. 3.3); the training loss uses the same constant
+RATIO = "nmse_ratio"          # the service's second built-in signal (``nmse_ratio``)
+PERSISTENCE_FLOOR = 1e-12     # a persistence NMSE at or below it has no ratio (rules.LOG_FLOOR, the same constant)
 
 
 def nmse(z_hat: np.ndarray, z: np.ndarray) -> float:
@@ -40,6 +42,28 @@ def nmse_rows(z_hat: np.ndarray, z: np.ndarray) -> np.ndarray:
     mean_square = np.maximum(np.einsum("ij,ij->i", z, z, dtype=np.float64) / d, RMS_FLOOR ** 2)
     diff = z_hat.astype(np.float64) - z
     return np.einsum("ij,ij->i", diff, diff) / (mean_square * d)
+
+
+def nmse_ratio(nmse_value, persistence):
+    """``nmse_ratio`` = NMSE / persistence NMSE of the same decision (elementwise over arrays; float64): our error
+    per unit of the scene's own change between t and t + k, known at the target step like NMSE. NaN (no value)
+    where either is missing (None or NaN) or the persistence NMSE is at most ``PERSISTENCE_FLOOR``: z_t equals the
+    target up to float32 rounding (a frozen scene), so there is no change to measure the error against, and a
+    floored denominator would turn the frozen decisions into ~1e10 outliers. The one definition of the project:
+    ``jepa-monitor compare``, the calibration and the live ingest path all call it."""
+    nmse_value = np.asarray(np.nan if nmse_value is None else nmse_value, dtype=np.float64)
+    persistence = np.asarray(np.nan if persistence is None else persistence, dtype=np.float64)
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        ratio = nmse_value / persistence
+        return np.where((persistence > PERSISTENCE_FLOOR) & np.isfinite(ratio), ratio, np.nan)
+
+
+def nmse_ratio_or_none(nmse_value: float | None, persistence: float | None) -> float | None:
+    """``nmse_ratio`` of one decision as a float, None where it has none."""
+    if nmse_value is None or persistence is None:
+        return None
+    ratio = float(nmse_ratio(nmse_value, persistence))
+    return None if ratio != ratio else ratio
 
 
 def early_score(scores_by_step: Sequence[float | None], n_first: int = 5) -> float | None:

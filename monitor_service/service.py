@@ -7,6 +7,7 @@ from sqlalchemy.orm import Session
 
 from monitor_service import calibration, stats
 from monitor_service.db import CalibrationRow, Decision, Episode, Task
+from monitor_service.detectors import SERVICE_SIGNALS
 from monitor_service.ingest import rule_params
 from monitor_service.settings import MonitorSettings
 
@@ -66,9 +67,9 @@ def calibrate_task(
         row = session.get(Task, task)
         if row is None:
             raise LookupError(f"task {task!r} is not registered; register it with PUT /v1/tasks/{task}")
-        unknown = [s for s in signals if s != "nmse" and s not in (row.signals or [])]
+        unknown = [s for s in signals if s not in SERVICE_SIGNALS and s not in (row.signals or [])]
         if unknown:
-            raise LookupError(f"task {task!r} has no signal {unknown[0]!r} (its signals: nmse"
+            raise LookupError(f"task {task!r} has no signal {unknown[0]!r} (its signals: nmse, nmse_ratio"
                               + "".join(f", {s}" for s in row.signals or []) + f"); register it with PUT /v1/tasks/"
                               f"{task} {{\"signals\": [\"{unknown[0]}\"]}} and send it on held-out episodes")
         episodes = calibration_data(session, task, checkpoint)

@@ -98,11 +98,15 @@ class Alerting:
                 f"ratio={now.clear_ratio}; its false-alert guarantee does not cover that rule, so recalibrate with "
                 f"{fix}")
         first = detector.rules[detector.spec.signals[0]]
+        blind = ""
+        if detectors.RATIO in detector.spec.signals and ep.scored and not ep.values(detectors.RATIO):
+            blind = ("; no nmse_ratio yet: this episode's scored decisions sent no z_now (send z_now, the current "
+                     "latent, with each decision)")
         return cal_id, detector, (
             f"alerting with {detector.spec.name}: {made.debounce} consecutive values of the {made.kind} statistic "
             f"(median of {made.window}) above their decision's threshold (up to {first.threshold:.6g} for "
             f"{detector.spec.signals[0]}): calibration #{cal_id}, {detector.note} up to "
-            f"{first.calibrated_decisions} scored decisions")
+            f"{first.calibrated_decisions} scored decisions{blind}")
 
     def early_score(self, ep: EpisodeState) -> None:
         """The early score from the first decisions of the episode's decision grid only (published once all of

@@ -223,8 +223,8 @@ HANDLERS = {"decision": apply_decision, "target": apply_target, "outcome": apply
 
 
 def compute_scores(req: Request) -> None:
-    """NMSE (and the persistence baseline's, Sec. 4.10) of the request's new pairs, one array operation per
-    latent size instead of one call per decision."""
+    """NMSE (and the persistence baseline's, Sec. 4.10, and their ratio, the ``nmse_ratio`` signal) of the
+    request's new pairs, one array operation per latent size instead of one call per decision."""
     by_dim: dict[int, list] = {}
     for item in req.to_score:
         by_dim.setdefault(len(item[3]) // 4, []).append(item)
@@ -236,8 +236,13 @@ def compute_scores(req: Request) -> None:
         with_now = [i for i, (_, _, d, _) in enumerate(items) if d.z_now is not None]
         persistence = scoring.nmse_rows(rows([items[i][2].z_now for i in with_now]), targets[with_now]).tolist() \
             if with_now else []
-        for i, value in zip(with_now, persistence):
-            items[i][2].nmse_persistence = value
+        ratios = scoring.nmse_ratio([values[i] for i in with_now], persistence).tolist() if with_now else []
+        for i, value, ratio in zip(with_now, persistence, ratios):
+            ep, step, d, _ = items[i]
+            d.nmse_persistence = value
+            if ratio == ratio:   # the service's second signal; none for a frozen scene (scoring.nmse_ratio)
+                insort(ep.series.setdefault(scoring.RATIO, []), (step, ratio))
+                req.signal_observations.append(("score", ep.task, ep.robot, scoring.RATIO, ratio))
         for (ep, step, d, _), value in zip(items, values):
             d.nmse = value
             if d.stored:   # a new decision keeps its latents until they are written

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import json
 
+from monitor_service import scoring
 from monitor_service.db import utcnow
 from monitor_service.ingest.state import Dec, EpisodeState, Request, StaleState, Tgt
 
@@ -104,6 +105,9 @@ def load_episode(sql: Sql, cur, episode_id: str) -> EpisodeState | None:
             ep.unscored.add(step)
         elif nmse is not None:
             ep.scored.append((step, nmse))
+            ratio = scoring.nmse_ratio_or_none(nmse, pers)
+            if ratio is not None:   # the service's own signal, derived again (not stored)
+                ep.series.setdefault(scoring.RATIO, []).append((step, ratio))
         for name, value in (scores or {}).items():
             ep.series.setdefault(name, []).append((step, value))
         ep.decisions[step] = d

@@ -7,6 +7,7 @@ from fastapi import APIRouter, Depends, HTTPException, Query
 from sqlalchemy import select
 from sqlalchemy.orm import Session
 
+from monitor_service import scoring
 from monitor_service.auth import Principal, require
 from monitor_service.db import Decision, Episode, utcnow
 from monitor_service.deps import get_read_session, get_settings
@@ -75,7 +76,8 @@ def get_episode(
     signal_risk = {}
     if detector is not None:
         episode = LabelledEpisode(e.id, bool(e.success), [
-            {"step": d.step, "target_step": d.target_step, "nmse": d.nmse, "scores": d.scores} for d in decisions],
+            {"step": d.step, "target_step": d.target_step, "nmse": d.nmse, "nmse_persistence": d.nmse_persistence,
+             "scores": d.scores} for d in decisions],
             e.group, e.length).signal_episode()
         for signal, flags in detector.flags(episode).items():
             rule = detector.rules[signal]
@@ -87,7 +89,9 @@ def get_episode(
     return EpisodeDetail(
         **episode_out(e, settings.live_episode_s),
         decisions=[DecisionOut(step=d.step, horizon=d.horizon, target_step=d.target_step, nmse=d.nmse,
-                               nmse_persistence=d.nmse_persistence, scores=d.scores) for d in decisions],
+                               nmse_persistence=d.nmse_persistence,
+                               nmse_ratio=scoring.nmse_ratio_or_none(d.nmse, d.nmse_persistence), scores=d.scores)
+                   for d in decisions],
         rule=None if detector is None else detector.spec.params.kind,
         detector=None if detector is None else detector.spec.name,
         threshold=None if detector is None else detector.rules[first].threshold,
