@@ -163,6 +163,11 @@ def cmd_calibrate(args) -> int:
           f"threshold {row.threshold:.4g} at alpha={r['alpha']} ({rule['note']})")
     spec = r["detector"]["spec"]
     print(f"  detector {spec['combination']} of {', '.join(spec['signals'])}: {r['detector']['note']}")
+    for name, figures in r.get("signals", {}).items():   # each signal with data, e.g. nmse beside nmse_ratio
+        a = figures.get("early_auroc") or {}
+        auc = "n/a" if a.get("auroc") is None else \
+            f"{a['auroc']:.3f} [{a['ci'][0]:.3f}, {a['ci'][1]:.3f}] over {a['n']} episodes"
+        print(f"  signal {name}: early-score AUROC {auc}")
     print(study_table(r["detection"]))
     for name, c in r["controls"].items():
         value = "n/a: " + c["reason"] if c["auroc"] is None else \

@@ -87,7 +87,8 @@ def test_nmse_ratio_calibrates_and_alerts_through_the_http_service_and_the_cli(t
         assert monitor_main(["--database-url", url, "calibrate", "--task", "Ratio", "--signals", "nmse_ratio",
                              "--alpha", "0.2", "--seed", "3", "--rule", "band", "--n-bootstrap", "200",
                              "--n-permutation", "200"]) == 0
-        assert "detector single of nmse_ratio" in capsys.readouterr().out
+        out = capsys.readouterr().out
+        assert "detector single of nmse_ratio" in out and "signal nmse_ratio: early-score AUROC 0." in out
         served = detectors.CalibratedDetector.from_dict(
             http.get("/v1/calibrations", params={"task": "Ratio", "active": True}, headers=A).json()[0]["result"][
                 "detector"])
