@@ -6,6 +6,7 @@ import argparse
 import dataclasses
 import json
 import sys
+import re
 from pathlib import Path
 
 from jepa_envs.errors import USER_ERRORS, user_error
@@ -100,7 +101,7 @@ def _fault_spec(text: str) -> dict:
     """``NAME`` or ``NAME:key=value,key=value`` (values as JSON, e.g. onset=[20,60]) -> {"name", options}."""
     name, _, rest = text.partition(":")
     spec: dict = {"name": name.strip()}
-    for item in filter(None, (x.strip() for x in rest.split(","))):
+    for item in filter(None, (x.strip() for x in re.split(r",(?![^\[]*\])", rest))):   # not inside [...]
         key, eq, value = item.partition("=")
         if not eq:
             raise ValueError(f"fault option {item!r} needs key=value, e.g. {name}:onset=30")

@@ -155,3 +155,15 @@ def test_documented_resume_of_a_stopped_run_goes_on_to_the_end(pusht_demo_file, 
     assert main(["train", "--config", str(run / "train_config.json"), "--resume",
                  str(run / "checkpoints" / "latest.pt"), "--stop-at", "4"]) == 2
     assert "stop_at 4 is not after the checkpoint's step 6" in capsys.readouterr().err
+
+
+def test_fault_options_take_json_lists_with_commas():
+    """``--faults`` splits a fault's options at commas outside brackets: its own help's onset=[20,60] and an RGB
+    tint are lists; a broken list is a one-line error."""
+    from jepa_policy.cli import _fault_spec
+
+    assert _fault_spec("background_tint:tint=[-4,-1,3],onset=[20,60]") == {
+        "name": "background_tint", "tint": [-4, -1, 3], "onset": [20, 60]}
+    assert _fault_spec("action_noise:std=40, onset=30") == {"name": "action_noise", "std": 40, "onset": 30}
+    with pytest.raises(ValueError, match="not a number or JSON list"):
+        _fault_spec("block_displaced:onset=[20")
