@@ -19,8 +19,9 @@ One wrapper per fault (``FAULTS`` lists them with their kind):
 - actuation: ``ActionLatency`` (each action executed n steps late), ``ActionNoise`` (Gaussian noise on actions);
 - visual: ``Distractors`` (coloured shapes drawn on the camera images), ``ColourShift`` (brightness and per-channel
   gain), ``CameraShift`` (the image translated by a few pixels);
-- benign: ``BackgroundTint`` (the table's background recoloured slightly; the objects and the goal untouched),
-  a shift that should not cause failure.
+- benign: ``BackgroundTint`` (the table's background recoloured slightly; the objects and the goal untouched)
+  and ``SensorNoise`` (Gaussian pixel noise, a few levels of 255), shifts meant not to cause failure (whether
+  they do is measured: docs/failure_prediction.md).
 
 ``gym.make(FAULTED_ID, base="JEPA/PushT-v0", fault="block_displaced", fault_kwargs={...}, **env_kwargs)`` builds
 the base env and wraps it (``make_faulted``); the id's module is imported by its name, so rollout workers that
@@ -358,6 +359,24 @@ class BackgroundTint(FaultWrapper):
         return out
 
 
+class SensorNoise(FaultWrapper):
+    """Camera images after the onset with independent Gaussian pixel noise of standard deviation ``std`` (of 255),
+    rounded and clipped: a noisier sensor, a change of every pixel that leaves the scene as it was. Meant not to
+    cause failure; drawn from the episode's generator (the same seed, the same noise)."""
+
+    name, kind, salt = "sensor_noise", "benign", 11
+
+    def __init__(self, env, onset=DEFAULT_ONSET, std: float = 4.0):
+        super().__init__(env, onset)
+        if not 0 < float(std) <= 64:
+            raise ValueError(f"sensor noise std must be in (0, 64] of 255, got {std}")
+        self.std = float(std)
+
+    def image(self, image: np.ndarray, key: str) -> np.ndarray:
+        noise = self.rng.normal(0.0, self.std, image.shape)
+        return np.clip(np.rint(image.astype(np.float64) + noise), 0, 255).astype(np.uint8)
+
+
 # ----------------------------------------------------------------------------- registry
 
 @dataclass(frozen=True)
@@ -369,7 +388,7 @@ class FaultInfo:
 
 FAULTS: dict[str, FaultInfo] = {cls.name: FaultInfo(cls, cls.kind, (cls.__doc__ or "").split("\n")[0]) for cls in (
     BlockDisplaced, BlockFriction, BlockSlides, WeakActuator, ActionLatency, ActionNoise, Distractors, ColourShift,
-    CameraShift, BackgroundTint)}
+    CameraShift, BackgroundTint, SensorNoise)}
 FAULTED_ID = "JEPA/Faulted-v0"
 FAULTED_ENV = f"{__name__}:{FAULTED_ID}"   # what gym.make and the rollout pool are given (imports this module)
 

@@ -111,6 +111,23 @@ def test_visual_faults_follow_their_formulas():
     assert (tinted[j]["top_image"][background] == np.array(COLORS["background"]) + [-20, 0, 20]).all()
 
 
+def test_sensor_noise_is_the_seeded_gaussian_of_its_std():
+    """Each noisy frame is the clean frame plus N(0, std) per pixel, rounded and clipped; the draws are the
+    episode generator's, in frame order."""
+    clean, _ = _clean(7)
+    noisy, _ = _faulted("sensor_noise", 7, std=6.0)
+    rng = np.random.default_rng([7, FAULTS["sensor_noise"].wrapper.salt, 0x6A6570])
+    residuals = []
+    for j in range(ONSET + 1, len(noisy)):
+        frame = clean[j]["top_image"]
+        want = np.clip(np.rint(frame.astype(np.float64) + rng.normal(0.0, 6.0, frame.shape)), 0, 255)
+        np.testing.assert_array_equal(noisy[j]["top_image"], want.astype(np.uint8))
+        inside = (frame > 30) & (frame < 225)                       # away from the clip
+        residuals.append((noisy[j]["top_image"].astype(float) - frame)[inside])
+    residuals = np.concatenate(residuals)
+    assert abs(residuals.mean()) < 0.2 and abs(residuals.std() - np.sqrt(36 + 1 / 12)) < 0.3
+
+
 def test_latency_executes_the_action_given_n_steps_earlier():
     actions = np.random.default_rng(0).uniform(100, 400, size=(STEPS, 2)).astype(np.float32)
     env = ActionLatency(gym.make("JEPA/PushT-v0", image_size=SIZE), onset=ONSET, steps=3)
