@@ -109,7 +109,8 @@ def load_episode(sql: Sql, cur, episode_id: str) -> EpisodeState | None:
             if ratio is not None:   # the service's own signal, derived again (not stored)
                 ep.series.setdefault(scoring.RATIO, []).append((step, ratio))
         for name, value in (scores or {}).items():
-            ep.series.setdefault(name, []).append((step, value))
+            if name != scoring.RATIO:   # a score sent under that name before the service computed it: not the signal
+                ep.series.setdefault(name, []).append((step, value))
         ep.decisions[step] = d
     aimed = {s + d.horizon for s, d in ep.decisions.items() if d.horizon is not None}
     cur.execute(q("SELECT step, z FROM targets WHERE episode_id = ?"), (episode_id,))

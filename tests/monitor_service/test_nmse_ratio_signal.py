@@ -4,6 +4,7 @@ compare`` uses too; calibrated (HTTP and CLI), combined and alerted on live thro
 as the offline detector judges; refused with a clear 4xx when a robot sends it, and a calibration without z_now
 names the fix; its false-alert promise holds on fresh successes within the binomial bound."""
 import re
+import sqlite3
 import time
 
 import httpx
@@ -15,6 +16,7 @@ from scipy.stats import binomtest
 from monitor_service import compare, detectors, rules, scoring
 from monitor_service.calibration import LabelledEpisode
 from monitor_service.cli import main as monitor_main
+from monitor_service.ingest.sql import Sql, load_episode
 from monitor_service.server import start_server
 
 A = {"X-API-Key": ADMIN}
@@ -128,6 +130,13 @@ def test_nmse_ratio_calibrates_and_alerts_through_the_http_service_and_the_cli(t
         assert re.search(r'jepa_monitor_signal_alerting\{checkpoint="",signal="nmse_ratio",task="Ratio"\} 1\.0',
                          metrics)
         assert re.search(r'jepa_monitor_signal_alerts_total\{signal="nmse_ratio",task="Ratio"\} 1\.0', metrics)
+    # another process resumes an episode from its stored rows: the ratio is derived again (it is not stored)
+    with sqlite3.connect(tmp_path / "m.db") as conn:
+        loaded = {e: load_episode(Sql("sqlite"), conn.cursor(), e).values("nmse_ratio")
+                  for e in ("live-fail", "live-ok")}
+    assert [s for s, _ in loaded["live-fail"]] == list(range(0, 96, 8))
+    assert [v for _, v in loaded["live-fail"]] == pytest.approx(fail_nmse / fail_pers, rel=1e-4)
+    assert [s for s, _ in loaded["live-ok"]] == [s for s in range(0, 96, 8) if s != 40]   # the frozen decision
 
 
 def detectors_ttl():
