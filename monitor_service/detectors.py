@@ -34,12 +34,10 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from monitor_service import rules
+from monitor_service.scoring import NMSE, RATIO, SERVICE_SIGNALS   # the service's own signals (re-exported)
 
 COMBINATIONS: tuple[str, ...] = ("single", "fiper", "bonferroni")
 CALIBRATIONS: tuple[str, ...] = ("successes", "labelled")
-NMSE = "nmse"   # the signal the service computes from the latents; a robot cannot send a score of this name
-RATIO = "nmse_ratio"   # NMSE over the persistence NMSE (scoring.nmse_ratio): computed by the service too
-SERVICE_SIGNALS: tuple[str, ...] = (NMSE, RATIO)   # known at the target step t + k; never sent as named scores
 
 
 @dataclass

@@ -9,7 +9,7 @@ from fastapi import Path as FastApiPath
 from pydantic import (AfterValidator, BaseModel, BeforeValidator, ConfigDict, Discriminator, Field, Tag, WithJsonSchema,
                       model_validator)
 
-from monitor_service.detectors import SERVICE_SIGNALS
+from monitor_service.scoring import SERVICE_SIGNALS
 
 Name = Annotated[str, Field(min_length=1, max_length=128, pattern=r"^[A-Za-z0-9_.:\-]+$")]
 Role = Literal["robot", "operator", "admin"]

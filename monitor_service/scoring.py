@@ -7,7 +7,9 @@ from collections.abc import Sequence
 import numpy as np
 
 RMS_FLOOR = 1e-6     # max(||z||_RMS, 1e-6) in d_NMSE (Sec. 3.3); the training loss uses the same constant
+NMSE = "nmse"                 # the signal the service computes from the latents; never sent as a named score
 RATIO = "nmse_ratio"          # the service's second built-in signal (``nmse_ratio``)
+SERVICE_SIGNALS: tuple[str, ...] = (NMSE, RATIO)   # known at the target step t + k; never sent as named scores
 PERSISTENCE_FLOOR = 1e-12     # a persistence NMSE at or below it has no ratio (rules.LOG_FLOOR, the same constant)
 
 
