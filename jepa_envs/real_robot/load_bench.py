@@ -87,6 +87,7 @@ def run_flood(address: str, sockets: int = FLOOD_SOCKETS) -> None:
             sock.setsockopt(zmq.HEARTBEAT_TIMEOUT, 1000)
         sock.connect(address)
         socks.append(sock)
+    print(json.dumps({"ready": True}), flush=True)   # connected: the flood starts now (Child.wait_ready)
     sent = received = 0
     while not stop.is_set():
         for sock in socks:
@@ -128,6 +129,7 @@ def run_many(address: str, payload: bytes, connections: int = MANY_CONNECTIONS) 
         sock.setsockopt(zmq.SNDHWM, 1000)
         sock.connect(address)
         socks.append(sock)
+    print(json.dumps({"ready": True}), flush=True)   # connected: the flood starts now (Child.wait_ready)
     sent = received = 0
     while not stop.is_set():
         for sock in socks:
@@ -346,6 +348,8 @@ def scenario(name: str, trials: int, window_s: float, realtime: bool = False, ni
         target = other or bridge
         for role in LOADS[name]:
             loads.append(Child(role, target.operator if role in ("operators", "opflood") else target.control))
+            if role == "flood":   # a loaded machine can take seconds to start it: time the window from its start
+                loads[-1].wait_ready()
         time.sleep(0.3)
         loaded_from = time.time()
         time.sleep(window_s)   # the controller under the load
@@ -385,6 +389,7 @@ def abort_runs(runs: int, flood_seconds: float) -> dict:
         try:
             time.sleep(0.5)
             flood = Child("flood", bridge.control)
+            flood.wait_ready()
             time.sleep(flood_seconds)
             flood.finish()
             time.sleep(0.5)   # the flood's connections close: libzmq's abort came here

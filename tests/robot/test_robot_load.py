@@ -85,6 +85,7 @@ def test_a_flood_neither_kills_the_bridge_nor_starves_the_controller(tmp_path):
         bursts = []
         for _ in range(3):
             flood = Child("flood", bridge.control)
+            flood.wait_ready()   # connected (its start took longer than a burst at load 7: no message reached)
             time.sleep(1.5)
             bursts.append((time.time() - 1.2, time.time()))
             if not bursts[1:]:   # the e-stop during the first burst
