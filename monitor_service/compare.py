@@ -188,9 +188,11 @@ def _quartiles(values) -> dict | None:
 
 
 def ranking(episodes: list[Episode], signals, regime: str, cut: int | None, n_bootstrap: int, seed: int,
-            with_roc: bool = False, aggregate: str = "mean") -> dict:
+            with_roc: bool = False, aggregate: str = "mean",
+            stacked: tuple[list[str], dict[int, float]] | None = None) -> dict:
     """AUROC [95 % CI] per signal: the regime's failures against the natural successes (``with_roc``: and the ROC
-    curve's points, for figures)."""
+    curve's points, for figures); ``stacked`` (its members and ``stacked_scores`` of these episodes): also the
+    ``stack`` row."""
     positives = [e for e in episodes if e.regime == regime and not e.success]
     negatives = [e for e in episodes if e.regime == "natural" and e.success]
     out = {}
@@ -206,6 +208,56 @@ def ranking(episodes: list[Episode], signals, regime: str, cut: int | None, n_bo
         if with_roc and r["auroc"] is not None:
             roc = stats.roc_points(np.array([s for s, _ in scored]), np.array([y for _, y in scored]))
             out[signal]["roc"] = {"fpr": [round(x, 5) for x in roc["fpr"]], "tpr": [round(x, 5) for x in roc["tpr"]]}
+    if stacked is not None and len(stacked[0]) > 1:
+        members, stacked = stacked
+        index = {id(e): i for i, e in enumerate(episodes)}
+        scored = [(stacked[index[id(e)]], label) for label, group in ((1, positives), (0, negatives)) for e in group
+                  if index[id(e)] in stacked]
+        r = stats.auroc_with_ci(np.array([s for s, _ in scored]), np.array([y for _, y in scored]), n_bootstrap,
+                                seed)
+        out[STACK] = {"auroc": r["auroc"], "ci": r["ci"], "failures": sum(y for _, y in scored),
+                      "successes": sum(1 - y for _, y in scored), "members": members,
+                      **({"reason": r["reason"]} if "reason" in r else {})}
+    return out
+
+
+STACK = "stack"          # the cross-fitted logistic fusion of every non-control signal (a ranking row)
+CONTROL_SIGNALS = (RANDOM, "nmse_persistence")
+
+
+def stack_members(signals) -> list[str]:
+    """The signals the stacked ranking fuses: every one except the controls (the chance row and persistence)."""
+    return [s for s in signals if s not in CONTROL_SIGNALS and s != STACK]
+
+
+def stacked_scores(episodes: list[Episode], members: list[str], cut: int | None, aggregate: str = "mean",
+                   c: float = 1.0) -> dict[int, float]:
+    """A learned combination for ranking, cross-fitted: per fold, a logistic regression of failure on the log of
+    each member's episode score (standardised on the training part), fitted on the NATURAL episodes of the other
+    folds only, scores that fold's episodes (faulted ones included: no fault is ever in a fit). Keyed by the
+    episode's index in ``episodes``; episodes lacking a member's score get none."""
+    from sklearn.linear_model import LogisticRegression
+
+    def features(e: Episode) -> np.ndarray | None:
+        values = [episode_score(e.values[m][:cut], aggregate) if m in e.values else None for m in members]
+        if any(v is None for v in values):
+            return None
+        return np.log(np.maximum(np.asarray(values, dtype=np.float64), rules.LOG_FLOOR))
+
+    feats = {i: f for i, e in enumerate(episodes) if (f := features(e)) is not None}
+    out: dict[int, float] = {}
+    for fold in sorted({episodes[i].fold for i in feats}):
+        train = [i for i in feats if episodes[i].regime == "natural" and episodes[i].fold != fold]
+        y = np.array([0 if episodes[i].success else 1 for i in train])
+        if len(members) < 2 or y.size < 4 or y.min() == y.max():
+            continue
+        x = np.stack([feats[i] for i in train])
+        mu, sd = x.mean(axis=0), x.std(axis=0) + 1e-9
+        model = LogisticRegression(C=c, max_iter=2000).fit((x - mu) / sd, y)
+        test = [i for i in feats if episodes[i].fold == fold]
+        if test:
+            scores = model.decision_function((np.stack([feats[i] for i in test]) - mu) / sd)
+            out.update(zip(test, scores.tolist()))
     return out
 
 
@@ -308,9 +360,11 @@ def compare(episodes: list[Episode], alpha: float = 0.1, folds: int = 5, prefix:
         for view in views:
             eps, cut = view_of(members, view, prefix)
             v = {"episodes": len(eps), "decisions": cut, "ranking": {}, "detection": {}}
+            fused = stack_members(chosen)
+            stacked = (fused, stacked_scores(eps, fused, cut, aggregate))
             for regime in regimes:
                 v["ranking"][regime] = ranking(eps, chosen, regime, cut, n_bootstrap, seed, regime == "natural",
-                                               aggregate)
+                                               aggregate, stacked)
             for rule_name in rule_names:
                 d = detection(eps, chosen, cut, alpha, RULES[rule_name], folds, seed)
                 rows = {}
@@ -347,8 +401,9 @@ def ranking_table(result: dict, view: str) -> list[str]:
                   "| signal | " + " | ".join(f"{r} ({v['ranking'][r][g['signals'][0]]['failures']} fail)"
                                              for r in regimes) + " |",
                   "|---" * (len(regimes) + 1) + "|"]
-        for s in g["signals"]:
-            lines.append(f"| {s} | " + " | ".join(_auc(v["ranking"][r][s]) for r in regimes) + " |")
+        for s in g["signals"] + ([STACK] if STACK in v["ranking"][regimes[0]] else []):
+            name = f"{STACK}({'+'.join(v['ranking'][regimes[0]][s]['members'])})" if s == STACK else s
+            lines.append(f"| {name} | " + " | ".join(_auc(v["ranking"][r].get(s, {})) for r in regimes) + " |")
         lines.append("")
     return lines
 

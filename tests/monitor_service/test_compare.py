@@ -258,3 +258,39 @@ def test_nmse_ratio_is_nmse_over_persistence_known_at_the_target_step():
     np.testing.assert_array_equal(e.known_at["nmse_ratio"], [4, 12, 20, 28])
     assert "nmse_ratio" not in cmp.episode_of(record(3, True, 4, arm="mip") | {"decisions": [
         {"step": 0, "scores": {"stac": None}}]}).values
+
+
+def test_the_stacked_ranking_fuses_two_half_informative_signals_and_never_fits_on_what_it_scores():
+    """Two signals each carry half of the outcome (failures high in one of them, independently): each alone ranks
+    at about 0.75, their cross-fitted logistic stack above both; a stack of pure noise stays near chance (no
+    overfitting leaks through the folds); faulted episodes (never in a fit) do not move the natural scores."""
+    rng = np.random.default_rng(5)
+    rows = []
+    for seed in range(240):
+        failed = seed % 2 == 0
+        a, b = (rng.random() < 0.5, rng.random() < 0.5) if failed else (False, False)
+        row = record(seed, not failed, 12, stac=lambda i, s, g, hi=a: g.random() + (3.0 if hi else 0.0),
+                     nmse=lambda i, s, g, hi=b: g.random() + (3.0 if hi else 0.0))
+        rows.append(row)
+    eps = [cmp.episode_of(r) for r in rows]
+    cmp.assign_folds(eps, 5, 0)
+    members = ["nmse", "stac"]
+    stacked = cmp.stacked_scores(eps, members, 10)
+    assert set(stacked) == set(range(len(eps)))
+    ranks = cmp.ranking(eps, members + ["rnd"], "natural", 10, 200, 0, stacked=(members, stacked))
+    assert 0.6 < ranks["nmse"]["auroc"] < 0.85 and 0.6 < ranks["stac"]["auroc"] < 0.85
+    assert ranks["stack"]["auroc"] > max(ranks["nmse"]["auroc"], ranks["stac"]["auroc"]) + 0.08
+    assert ranks["stack"]["members"] == members
+
+    noise = cmp.stacked_scores(eps, ["rnd", "nmse_persistence", "random"], 10)   # nothing to learn
+    y = np.array([0 if e.success else 1 for e in eps])
+    from sklearn.metrics import roc_auc_score
+    assert abs(roc_auc_score(y, [noise[i] for i in range(len(eps))]) - 0.5) < 0.12
+
+    faulted = [cmp.episode_of(record(s, False, 12, regime="block_displaced", onset=ONSET,
+                                     stac=lambda i, st, g: 50.0, nmse=lambda i, st, g: 0.001)) for s in range(40)]
+    both = eps + faulted
+    cmp.assign_folds(both, 5, 0)
+    with_faults = cmp.stacked_scores(both, members, 10)
+    assert all(with_faults[i] == pytest.approx(stacked[i]) for i in range(len(eps)))
+    assert cmp.stack_members(["nmse", "random", "nmse_persistence", "stac"]) == ["nmse", "stac"]
