@@ -75,6 +75,8 @@ def cmd_eval(args) -> int:
 
     from jepa_policy.train import resolve_device
 
+    if args.faults_only and not (args.faults or "").strip():
+        raise ValueError("--faults-only needs --faults NAME[;NAME...] (or all)")
     calibration = None
     if args.residual_calibration:
         path = Path(args.residual_calibration)
@@ -124,7 +126,7 @@ def _eval_regimes(args, policy, calibration) -> int:
     if args.video or args.save_rollouts:
         raise ValueError("--faults writes records only; drop --video / --save-rollouts (or run one fault at a time)")
     names = sorted(FAULTS) if args.faults.strip() == "all" else [x for x in args.faults.split(";") if x.strip()]
-    regimes = [None] + [_fault_spec(x) for x in names]
+    regimes = ([] if args.faults_only else [None]) + [_fault_spec(x) for x in names]
     records, summary = [], {"checkpoint": str(args.checkpoint), "regimes": {}}
     for fault in regimes:
         t0 = time.perf_counter()
@@ -360,6 +362,9 @@ def build_parser() -> argparse.ArgumentParser:
                         "records, tagged (for jepa-monitor compare)")
     p.add_argument("--fault-episodes", type=int, default=100,
                    help="--faults: episodes per fault, on the first seeds of the natural block (default 100)")
+    p.add_argument("--faults-only", action="store_true",
+                   help="--faults: skip the natural block (when its records exist already, e.g. to add a fault "
+                        "to a study: the faulted episodes use the same seeds either way)")
     p.add_argument("--device", default="auto", help="auto (CUDA when present) | cpu | cuda | cuda:N")
     p.add_argument("--no-ema", action="store_true", help="act with the raw instead of the EMA weights")
     p.set_defaults(func=cmd_eval)

@@ -132,6 +132,7 @@ def test_every_flag_of_every_subcommand_has_help():
     (["train", "--task", "Nope"], "unknown task 'Nope'"),
     (["train", "--config", "/nonexistent/train_config.json"], "--config /nonexistent/train_config.json does not exist"),
     (["eval", "--checkpoint", "/nonexistent.pt"], "/nonexistent.pt does not exist"),
+    (["eval", "--checkpoint", "/nonexistent.pt", "--faults-only"], "--faults-only needs --faults"),
     (["protocols", "/nonexistent"], "/nonexistent does not exist; pass a run's eval_curve.json"),
 ])
 def test_user_errors_are_one_line_and_exit_2(args, message, capsys):
