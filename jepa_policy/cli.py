@@ -100,13 +100,17 @@ def cmd_eval(args) -> int:
 
 
 def _fault_spec(text: str) -> dict:
-    """``NAME`` or ``NAME:key=value,key=value`` (values as JSON, e.g. onset=[20,60]) -> {"name", options}."""
+    """``NAME`` or ``NAME:key=value,key=value`` (values as JSON, e.g. onset=[20,60]; ``label``, the records'
+    regime name, as text) -> {"name", options}."""
     name, _, rest = text.partition(":")
     spec: dict = {"name": name.strip()}
     for item in filter(None, (x.strip() for x in re.split(r",(?![^\[]*\])", rest))):   # not inside [...]
         key, eq, value = item.partition("=")
         if not eq:
             raise ValueError(f"fault option {item!r} needs key=value, e.g. {name}:onset=30")
+        if key.strip() == "label":   # the records' regime name, plain text
+            spec["label"] = value.strip()
+            continue
         try:
             spec[key.strip()] = json.loads(value)
         except json.JSONDecodeError:
@@ -127,14 +131,17 @@ def _eval_regimes(args, policy, calibration) -> int:
         raise ValueError("--faults writes records only; drop --video / --save-rollouts (or run one fault at a time)")
     names = sorted(FAULTS) if args.faults.strip() == "all" else [x for x in args.faults.split(";") if x.strip()]
     regimes = ([] if args.faults_only else [None]) + [_fault_spec(x) for x in names]
+    labels = ["natural" if f is None else str(f.pop("label", f["name"])) for f in regimes]
+    if len(set(labels)) < len(labels):
+        raise ValueError(f"two regimes would share the records' label {sorted(x for x in labels if labels.count(x) > 1)}"
+                         "; name one with label=..., e.g. background_tint:tint=[-2,0,2],label=tint_faint")
     records, summary = [], {"checkpoint": str(args.checkpoint), "regimes": {}}
-    for fault in regimes:
+    for fault, label in zip(regimes, labels):
         t0 = time.perf_counter()
         episodes = args.episodes if fault is None else min(args.fault_episodes, args.episodes)
         report = evaluate(policy, episodes=episodes, seed=args.seed, num_envs=args.num_envs,
                           max_steps=args.max_steps, workers=args.workers, residual_calibration=calibration,
                           fault=fault)
-        label = "natural" if fault is None else fault["name"]
         for rec in report["records"]:
             rec.update(regime=label, arm=policy.model.cfg.arm, checkpoint=str(args.checkpoint))
         records += report["records"]
@@ -359,7 +366,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--faults", metavar="all|NAME[:k=v,...][;NAME...]",
                    help="also run the episodes under faults with a known onset (jepa_envs/tasks/faults.py), e.g. "
                         "all, or 'block_displaced:onset=30;action_noise:std=40'; --out then holds every regime's "
-                        "records, tagged (for jepa-monitor compare)")
+                        "records, tagged with the fault's name or its label= option (for jepa-monitor compare)")
     p.add_argument("--fault-episodes", type=int, default=100,
                    help="--faults: episodes per fault, on the first seeds of the natural block (default 100)")
     p.add_argument("--faults-only", action="store_true",

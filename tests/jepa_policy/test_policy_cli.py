@@ -87,6 +87,15 @@ def test_train_eval_protocols_from_the_command_line(pusht_demo_file, tmp_path, c
     assert report["workers"] == 2 and report["reruns"] == []
     assert report["renderer"] == "none"   # PushT rasterises without OpenGL; MuJoCo tasks name their backend
     assert len((tmp_path / "eval.jsonl").read_text().splitlines()) == 2
+    # faults only, one of them twice under labels: the records are tagged with the labels, no natural block
+    assert main(["eval", "--checkpoint", str(ckpt), "--episodes", "2", "--seed", "3", "--max-steps", "10",
+                 "--workers", "0", "--faults", "sensor_noise;sensor_noise:std=9,label=noisier", "--faults-only",
+                 "--out", str(tmp_path / "faults.jsonl")]) == 0
+    assert list(json.loads(capsys.readouterr().out)["regimes"]) == ["sensor_noise", "noisier"]
+    rows = [json.loads(line) for line in (tmp_path / "faults.jsonl").read_text().splitlines()]
+    assert [r["regime"] for r in rows] == ["sensor_noise"] * 2 + ["noisier"] * 2 and [r["seed"] for r in rows] == [3, 4] * 2
+    assert main(["eval", "--checkpoint", str(ckpt), "--faults", "sensor_noise;sensor_noise:std=9"]) == 2
+    assert "label=" in capsys.readouterr().err
     assert main(["audit", "--checkpoint", str(ckpt), "--dataset", str(pusht_demo_file), "--samples", "64",
                  "--pool", "16", "--permutations", "50", "--batches", "2"]) == 0
     audit = json.loads(capsys.readouterr().out)
