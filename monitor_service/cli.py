@@ -111,13 +111,13 @@ def cmd_tasks(args) -> int:
     from sqlalchemy import select
 
     from monitor_service.db import Task
-    from monitor_service.detectors import SERVICE_SIGNALS
+    from monitor_service.schemas import RESERVED_SIGNALS
 
     _, make_session = _sessionmaker(args)
     with make_session() as session:
         if args.action == "add":
             signals = sorted({s.strip() for s in (args.signals or "").split(",") if s.strip()})
-            own = [s for s in signals if s in SERVICE_SIGNALS]
+            own = [s for s in signals if s in RESERVED_SIGNALS]
             if own:
                 raise ValueError(f"{own[0]} is the service's own signal (computed from the latents); --signals names "
                                  "the scores robots send")

@@ -101,7 +101,9 @@ class _Strict(BaseModel):
 
 
 MAX_SIGNALS = 32
-RESERVED_SIGNALS = SERVICE_SIGNALS   # nmse, nmse_ratio: computed by the service from the latents
+RESERVED_SIGNALS = (*SERVICE_SIGNALS, "nmse_persistence")   # nmse, nmse_ratio and the persistence control
+# (NMSE of z_now): computed by the service from the latents; a named score of one of these names would be shadowed
+# by the service's own column in calibration (accepted, stored, then never calibrated)
 
 
 def _check_scores(value: Any) -> Any:
@@ -109,8 +111,9 @@ def _check_scores(value: Any) -> Any:
     if isinstance(value, dict):
         for name, v in value.items():
             if name in RESERVED_SIGNALS:
-                raise ValueError(f"score {name!r} is computed by the service from z_hat"
-                                 + (", z_now" if name == "nmse_ratio" else "") + " and the realized latent; send "
+                raise ValueError(f"score {name!r} is computed by the service from "
+                                 + {"nmse": "z_hat", "nmse_ratio": "z_hat, z_now"}.get(name, "z_now")
+                                 + " and the realized latent; send "
                                  "the latents instead, or name your score differently")
             if isinstance(v, bool) or not isinstance(v, (int, float)):
                 raise ValueError(f"score {name!r} must be a number, got {type(v).__name__}")

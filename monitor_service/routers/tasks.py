@@ -8,8 +8,7 @@ from sqlalchemy.orm import Session
 from monitor_service.auth import Principal, require
 from monitor_service.db import Task
 from monitor_service.deps import get_read_session, get_session
-from monitor_service.detectors import SERVICE_SIGNALS
-from monitor_service.schemas import Name, TaskIn, TaskOut, errors
+from monitor_service.schemas import RESERVED_SIGNALS, Name, TaskIn, TaskOut, errors
 
 router = APIRouter(prefix="/v1/tasks", tags=["tasks"])
 
@@ -24,7 +23,7 @@ def put_task(request: Request, name: Name, body: TaskIn, session: Session = Depe
              _: Principal = Depends(require("admin"))) -> TaskOut:
     """Register a task (or update its description, or add named signals); its latent dimension is fixed once
     set, and a signal once registered stays (its stored scores keep their meaning)."""
-    own = [s for s in body.signals or [] if s in SERVICE_SIGNALS]
+    own = [s for s in body.signals or [] if s in RESERVED_SIGNALS]
     if own:
         raise HTTPException(422, f"{own[0]} is the service's own signal (computed from the latents); register only "
                                  "the names of scores robots send")
