@@ -246,7 +246,8 @@ def stacked_scores(episodes: list[Episode], members: list[str], cut: int | None,
         values = [episode_score(e.values[m][:cut], aggregate) if m in e.values else None for m in members]
         if any(v is None for v in values):
             return None
-        return np.log(np.maximum(np.asarray(values, dtype=np.float64), rules.LOG_FLOOR))
+        logs = np.log(np.maximum(np.asarray(values, dtype=np.float64), rules.LOG_FLOOR))
+        return logs if np.isfinite(logs).all() else None   # a mean of scores near 1.8e308 overflows to inf
 
     feats = {i: f for i, e in enumerate(episodes) if (f := features(e)) is not None}
     out: dict[int, float] = {}

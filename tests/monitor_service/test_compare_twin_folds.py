@@ -37,3 +37,17 @@ def test_copies_of_a_seed_share_a_fold_and_a_noise_stack_stays_at_chance():
         row = compare.ranking(twice, members, "natural", 10, 50, 0, stacked=(members, stacked))["stack"]
         aurocs.append(row["auroc"])
     assert np.mean(aurocs) < 0.58, aurocs   # leaking: 0.64 on these draws; honest: 0.50 +- 0.03
+
+
+def test_a_score_whose_episode_mean_overflows_leaves_the_stack_standing():
+    """Scores up to 1.7e308 are valid (the service accepts them); ten of 1e308 average to inf, whose log made
+    the standardised features NaN, and the whole compare died in sklearn ('Input X contains NaN')."""
+    rng = np.random.default_rng(3)
+    rows = [record(seed, seed % 2 == 0, np.exp(rng.normal(size=(3, 10)))) for seed in range(20)]
+    for d in rows[7]["decisions"]:
+        d["scores"]["s1"] = 1e308
+    episodes = [compare.episode_of(r) for r in rows]
+    result = compare.compare(episodes, n_bootstrap=50, rule_names=("default",), views=("whole",))
+    row = result["groups"]["jepa:c"]["views"]["whole"]["ranking"]["natural"]["stack"]
+    assert row["failures"] + row["successes"] == 19 and row["auroc"] is not None   # only the overflowing one out
+    assert "stack" in compare.markdown(result)
