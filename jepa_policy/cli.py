@@ -109,7 +109,11 @@ def _fault_spec(text: str) -> dict:
         if not eq:
             raise ValueError(f"fault option {item!r} needs key=value, e.g. {name}:onset=30")
         if key.strip() == "label":   # the records' regime name, plain text
-            spec["label"] = value.strip()
+            label = value.strip()
+            if not re.fullmatch(r"[A-Za-z0-9_.:\-]{1,64}", label) or label == "natural":
+                raise ValueError(f"fault label {label!r} must be 1-64 letters, digits or _ . : - and not 'natural' "
+                                 f"(the records' regime name, a table column), e.g. {name.strip()}:label=tint_faint")
+            spec["label"] = label
             continue
         try:
             spec[key.strip()] = json.loads(value)
@@ -135,6 +139,13 @@ def _eval_regimes(args, policy, calibration) -> int:
     if len(set(labels)) < len(labels):
         raise ValueError(f"two regimes would share the records' label {sorted(x for x in labels if labels.count(x) > 1)}"
                          "; name one with label=..., e.g. background_tint:tint=[-2,0,2],label=tint_faint")
+    import gymnasium as gym
+
+    from jepa_policy.evaluate import pool_env
+    for fault in regimes:   # every fault's name and options checked before the first rollout, not after hours of them
+        if fault is not None:
+            env_id, env_kwargs = pool_env(policy, fault)
+            gym.make(env_id, **env_kwargs).close()
     records, summary = [], {"checkpoint": str(args.checkpoint), "regimes": {}}
     for fault, label in zip(regimes, labels):
         t0 = time.perf_counter()
