@@ -30,6 +30,7 @@ only know the string (``jepa_envs.rollouts.pool``) can build it too.
 from __future__ import annotations
 
 import math
+import zlib
 from collections import deque
 from dataclasses import dataclass
 
@@ -64,6 +65,7 @@ class FaultWrapper(gym.Wrapper):
             self.onset_range = (int(onset), int(onset))
         self.onset = self.onset_range[0]
         self.t = 0
+        self.seed = 0
         self.rng = np.random.default_rng(0)
 
     @property
@@ -75,6 +77,7 @@ class FaultWrapper(gym.Wrapper):
         if seed is None:
             seed = int(self.env.unwrapped.np_random.integers(2**31)) if hasattr(self.env.unwrapped, "np_random") \
                 else int(np.random.SeedSequence().entropy % 2**31)
+        self.seed = int(seed)
         self.rng = np.random.default_rng([int(seed), self.salt, 0x6A6570])
         lo, hi = self.onset_range
         self.onset = int(self.rng.integers(lo, hi + 1))
@@ -362,7 +365,9 @@ class BackgroundTint(FaultWrapper):
 class SensorNoise(FaultWrapper):
     """Camera images after the onset with independent Gaussian pixel noise of standard deviation ``std`` (of 255),
     rounded and clipped: a noisier sensor, a change of every pixel that leaves the scene as it was. Meant not to
-    cause failure; drawn from the episode's generator (the same seed, the same noise)."""
+    cause failure. Frame j's noise of camera ``key`` is drawn from a generator of (seed, j, key) alone, not from the
+    episode's running generator: the same seed gives the same noise on a frame whichever other frames were rendered
+    (``RenderOnDemand`` renders 3 of every 8; a shared stream made its frame 7 differ from an all-frames run)."""
 
     name, kind, salt = "sensor_noise", "benign", 11
 
@@ -373,7 +378,8 @@ class SensorNoise(FaultWrapper):
         self.std = float(std)
 
     def image(self, image: np.ndarray, key: str) -> np.ndarray:
-        noise = self.rng.normal(0.0, self.std, image.shape)
+        rng = np.random.default_rng([self.seed, self.salt, self.t, zlib.crc32(key.encode())])
+        noise = rng.normal(0.0, self.std, image.shape)
         return np.clip(np.rint(image.astype(np.float64) + noise), 0, 255).astype(np.uint8)
 
 

@@ -2,6 +2,8 @@
 frame onset+1 as its formula says, the same seed the same episode."""
 from __future__ import annotations
 
+import zlib
+
 import gymnasium as gym
 import numpy as np
 import pytest
@@ -112,14 +114,14 @@ def test_visual_faults_follow_their_formulas():
 
 
 def test_sensor_noise_is_the_seeded_gaussian_of_its_std():
-    """Each noisy frame is the clean frame plus N(0, std) per pixel, rounded and clipped; the draws are the
-    episode generator's, in frame order."""
+    """Each noisy frame is the clean frame plus N(0, std) per pixel, rounded and clipped; frame j's draws come
+    from a generator of (seed, j, camera) alone."""
     clean, _ = _clean(7)
     noisy, _ = _faulted("sensor_noise", 7, std=6.0)
-    rng = np.random.default_rng([7, FAULTS["sensor_noise"].wrapper.salt, 0x6A6570])
     residuals = []
     for j in range(ONSET + 1, len(noisy)):
         frame = clean[j]["top_image"]
+        rng = np.random.default_rng([7, FAULTS["sensor_noise"].wrapper.salt, j, zlib.crc32(b"top_image")])
         want = np.clip(np.rint(frame.astype(np.float64) + rng.normal(0.0, 6.0, frame.shape)), 0, 255)
         np.testing.assert_array_equal(noisy[j]["top_image"], want.astype(np.uint8))
         inside = (frame > 30) & (frame < 225)                       # away from the clip
@@ -178,3 +180,18 @@ class _OtherTask(gym.Env):
 def test_colour_shift_refuses_bad_gains():
     with pytest.raises(ValueError, match="three positive channel gains"):
         ColourShift(gym.make("JEPA/PushT-v0", image_size=SIZE), gains=(1, 1))
+
+
+def test_sensor_noise_of_a_frame_does_not_depend_on_which_frames_were_rendered():
+    """Under RenderOnDemand (3 of every 8 frames rendered) frame j's noise is the all-frames run's: with one running
+    generator the skipped frames' draws were missing and frames 7, 8, 12 ... differed for the same seed."""
+    from jepa_envs.tasks.wrappers import RenderOnDemand
+
+    every, _ = _faulted("sensor_noise", 9)
+    demand = RenderOnDemand(gym.make(FAULTED_ENV, fault="sensor_noise", image_size=SIZE,
+                                     fault_kwargs={"onset": ONSET}), decision_every=8, obs_steps=2, future_k=4)
+    sparse, infos = _run(demand, 9)
+    rendered = [j for j in range(ONSET + 1, len(sparse)) if j == 0 or infos[j].get("images_rendered")]
+    assert rendered == [7, 8, 12]
+    for j in rendered:
+        assert _same(sparse[j], every[j]), f"frame {j}"
