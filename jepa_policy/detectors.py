@@ -87,9 +87,12 @@ def _mlp_tail(x: np.ndarray, rest: list[tuple[np.ndarray, np.ndarray]]) -> np.nd
     return x
 
 
-@dataclass
+@dataclass(frozen=True, eq=False)
 class EmbeddingDetectors:
-    """The fitted state of the embedding scores, as plain arrays (see the module docstring for each score)."""
+    """The fitted state of the embedding scores, as plain arrays (see the module docstring for each score).
+    Immutable: ``score`` caches a fused matrix built from the arrays on its first call, so the fields cannot be
+    reassigned and the arrays are read-only (a change after the first score would otherwise be ignored by all
+    but ``mean``, silently); ``dataclasses.replace`` makes a changed copy with its own cache."""
 
     mean: np.ndarray                 # (d,) of the training c_t
     std: np.ndarray                  # (d,)
@@ -101,6 +104,12 @@ class EmbeddingDetectors:
     future_scale: np.ndarray | None  # (d_z,) RMS of z_hat - z over the training windows (arms with a future head)
     meta: dict
 
+    def __post_init__(self) -> None:
+        layers = [a for w, b in (*self.rnd_target, *self.rnd_predictor) for a in (w, b)]
+        for array in (self.mean, self.std, self.whiten, self.pca, self.centres, self.future_scale, *layers):
+            if isinstance(array, np.ndarray):
+                array.setflags(write=False)
+
     def score(self, c: np.ndarray) -> dict[str, np.ndarray]:
         """The embedding scores of c_t rows (B, d) -> {name: (B,)}.
 
@@ -110,8 +119,12 @@ class EmbeddingDetectors:
         as scoring each in turn (float32 rounding aside) in about a third of the numpy calls: right after the
         policy's forward pass each call runs with cold caches, so the count is the cost a decision pays
         (issue 38: <= 5 %)."""
+        c = np.asarray(c, dtype=np.float32)
+        if c.ndim != 2 or c.shape[1] != self.mean.size:
+            raise ValueError(f"score needs c_t rows of shape (B, {self.mean.size}), got {list(c.shape)}; pass "
+                             "c[None] for one row, and the embeddings of the checkpoint the detectors were fitted on")
         fused, bias, cuts, centres_sq = self._fused()
-        h = (np.asarray(c, dtype=np.float32) - self.mean) @ fused + bias   # centred first: no cancellation
+        h = (c - self.mean) @ fused + bias   # centred first: no cancellation
         w, p, cross, t, g = (h[:, a:b] for a, b in zip(cuts[:-1], cuts[1:]))
         g = _mlp_tail(g, self.rnd_predictor[1:])
         f = _mlp_tail(t, self.rnd_target[1:])
