@@ -134,6 +134,8 @@ def _eval_regimes(args, policy, calibration) -> int:
     if args.video or args.save_rollouts:
         raise ValueError("--faults writes records only; drop --video / --save-rollouts (or run one fault at a time)")
     names = sorted(FAULTS) if args.faults.strip() == "all" else [x for x in args.faults.split(";") if x.strip()]
+    if not names:
+        raise ValueError(f"--faults {args.faults!r} names no fault; give NAME[;NAME...] or all")
     regimes = ([] if args.faults_only else [None]) + [_fault_spec(x) for x in names]
     labels = ["natural" if f is None else str(f.pop("label", f["name"])) for f in regimes]
     if len(set(labels)) < len(labels):

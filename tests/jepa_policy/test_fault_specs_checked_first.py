@@ -20,6 +20,7 @@ def checkpoint(pusht_demo_file, tmp_path_factory):
     ("sensor_noise;bogus", "unknown fault 'bogus'"),
     ("sensor_noise;sensor_noise:std=-1,label=loud", "sensor noise std must be in (0, 64]"),
     ("sensor_noise;action_noise:stdd=3", "unexpected keyword argument 'stdd'"),
+    (" ; ;", "names no fault"),   # was: the natural block alone (with --faults-only: an empty records file, rc 0)
 ])
 def test_a_bad_fault_is_refused_before_any_episode_runs(checkpoint, tmp_path, capsys, faults, error):
     out = tmp_path / "records.jsonl"
