@@ -68,6 +68,10 @@ def calibrate_task(
         if row is None:
             raise LookupError(f"task {task!r} is not registered; register it with PUT /v1/tasks/{task}")
         unknown = [s for s in signals if s not in SERVICE_SIGNALS and s not in (row.signals or [])]
+        if "nmse_persistence" in unknown:   # a reserved name: registering it is refused, so do not suggest that
+            raise LookupError("nmse_persistence is the persistence control (NMSE of z_now against the target), "
+                              "reported under the calibration's controls, not a signal to alert on; calibrate "
+                              "nmse_ratio (NMSE over it) or nmse")
         if unknown:
             raise LookupError(f"task {task!r} has no signal {unknown[0]!r} (its signals: nmse, nmse_ratio"
                               + "".join(f", {s}" for s in row.signals or []) + f"); register it with PUT /v1/tasks/"

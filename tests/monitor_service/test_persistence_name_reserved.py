@@ -23,3 +23,11 @@ def test_nmse_persistence_cannot_be_registered_or_sent_as_a_named_score(client, 
     assert r.status_code == 422, r.text
     assert "score 'nmse_persistence' is computed by the service from z_now" in r.json()["detail"]
     assert client.get("/v1/episodes/e1", headers=admin).status_code == 404   # nothing refused was written
+
+
+def test_calibrating_nmse_persistence_names_the_control_not_a_registration(client, admin):
+    register_task(client, "Lift")
+    r = client.post("/v1/calibrations", json={"task": "Lift", "signals": ["nmse_persistence"], "n_bootstrap": 100,
+                                              "n_permutation": 100}, headers=admin)
+    assert r.status_code == 404 and "nmse_persistence is the persistence control" in r.json()["detail"]
+    assert "register it" not in r.json()["detail"]   # registering it is refused: the old hint led nowhere
