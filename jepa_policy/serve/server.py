@@ -193,13 +193,18 @@ class PolicyServer:
         # realized latents only for the monitor: without it a reply costs one decision, as in-process act
         targets = [(s, f) for s, f in fed if s in session.pending] if self.monitor is not None else []
         want_actions = bool(parsed.frames) and not parsed.observe and parsed.outcome is None
+        # with the monitor, a decision of an arm with a future head also encodes its current frame: z_now, from
+        # which the service scores the persistence control and nmse_ratio (one more frame in the same pass)
+        want_now = want_actions and self.monitor is not None and self.policy.model.cfg.has_future_token
         if want_actions or targets:
+            frames = [f for _, f in targets] + ([session.history[-1]] if want_now else [])
             actions, z_hat, latents, timing = await self.batcher.submit(Work(
-                list(session.history) if want_actions else None, [f for _, f in targets],
-                asyncio.get_running_loop().create_future()))
+                list(session.history) if want_actions else None, frames, asyncio.get_running_loop().create_future()))
             reply["server_timing"].update(timing)
         else:
             actions, z_hat, latents = None, None, []
+        z_now = latents[-1] if want_now else None
+        latents = latents[:len(targets)]
         scored = []
         for (s, _), z_real in zip(targets, latents):
             t, predicted = session.pending.pop(s)
@@ -213,7 +218,7 @@ class PolicyServer:
             if z_hat is not None and self.monitor is not None:
                 session.pending[session.step + self.policy.k] = (session.step, z_hat)
                 self.monitor.decision(self.config.task_id or self.policy.spec.name, session.episode, session.step,
-                                      self.policy.k, z_hat, checkpoint=self.checkpoint or None)
+                                      self.policy.k, z_hat, checkpoint=self.checkpoint or None, z_now=z_now)
         if self.monitor is not None or scored:
             reply["monitor"] = self._monitor_state(session, scored)
         if parsed.outcome is not None:   # the reply names the episode that ended; the next request starts another

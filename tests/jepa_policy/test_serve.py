@@ -270,6 +270,12 @@ def test_the_monitor_inside_scores_decisions_and_never_blocks(serve, tmp_path):
             assert ep["n_decisions"] == 12 and ep["n_scored"] == 8 and ep["success"] is True
             monitored = {d["step"]: d["nmse"] for d in ep["decisions"] if d["nmse"] is not None}
             assert all(monitored[s["decision_step"]] == pytest.approx(s["nmse"], rel=1e-5) for s in scored)
+            # z_now went with every decision (the current frame, encoded in the same pass): the service scored
+            # the persistence control and nmse_ratio of every scored decision, as it does for jepa-policy robot
+            rows = {d["step"]: d for d in ep["decisions"] if d["nmse"] is not None}
+            assert len(rows) == 8 and all(d["nmse_persistence"] is not None and d["nmse_persistence"] > 0 and
+                                          d["nmse_ratio"] == pytest.approx(d["nmse"] / d["nmse_persistence"], rel=1e-6)
+                                          for d in rows.values())
             ws.close()
             env.close()
 
