@@ -344,7 +344,7 @@ def cmd_serve(args) -> int:
                          monitor_url=args.monitor_url,
                          monitor_key=read_secret("--monitor-key", args.monitor_key, args.monitor_key_file,
                                                  MONITOR_KEY_ENV),
-                         task_id=args.task_id, robot=args.robot)
+                         task_id=args.task_id, robot=args.robot, monitor_scores=_score_names(args.monitor_scores))
     serve_checkpoint(args.checkpoint, config, device=args.device, threads=args.threads)
     return 0
 
@@ -544,6 +544,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--monitor-key-file", help="read the monitor key from this file's first line (chmod 600)")
     p.add_argument("--task-id", help="the monitor's task name (default: the checkpoint's task)")
     p.add_argument("--robot", help="the monitor key's robot name")
+    p.add_argument("--monitor-scores", default="none",
+                   help="named failure scores sent with each decision: none (default), all (STAC and, with fitted "
+                        "detectors beside the checkpoint, RND, PCA-kmeans, Mahalanobis), or a comma list, e.g. "
+                        "stac,rnd (the task must register them: jepa-monitor tasks add TASK --signals ...)")
     p.set_defaults(func=cmd_serve)
     return parser
 

@@ -208,12 +208,18 @@ class Policy:
         self.last_decision = Decision(step=self.t, k=self.k, actions=actions, z_hat=z, scores=scores, embedding=c)
         return self.last_decision
 
+    def normalised_actions(self, actions: np.ndarray) -> np.ndarray | None:
+        """Action chunks in the policy's own [-1, 1] units (STAC's), or None when the model has no action scaling."""
+        if self._action_affine is None:
+            return None
+        scale, offset = self._action_affine
+        return actions * scale + offset
+
     def _scores(self, actions: np.ndarray, c: np.ndarray | None) -> dict[str, np.ndarray]:
         """The decision-time failure scores of a batch of chunks (B, H, A) and embeddings (B, width)."""
         scores = {}
-        if self._action_affine is not None:
-            scale, offset = self._action_affine
-            chunk = actions * scale + offset
+        chunk = self.normalised_actions(actions)
+        if chunk is not None:
             previous = self._previous_chunk
             scores["stac"] = (stac(chunk, None, 0) if previous is None or previous[1].shape != chunk.shape
                               else stac(chunk, previous[1], self.t - previous[0]))

@@ -32,6 +32,7 @@ class ServeConfig:
     robot: str | None = None            # the monitor key's robot
     monitor_buffer: int = MONITOR_BUFFER
     monitor_flush_s: float = 10.0       # on stop, how long buffered records may take to reach the monitor
+    monitor_scores: tuple[str, ...] | None = ()   # named failure scores sent with each decision: () none, None all
 
 
 def check_config(config: ServeConfig) -> None:

@@ -18,6 +18,7 @@ from __future__ import annotations
 import asyncio
 import hmac
 import http
+import math
 import socket
 import ssl
 import threading
@@ -32,6 +33,7 @@ import websockets
 from websockets.asyncio.server import ServerConnection, serve
 from websockets.http11 import Request, Response
 
+from jepa_policy.detectors import stac
 from jepa_policy.policy import Policy
 from jepa_policy.serve.batcher import Batcher, ServerBusy, Work
 from jepa_policy.serve.codec import MAX_ARRAYS, MAX_MAPS, MAX_REQUEST_BYTES, RequestError, pack
@@ -173,6 +175,22 @@ class PolicyServer:
                              close_sent=sent.code if sent else None, close_received=received.code if received else None,
                              reason=(sent and sent.reason) or (received and received.reason) or None)
 
+    def _named_scores(self, session: Session, actions: np.ndarray, embedding: dict[str, float]) -> dict[str, float]:
+        """The decision's named failure scores the config sends (``monitor_scores``: () none, None all): STAC
+        against the session's previous chunk (as ``Policy`` computes it in-process) and the embedding scores the
+        batcher computed; only finite values (STAC has none at an episode's first decision)."""
+        wanted = self.config.monitor_scores
+        if wanted == ():
+            return {}
+        scores = dict(embedding)
+        chunk = self.policy.normalised_actions(np.asarray(actions, dtype=np.float64))
+        if chunk is not None:
+            previous = session.previous_chunk
+            if previous is not None and previous[1].shape == chunk.shape:
+                scores["stac"] = float(stac(chunk, previous[1], session.step - previous[0]))
+            session.previous_chunk = (session.step, chunk)
+        return {k: v for k, v in scores.items() if math.isfinite(v) and (wanted is None or k in wanted)}
+
     async def _pace(self, ws: ServerConnection, session: Session) -> None:
         """After a refused request: pause before reading the connection's next frame, or close it (1008)."""
         penalty = session.refused(time.monotonic(), PENALTY_HALF_LIFE_S)
@@ -198,11 +216,11 @@ class PolicyServer:
         want_now = want_actions and self.monitor is not None and self.policy.model.cfg.has_future_token
         if want_actions or targets:
             frames = [f for _, f in targets] + ([session.history[-1]] if want_now else [])
-            actions, z_hat, latents, timing = await self.batcher.submit(Work(
+            actions, z_hat, latents, timing, scores = await self.batcher.submit(Work(
                 list(session.history) if want_actions else None, frames, asyncio.get_running_loop().create_future()))
             reply["server_timing"].update(timing)
         else:
-            actions, z_hat, latents = None, None, []
+            actions, z_hat, latents, scores = None, None, [], {}
         z_now = latents[-1] if want_now else None
         latents = latents[:len(targets)]
         scored = []
@@ -215,10 +233,14 @@ class PolicyServer:
         if actions is not None:
             chunk = actions if parsed.full_chunk else actions[: self.policy.n_action_steps]
             reply["actions"] = np.ascontiguousarray(chunk, dtype=np.float32)
-            if z_hat is not None and self.monitor is not None:
-                session.pending[session.step + self.policy.k] = (session.step, z_hat)
+            if self.monitor is not None:
+                scores = self._named_scores(session, actions, scores)
+            if self.monitor is not None and (z_hat is not None or scores):
+                if z_hat is not None:
+                    session.pending[session.step + self.policy.k] = (session.step, z_hat)
                 self.monitor.decision(self.config.task_id or self.policy.spec.name, session.episode, session.step,
-                                      self.policy.k, z_hat, checkpoint=self.checkpoint or None, z_now=z_now)
+                                      self.policy.k if z_hat is not None else None, z_hat,
+                                      checkpoint=self.checkpoint or None, z_now=z_now, scores=scores or None)
         if self.monitor is not None or scored:
             reply["monitor"] = self._monitor_state(session, scored)
         if parsed.outcome is not None:   # the reply names the episode that ended; the next request starts another
@@ -246,7 +268,8 @@ class PolicyServer:
                                          max_buffer=self.config.monitor_buffer, on_result=self._on_monitor_result)
         self._loop = asyncio.get_running_loop()
         self._stop = asyncio.Event()
-        self.batcher = Batcher(self.policy, self.config.max_batch, self.config.max_queue)
+        self.batcher = Batcher(self.policy, self.config.max_batch, self.config.max_queue,
+                               scores=self.monitor is not None and self.config.monitor_scores != ())
         self.batcher.start()
         try:
             async with serve(self._handler, self.config.host, self.config.port, ssl=ctx, compression=None,

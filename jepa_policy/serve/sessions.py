@@ -26,6 +26,7 @@ class Session:
     real: int = 0                                    # frames of the history that are not padding copies
     step: int = -1                                   # episode step of the newest frame seen
     pending: dict[int, tuple[int, np.ndarray]] = field(default_factory=dict)   # target step -> (t, z_hat)
+    previous_chunk: tuple[int, np.ndarray] | None = None   # (step, normalised chunk) of the last decision: STAC
     prev_total_ms: float | None = None
     penalty: float = 0.0                             # refused requests, halving every half-life (server pacing)
     penalty_at: float = 0.0
@@ -43,6 +44,7 @@ class Session:
         self.real = 0
         self.step = -1
         self.pending = {}
+        self.previous_chunk = None
 
     def feed(self, frames: list[dict], newest_step: int | None) -> tuple[list[tuple[int, dict]], bool]:
         """Add frames (newest last) to the history; returns their (step, frame) and whether the history now holds

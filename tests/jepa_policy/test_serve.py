@@ -301,3 +301,49 @@ def test_a_down_monitor_costs_the_replies_nothing(serve, events):
     lost = [e for e in events() if e["event"] == "stop"]
     assert lost and lost[0]["monitor_records_lost"] > 0
     env.close()
+
+
+def test_named_scores_go_to_the_monitor_equal_to_in_process_acting(checkpoint, pusht_demo_file, tmp_path):
+    """``monitor_scores`` all: each served decision sends STAC (against the session's previous chunk) and the
+    embedding scores of fitted detectors, equal to what ``Policy`` computes in-process for the same frames; the
+    default sends none (a task that registered no signals keeps working)."""
+    import shutil
+
+    from jepa_policy.cli import main as policy_main
+    from jepa_policy.serve import PolicyServer, ServeConfig
+    from monitor_service.server import start_server
+
+    ck = tmp_path / "ck.pt"
+    shutil.copy(checkpoint, ck)
+    assert policy_main(["fit-detectors", "--checkpoint", str(ck), "--dataset", str(pusht_demo_file),
+                        "--samples", "256", "--device", "cpu"]) == 0
+    names = ["stac", "rnd", "pca_kmeans", "mahalanobis"]
+    admin = "serve-test-admin"
+    with start_server(f"sqlite:///{tmp_path / 'monitor.db'}", admin_key=admin) as monitor:
+        with httpx.Client(base_url=monitor.url, headers={"X-API-Key": admin}) as http:
+            assert http.put("/v1/tasks/PushT", json={"signals": names}).status_code == 200
+            key = http.post("/v1/keys", json={"name": "arm", "role": "robot", "robot": "arm"}).json()["key"]
+            servers = [PolicyServer(Policy.from_checkpoint(ck), ServeConfig(
+                port=0, monitor_url=monitor.url, monitor_key=key, robot="arm", monitor_scores=scores), str(ck))
+                .start_in_thread() for scores in (None, ())]
+            try:
+                env = gym.make("JEPA/PushT-v0", image_size=32)
+                for server, episode in zip(servers, ("ep-all", "ep-none")):
+                    ws, _ = _client(server)
+                    _episode(ws, env, 6, episode, outcome=False)
+                    ws.close()
+                    assert server.monitor.flush(30)
+                sent = {d["step"]: d["scores"] for d in http.get("/v1/episodes/ep-all").json()["decisions"]}
+                assert all(d["scores"] is None for d in http.get("/v1/episodes/ep-none").json()["decisions"])
+                local = Policy.from_checkpoint(ck)            # the same frames, acting in-process, every step
+                obs, _ = env.reset(seed=1)
+                for t in range(6):
+                    local.predict({k: obs[k] for k in GOOD})
+                    want = {k: float(v) for k, v in local.last_decision.scores.items() if np.isfinite(v)}
+                    assert set(sent[t]) == set(want) == (set(names) if t else set(names) - {"stac"})
+                    assert all(sent[t][k] == pytest.approx(want[k], rel=1e-5, abs=1e-9) for k in want)
+                    obs, *_ = env.step(local.last_decision.actions[0])
+                env.close()
+            finally:
+                for server in servers:
+                    server.stop()
