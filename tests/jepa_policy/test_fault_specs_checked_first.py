@@ -5,15 +5,8 @@ failed on 'bogus' and wrote no records (2 episodes: 28 s against 16 s to fail; a
 natural failures and successes)."""
 import pytest
 
+from _serve_helpers import checkpoint  # noqa: F401 (the policy-server tests' small checkpoint, trained once)
 from jepa_policy.cli import _fault_spec, main
-
-
-@pytest.fixture(scope="module")
-def checkpoint(pusht_demo_file, tmp_path_factory):
-    out = tmp_path_factory.mktemp("faultspec_run")
-    assert main(["train", "--task", "PushT", "--preset", "quick", "--dataset", str(pusht_demo_file), "--steps", "1",
-                 "--warmup-steps", "1", "--eval-every", "0", "--out-dir", str(out), "--no-progress"]) == 0
-    return out / "checkpoints" / "latest.pt"
 
 
 @pytest.mark.parametrize("faults, error", [
