@@ -341,6 +341,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.set_defaults(func=cmd_study)
 
     compare_cli.add_parser(sub)
+    compare_cli.add_ceiling_parser(sub)
 
     s = sub.add_parser("report", help="per-task calibrations (pooled figure only as a warning)")
     s.add_argument("--json", action="store_true")

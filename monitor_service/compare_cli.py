@@ -69,3 +69,51 @@ def run(args) -> int:
     print(summary_text(result))
     print(f"\n{len(episodes)} episodes compared in {result['seconds']} s", file=sys.stderr)
     return 0
+
+
+CEILING_HELP = ("how far any score of an episode's first decisions can predict its outcome: the same seeds run "
+                "again under a harmless perturbation that starts after those decisions (sensor_noise:onset=80,"
+                "draw=r), the outcome ceiling (AUROC) beside each signal's")
+
+
+def add_ceiling_parser(sub) -> argparse.ArgumentParser:
+    """Register ``ceiling`` on the ``jepa-monitor`` sub-parsers."""
+    s = sub.add_parser("ceiling", help=CEILING_HELP, description=CEILING_HELP)
+    s.add_argument("records", nargs="+",
+                   help="episode records (JSONL, .gz too): the natural run and each draw on the same seeds, e.g. "
+                        "jepa-policy eval --faults 'sensor_noise:onset=80,draw=1,label=draw1;...' --faults-only")
+    s.add_argument("--where", action="append", metavar="KEY=VALUE",
+                   help="keep only records with this field value, e.g. --where arm=jepa (repeatable)")
+    s.add_argument("--prefix", type=int, default=10, help="decisions every score may see (default 10)")
+    s.add_argument("--signals", help="comma-separated signals to set beside the ceiling (default: every one)")
+    s.add_argument("--bootstrap", type=int, default=2000, help="bootstrap resamples over seeds (default 2000)")
+    s.add_argument("--seed", type=int, default=0, help="seed of the bootstrap and the stack's folds")
+    s.add_argument("--json", metavar="FILE", help="write every figure as JSON")
+    s.set_defaults(func=run_ceiling)
+    return s
+
+
+def run_ceiling(args) -> int:
+    from monitor_service.ceiling import ceiling, summary_text
+    from monitor_service.compare import load_records
+
+    t0 = time.perf_counter()
+    where = {}
+    for item in args.where or []:
+        key, eq, value = item.partition("=")
+        if not eq:
+            raise ValueError(f"--where {item!r} needs KEY=VALUE, e.g. --where arm=jepa")
+        where[key] = value
+    if args.prefix < 1:
+        raise ValueError(f"--prefix must be >= 1 decision, got {args.prefix}")
+    if args.bootstrap < 0:
+        raise ValueError(f"--bootstrap must be >= 0 resamples, got {args.bootstrap}")
+    episodes = load_records(args.records, where)
+    result = ceiling(episodes, prefix=args.prefix, n_bootstrap=args.bootstrap, seed=args.seed,
+                     signals=[s.strip() for s in args.signals.split(",")] if args.signals else None)
+    result["seconds"] = round(time.perf_counter() - t0, 1)
+    if args.json:
+        Path(args.json).write_text(json.dumps(result, indent=1))
+    print(summary_text(result))
+    print(f"\n{len(episodes)} episodes read in {result['seconds']} s", file=sys.stderr)
+    return 0

@@ -367,18 +367,25 @@ class SensorNoise(FaultWrapper):
     rounded and clipped: a noisier sensor, a change of every pixel that leaves the scene as it was. Meant not to
     cause failure. Frame j's noise of camera ``key`` is drawn from a generator of (seed, j, key) alone, not from the
     episode's running generator: the same seed gives the same noise on a frame whichever other frames were rendered
-    (``RenderOnDemand`` renders 3 of every 8; a shared stream made its frame 7 differ from an all-frames run)."""
+    (``RenderOnDemand`` renders 3 of every 8; a shared stream made its frame 7 differ from an all-frames run).
+    ``draw``: which of independent noise sequences of one seed (0, the default, is the sequence above; ``draw = r``
+    adds r to the generator's key): the same start state, the same frames up to the onset and a different harmless
+    perturbation after it, e.g. to measure how far an episode's first decisions determine its outcome
+    (``jepa-monitor ceiling``)."""
 
     name, kind, salt = "sensor_noise", "benign", 11
 
-    def __init__(self, env, onset=DEFAULT_ONSET, std: float = 4.0):
+    def __init__(self, env, onset=DEFAULT_ONSET, std: float = 4.0, draw: int = 0):
         super().__init__(env, onset)
         if not 0 < float(std) <= 64:
             raise ValueError(f"sensor noise std must be in (0, 64] of 255, got {std}")
-        self.std = float(std)
+        if isinstance(draw, bool) or not isinstance(draw, (int, np.integer)) or not 0 <= int(draw) < 2**31:
+            raise ValueError(f"sensor noise draw must be an integer in [0, 2^31), got {draw!r}; e.g. draw=1")
+        self.std, self.draw = float(std), int(draw)
 
     def image(self, image: np.ndarray, key: str) -> np.ndarray:
-        rng = np.random.default_rng([self.seed, self.salt, self.t, zlib.crc32(key.encode())])
+        extra = [self.draw] if self.draw else []   # draw 0 keeps the key (and the noise) of the records made before
+        rng = np.random.default_rng([self.seed, self.salt, self.t, zlib.crc32(key.encode()), *extra])
         noise = rng.normal(0.0, self.std, image.shape)
         return np.clip(np.rint(image.astype(np.float64) + noise), 0, 255).astype(np.uint8)
 

@@ -195,3 +195,27 @@ def test_sensor_noise_of_a_frame_does_not_depend_on_which_frames_were_rendered()
     assert rendered == [7, 8, 12]
     for j in rendered:
         assert _same(sparse[j], every[j]), f"frame {j}"
+
+
+def test_sensor_noise_draws_share_the_frames_up_to_the_onset_and_differ_after_it():
+    """``draw``: draw 0 is the default sequence; another draw is the same seeded generator's key plus the draw (its
+    formula), the same for the same draw, and every draw leaves the frames up to the onset as they were."""
+    base, _ = _faulted("sensor_noise", 7)
+    zero, _ = _faulted("sensor_noise", 7, draw=0)
+    one, _ = _faulted("sensor_noise", 7, draw=1)
+    again, _ = _faulted("sensor_noise", 7, draw=1)
+    two, _ = _faulted("sensor_noise", 7, draw=2)
+    clean, _ = _clean(7)
+    for j in range(len(base)):
+        assert _same(zero[j], base[j]) and _same(one[j], again[j])
+        if j <= ONSET:
+            assert _same(one[j], clean[j]) and _same(two[j], clean[j])
+        else:
+            assert not _same(one[j], base[j]) and not _same(one[j], two[j])
+            rng = np.random.default_rng([7, FAULTS["sensor_noise"].wrapper.salt, j, zlib.crc32(b"top_image"), 1])
+            frame = clean[j]["top_image"]
+            want = np.clip(np.rint(frame.astype(np.float64) + rng.normal(0.0, 4.0, frame.shape)), 0, 255)
+            np.testing.assert_array_equal(one[j]["top_image"], want.astype(np.uint8))
+    for bad in (-1, 1.5, True, "1"):
+        with pytest.raises(ValueError, match="draw must be an integer"):
+            _faulted("sensor_noise", 7, draw=bad)
