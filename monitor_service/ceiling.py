@@ -40,8 +40,9 @@ def _within_u(scores: np.ndarray, labels: np.ndarray) -> tuple[float, int]:
     pos, neg = scores[labels == 1], scores[labels == 0]
     if not pos.size or not neg.size:
         return 0.0, 0
-    diff = pos[:, None] - neg[None, :]
-    return float((diff > 0).sum() + 0.5 * (diff == 0).sum()), int(pos.size * neg.size)
+    above = pos[:, None] > neg[None, :]   # compared, not subtracted: inf - inf is NaN, inf == inf a tie as in ranks
+    ties = pos[:, None] == neg[None, :]
+    return float(above.sum() + 0.5 * ties.sum()), int(pos.size * neg.size)
 
 
 def cross_cluster_auroc(scores: np.ndarray, labels: np.ndarray, clusters: np.ndarray) -> float | None:
@@ -95,15 +96,17 @@ def _same_prefix(a: cmp.Episode, b: cmp.Episode, prefix: int) -> str | None:
     return None
 
 
-def _draws(episodes: list[cmp.Episode], prefix: int) -> dict[str, dict[int, list[cmp.Episode]]]:
+def _draws(episodes: list[cmp.Episode], prefix: int,
+           notes: list[str] | None = None) -> dict[str, dict[int, list[cmp.Episode]]]:
     """{group: {seed: its draws in the view}}, each seed with at least two draws whose prefixes agree; ValueError
-    naming a seed whose draws differ within the prefix."""
+    naming a seed whose draws differ within the prefix. ``notes`` gets a line for every seed left out and why."""
+    notes = [] if notes is None else notes
     by = defaultdict(lambda: defaultdict(list))
     for e in episodes:
         by[e.group][e.seed].append(e)
     out = {}
     for group, seeds in sorted(by.items()):
-        kept = {}
+        kept, single, short = {}, 0, 0
         for seed, draws in sorted(seeds.items()):
             regimes = [d.regime for d in draws]
             if len(set(regimes)) < len(regimes):
@@ -114,23 +117,42 @@ def _draws(episodes: list[cmp.Episode], prefix: int) -> dict[str, dict[int, list
                 raise ValueError(f"{group} seed {seed}: some draws reach {prefix} decisions and some do not, so their "
                                  f"first {prefix} decisions differ; start the perturbation after them (onset >= "
                                  f"{prefix * cmp.N_ACTION_STEPS} env steps for PushT)")
-            if reach != {True} or len(draws) < 2:
+            if reach != {True}:
+                short += 1
+                continue
+            if len(draws) < 2:
+                single += 1
                 continue
             for d in draws[1:]:
                 what = _same_prefix(draws[0], d, prefix)
-                if what is not None:
-                    raise ValueError(
-                        f"{group} seed {seed}: draws {draws[0].regime!r} and {d.regime!r} differ in the first {prefix} "
-                        f"decisions ({what}); a draw must leave them as they were: start its perturbation after "
-                        f"them, e.g. sensor_noise:onset={prefix * cmp.N_ACTION_STEPS},draw=1 (onset of this one: "
-                        f"{d.onset})")
+                if what is None:
+                    continue
+                late = prefix * cmp.N_ACTION_STEPS
+                fix = (f"its onset ({d.onset}) is already after them, so the runs themselves differ: the same "
+                       "checkpoint, detectors and device for every draw, and a deterministic run (--workers 0)"
+                       if d.onset is not None and d.onset >= late else
+                       f"start its perturbation after them, e.g. sensor_noise:onset={late},draw=1 (onset of this one: "
+                       f"{d.onset})")
+                raise ValueError(f"{group} seed {seed}: draws {draws[0].regime!r} and {d.regime!r} differ in the first "
+                                 f"{prefix} decisions ({what}); a draw must leave them as they were: {fix}")
             kept[seed] = draws
+        if short:
+            notes.append(f"{group}: {short} seeds left out: their episodes end before {prefix} decisions")
+        if single:
+            notes.append(f"{group}: {single} seeds left out: one draw each (records of one checkpoint must name it "
+                         "alike in every file: a group is arm:checkpoint)")
         if kept:
             out[group] = kept
     if not out:
-        raise ValueError(f"no seed has two or more draws reaching {prefix} decisions: give the natural records and "
-                         "the same seeds under sensor_noise:onset=80,draw=1,label=draw1 (and more draws) of "
-                         "jepa-policy eval --faults ... --faults-only")
+        longest = max(e.n_decisions for e in episodes)
+        if longest < prefix:
+            raise ValueError(f"no episode reaches {prefix} decisions (the longest has {longest}): use --prefix "
+                             f"{longest} or less")
+        groups = sorted(by)
+        raise ValueError(f"no seed has two or more draws reaching {prefix} decisions (groups read: "
+                         f"{', '.join(groups)}; one checkpoint's records must name it alike in every file): give "
+                         "the natural records and the same seeds under sensor_noise:onset=80,draw=1,label=draw1 (and "
+                         "more draws) of jepa-policy eval --faults ... --faults-only")
     return out
 
 
@@ -138,11 +160,22 @@ def ceiling(episodes: list[cmp.Episode], prefix: int = cmp.PREFIX, n_bootstrap: 
             signals=None, folds: int = 5) -> dict:
     """Per group (checkpoint): the outcome-predictability ceiling of the first ``prefix`` decisions and each
     signal's AUROC on the same draws (module docstring)."""
-    result = {"prefix": prefix, "groups": {}}
-    for group, seeds in _draws(episodes, prefix).items():
+    notes: list[str] = []
+    result = {"prefix": prefix, "groups": {}, "notes": notes}
+    kept = _draws(episodes, prefix, notes)
+    if signals is not None:
+        known = {n for seeds in kept.values() for draws in seeds.values() for d in draws for n in d.values}
+        unknown = sorted(set(signals) - known - {cmp.STACK})
+        if unknown:
+            raise ValueError(f"--signals: no record carries {', '.join(map(repr, unknown))}; the records carry "
+                             f"{', '.join(sorted(known))} (and {cmp.STACK})")
+    for group, seeds in kept.items():
         rows = [(s, d) for s, draws in seeds.items() for d in draws]
         clusters = np.array([s for s, _ in rows])
         y = np.array([0 if d.success else 1 for _, d in rows])
+        if y.min() == y.max():
+            raise ValueError(f"{group}: all {y.size} draws {'failed' if y[0] else 'succeeded'}; an AUROC needs both "
+                             "failures and successes (more seeds, or a task whose episodes can fail)")
         fails = {s: sum(not d.success for d in draws) for s, draws in seeds.items()}
         count = {s: len(draws) for s, draws in seeds.items()}
         plug_in = np.array([fails[s] / count[s] for s, _ in rows])
@@ -160,11 +193,16 @@ def ceiling(episodes: list[cmp.Episode], prefix: int = cmp.PREFIX, n_bootstrap: 
                "failure_rate": float(y.mean()), "seeds_mixed": mixed, "seeds_mixed_fraction": mixed / len(seeds),
                "ceiling": {"plug_in": row(plug_in, 1), "leave_one_out": row(loo, 2)}, "signals": {}}
         first = [draws[0] for draws in seeds.values()]
-        names = sorted(set.intersection(*(set(e.values) for e in first))) if signals is None else list(signals)
+        every = sorted(set.union(*(set(e.values) for e in first)))
+        names = every if signals is None else [n for n in signals if n != cmp.STACK]
         for i, name in enumerate(names):
             per_seed = {s: cmp.episode_score(draws[0].values[name][:prefix]) if name in draws[0].values else None
                         for s, draws in seeds.items()}
             keep = np.array([per_seed[s] is not None for s, _ in rows])
+            missing = sum(v is None for v in per_seed.values())
+            if missing:
+                notes.append(f"{group}: {name} left out for {missing} of {len(seeds)} seeds (not recorded, or NaN "
+                             f"in all of the first {prefix} decisions)")
             if not keep.any():
                 continue
             scores = np.array([per_seed[s] if per_seed[s] is not None else np.nan for s, _ in rows])
@@ -172,8 +210,14 @@ def ceiling(episodes: list[cmp.Episode], prefix: int = cmp.PREFIX, n_bootstrap: 
                                     "ci": _cluster_bootstrap(scores[keep], y[keep], clusters[keep], n_bootstrap,
                                                              seed + 10 + i)}
         natural = [d for draws in seeds.values() for d in draws if d.regime == NATURAL]
-        members = cmp.stack_members(names)
-        if len(natural) == len(seeds) and len(members) > 1:   # the stack, fitted on the natural draws only
+        members = cmp.stack_members(every if signals is None or cmp.STACK in signals else names)
+        wanted = signals is None or cmp.STACK in signals
+        if wanted and len(natural) < len(seeds):
+            notes.append(f"{group}: no {cmp.STACK} row: it is fitted on the natural run of every seed and "
+                         f"{len(seeds) - len(natural)} seeds have none (give the natural records too)")
+        elif wanted and len(members) < 2:
+            notes.append(f"{group}: no {cmp.STACK} row: it needs two or more non-control signals")
+        if wanted and len(natural) == len(seeds) and len(members) > 1:   # fitted on the natural draws only
             cmp.assign_folds(natural, folds, seed)
             stacked = cmp.stacked_scores(natural, members, prefix)
             per_seed = {natural[i].seed: v for i, v in stacked.items()}
@@ -207,4 +251,5 @@ def summary_text(result: dict) -> str:
                   f"{_fmt(g['ceiling']['plug_in'])}"]
         for name, r in sorted(g["signals"].items(), key=lambda kv: -(kv[1]["auroc"] or 0)):
             lines.append(f"  {name:20s} {_fmt(r)}")
+    lines += [f"note: {n}" for n in result.get("notes", [])]
     return "\n".join(lines)

@@ -88,23 +88,55 @@ def random_score(seed: int, step: int) -> float:
     return 1.0 - float(np.random.default_rng([int(seed), int(step), 0x52414E44]).random())
 
 
+def _number(v) -> float:
+    """A signal value as a float; a JSON number only (bool, text or a list is a malformed record, not a value)."""
+    if isinstance(v, bool) or not isinstance(v, (int, float)):
+        raise TypeError(f"{v!r} is not a number")
+    return float(v)
+
+
+def parse_where(items) -> dict[str, set[str]]:
+    """``--where KEY=VALUE`` options as {key: the values kept}; a key given twice keeps either value."""
+    where: dict[str, set[str]] = {}
+    for item in items or []:
+        key, eq, value = item.partition("=")
+        if not eq or not key:
+            raise ValueError(f"--where {item!r} needs KEY=VALUE, e.g. --where arm=jepa")
+        where.setdefault(key, set()).add(value)
+    return where
+
+
 def episode_of(row: dict, where: str = "") -> Episode:
     """An ``Episode`` from one record; ValueError naming the record for a malformed one."""
     try:
         decisions = sorted(row["decisions"], key=lambda d: d["step"])
-        seed, success, length = int(row["seed"]), bool(row["success"]), int(row["length"])
+        seed, success, length = int(row["seed"]), row["success"], int(row["length"])
     except (KeyError, TypeError, ValueError) as exc:
         raise ValueError(f"{where}: an episode record needs seed, success, length and decisions ({exc}); write them "
                          "with jepa-policy eval --out") from None
-    steps = np.array([int(d["step"]) for d in decisions], dtype=np.int64)
-    target = np.array([int(d.get("target_step", d["step"])) for d in decisions], dtype=np.int64)
-    names = {n for d in decisions for n in TARGET_TIME if d.get(n) is not None}
-    names |= {n for d in decisions for n in (d.get("scores") or {})}
-    values, known = {}, {}
-    for name in sorted(names):
-        raw = [d.get(name) if name in TARGET_TIME else (d.get("scores") or {}).get(name) for d in decisions]
-        values[name] = np.array([np.nan if v is None else float(v) for v in raw], dtype=np.float64)
-        known[name] = target if name in TARGET_TIME else steps
+    if not isinstance(success, bool):   # "false" or null would read as a label silently (bool("false") is True)
+        raise ValueError(f"{where}: success must be true or false, got {success!r}; write records with "
+                         "jepa-policy eval --out")
+    field = "step"
+    try:
+        steps = np.array([int(d["step"]) for d in decisions], dtype=np.int64)
+        field = "target_step"
+        target = np.array([int(d.get("target_step", d["step"])) for d in decisions], dtype=np.int64)
+        field = "scores"
+        if any(not isinstance(d.get("scores") or {}, dict) for d in decisions):
+            raise TypeError("scores must be an object {name: number}")
+        names = {n for d in decisions for n in TARGET_TIME if d.get(n) is not None}
+        names |= {n for d in decisions for n in (d.get("scores") or {})}
+        values, known = {}, {}
+        for name in sorted(names):
+            field = name
+            raw = [d.get(name) if name in TARGET_TIME else (d.get("scores") or {}).get(name) for d in decisions]
+            values[name] = np.array([np.nan if v is None else _number(v) for v in raw], dtype=np.float64)
+            known[name] = target if name in TARGET_TIME else steps
+    except (KeyError, TypeError, ValueError, AttributeError) as exc:
+        raise ValueError(f"{where}: a decision's {field!r} is malformed ({type(exc).__name__}: {exc}); each decision "
+                         "needs an integer step and target_step and numbers for its signals, as jepa-policy eval --out "
+                         "writes them") from None
     if "nmse" in values and "nmse_persistence" in values:
         values[RATIO] = scoring.nmse_ratio(values["nmse"], values["nmse_persistence"])   # the service's definition
         known[RATIO] = target
@@ -118,7 +150,9 @@ def episode_of(row: dict, where: str = "") -> Episode:
 
 
 def load_records(paths, where: dict | None = None) -> list[Episode]:
-    """Every episode record of the JSONL files (``.gz`` too); ``where``: keep records whose fields equal these."""
+    """Every episode record of the JSONL files (``.gz`` too); ``where``: keep records whose fields equal these
+    ({key: value or a set of values})."""
+    where = {k: {v} if isinstance(v, str) else set(v) for k, v in (where or {}).items()}
     out = []
     for path in paths:
         for n, row in jsonl_rows(path, "write records with jepa-policy eval --faults all --out",
@@ -126,11 +160,13 @@ def load_records(paths, where: dict | None = None) -> list[Episode]:
             if not isinstance(row, dict) or "decisions" not in row:
                 raise ValueError(f"{path}:{n}: not an episode record (no 'decisions'); compare reads "
                                  "jepa-policy eval --out records")
-            if where and any(str(row.get(k)) != v for k, v in where.items()):
+            if any(str(row.get(k)) not in kept for k, kept in where.items()):
                 continue
             out.append(episode_of(row, f"{path}:{n}"))
     if not out:
-        raise ValueError("no episode records to compare (check the files and --where)")
+        chosen = " and ".join(f"{k}={'|'.join(sorted(v))}" for k, v in where.items())
+        raise ValueError(f"no episode records in {', '.join(map(str, paths))}" + (f" with {chosen}" if chosen else "")
+                         + " (check the files and --where)")
     return out
 
 

@@ -18,7 +18,8 @@ def add_parser(sub) -> argparse.ArgumentParser:
     s.add_argument("records", nargs="+", help="episode records (JSONL, .gz too) of `jepa-policy eval --faults all "
                                               "--out FILE`, one file per checkpoint or several")
     s.add_argument("--where", action="append", metavar="KEY=VALUE",
-                   help="keep only records with this field value, e.g. --where arm=jepa (repeatable)")
+                   help="keep only records with this field value, e.g. --where arm=jepa (repeatable; a key "
+                        "given twice keeps either value)")
     s.add_argument("--alpha", type=float, default=0.1, help="false-alert rate the rules are calibrated at (0.1)")
     s.add_argument("--folds", type=int, default=5, help="cross-fitting folds (default 5)")
     s.add_argument("--prefix", type=int, default=10, help="decisions of the length-controlled view (default 10)")
@@ -40,15 +41,10 @@ def add_parser(sub) -> argparse.ArgumentParser:
 
 
 def run(args) -> int:
-    from monitor_service.compare import compare, load_records, markdown, summary_text
+    from monitor_service.compare import compare, load_records, markdown, parse_where, summary_text
 
     t0 = time.perf_counter()
-    where = {}
-    for item in args.where or []:
-        key, eq, value = item.partition("=")
-        if not eq:
-            raise ValueError(f"--where {item!r} needs KEY=VALUE, e.g. --where arm=jepa")
-        where[key] = value
+    where = parse_where(args.where)
     if args.folds < 2:
         raise ValueError(f"--folds must be >= 2 for cross-fitting, got {args.folds}")
     if args.prefix < 1:
@@ -83,7 +79,8 @@ def add_ceiling_parser(sub) -> argparse.ArgumentParser:
                    help="episode records (JSONL, .gz too): the natural run and each draw on the same seeds, e.g. "
                         "jepa-policy eval --faults 'sensor_noise:onset=80,draw=1,label=draw1;...' --faults-only")
     s.add_argument("--where", action="append", metavar="KEY=VALUE",
-                   help="keep only records with this field value, e.g. --where arm=jepa (repeatable)")
+                   help="keep only records with this field value, e.g. --where arm=jepa (repeatable; a key "
+                        "given twice keeps either value)")
     s.add_argument("--prefix", type=int, default=10, help="decisions every score may see (default 10)")
     s.add_argument("--signals", help="comma-separated signals to set beside the ceiling (default: every one)")
     s.add_argument("--bootstrap", type=int, default=2000, help="bootstrap resamples over seeds (default 2000)")
@@ -95,19 +92,17 @@ def add_ceiling_parser(sub) -> argparse.ArgumentParser:
 
 def run_ceiling(args) -> int:
     from monitor_service.ceiling import ceiling, summary_text
-    from monitor_service.compare import load_records
+    from monitor_service.compare import load_records, parse_where
 
     t0 = time.perf_counter()
-    where = {}
-    for item in args.where or []:
-        key, eq, value = item.partition("=")
-        if not eq:
-            raise ValueError(f"--where {item!r} needs KEY=VALUE, e.g. --where arm=jepa")
-        where[key] = value
+    where = parse_where(args.where)
     if args.prefix < 1:
         raise ValueError(f"--prefix must be >= 1 decision, got {args.prefix}")
-    if args.bootstrap < 0:
-        raise ValueError(f"--bootstrap must be >= 0 resamples, got {args.bootstrap}")
+    if args.bootstrap < 0 or 0 < args.bootstrap < 100:
+        raise ValueError(f"--bootstrap must be 0 (no intervals) or >= 100 resamples (a 95 % interval from fewer is "
+                         f"noise), got {args.bootstrap}")
+    if args.json and (Path(args.json).is_dir() or not Path(args.json).parent.is_dir()):
+        raise ValueError(f"--json {args.json}: give a file in an existing folder")
     episodes = load_records(args.records, where)
     result = ceiling(episodes, prefix=args.prefix, n_bootstrap=args.bootstrap, seed=args.seed,
                      signals=[s.strip() for s in args.signals.split(",")] if args.signals else None)

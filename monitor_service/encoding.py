@@ -8,6 +8,7 @@ from __future__ import annotations
 import gzip
 import json
 import math
+import zlib
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -153,13 +154,22 @@ def jsonl_rows(path: str | Path, missing: str, layout: str) -> Iterator[tuple[in
     """(line number, value) of every non-blank line of a JSON-lines records file (``.gz`` too). ``missing``: the
     fix named when the file does not exist; ``layout``: what a line must be, named when one is not JSON."""
     path = Path(path)
+    if path.is_dir():
+        raise ValueError(f"{path} is a directory; give the records file in it")
     if not path.is_file():
         raise FileNotFoundError(f"{path} does not exist; {missing}")
-    with (gzip.open(path, "rt") if path.suffix == ".gz" else path.open()) as f:
-        for n, line in enumerate(f, 1):
-            if not line.strip():
-                continue
-            try:
-                yield n, json.loads(line)
-            except json.JSONDecodeError as exc:
-                raise ValueError(f"{path}:{n}: not JSON ({exc.msg}); {layout}") from None
+    n = 0
+    try:
+        with (gzip.open(path, "rt", encoding="utf-8") if path.suffix == ".gz" else path.open(encoding="utf-8")) as f:
+            for n, line in enumerate(f, 1):
+                if not line.strip():
+                    continue
+                try:
+                    yield n, json.loads(line)
+                except json.JSONDecodeError as exc:
+                    raise ValueError(f"{path}:{n}: not JSON ({exc.msg}); {layout}") from None
+    except (EOFError, gzip.BadGzipFile, UnicodeDecodeError, zlib.error) as exc:
+        what = ("not a complete gzip file" if path.suffix == ".gz" and not isinstance(exc, UnicodeDecodeError)
+                else "not UTF-8 text")
+        raise ValueError(f"{path}: {what} after line {n} ({type(exc).__name__}: {exc}); {layout}, written whole "
+                         "(a copy cut short? copy it again)") from None

@@ -194,7 +194,7 @@ def test_the_command_writes_json_and_markdown_and_refuses_bad_input_in_one_line(
     for argv, message in ((["compare", str(path), "--where", "arm"], "--where 'arm' needs KEY=VALUE"),
                           (["compare", str(tmp_path / "none.jsonl")], "does not exist"),
                           (["compare", str(bad)], f"{bad}:2: not JSON"),
-                          (["compare", str(path), "--where", "arm=diffusion"], "no episode records to compare"),
+                          (["compare", str(path), "--where", "arm=diffusion"], "no episode records in "),
                           (["compare", str(path), "--folds", "1"], "--folds must be >= 2"),
                           (["compare", str(path), "--rules", "slow"], "unknown rule setting")):
         assert monitor_main(argv) == 2

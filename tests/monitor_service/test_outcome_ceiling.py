@@ -99,7 +99,11 @@ def test_draws_that_differ_within_the_prefix_are_refused_with_the_fix():
     rows = _population(20, 2, rng, lambda s: 0.5)
     rows[7] = _record(rows[7]["seed"], rows[7]["regime"], rows[7]["success"], 0.5, rng, diverge=True)
     with pytest.raises(ValueError, match=r"seed 3: draws 'natural' and 'draw1' differ in the first 10 decisions "
-                                         r"\(signal 'nmse'\).*onset=80,draw=1"):
+                                         r"\(signal 'nmse'\).*its onset \(80\) is already after them.*--workers 0"):
+        cl.ceiling([episode_of(r) for r in rows], prefix=PREFIX, n_bootstrap=0)
+    rows[7]["fault_onset"] = 16                                      # a perturbation that starts inside the prefix
+    with pytest.raises(ValueError, match=r"seed 3: .*start its perturbation after them, e.g. "
+                                         r"sensor_noise:onset=80,draw=1 \(onset of this one: 16\)"):
         cl.ceiling([episode_of(r) for r in rows], prefix=PREFIX, n_bootstrap=0)
     twice = _population(4, 2, rng, lambda s: 0.5) + [_record(0, "draw1", True, 0.5, rng)]
     with pytest.raises(ValueError, match="two records of regime 'draw1'.*label=draw2"):
@@ -123,3 +127,83 @@ def test_the_command_reads_record_files_and_writes_its_figures(tmp_path, capsys)
     assert saved["signals"]["stack"]["members"] == ["nmse", "nmse_ratio", "stac"]
     assert main(["ceiling", str(natural), "--prefix", "0"]) == 2
     assert "--prefix must be >= 1" in capsys.readouterr().err
+
+
+def test_infinite_scores_tie_within_a_seed_as_the_ranks_do():
+    """inf - inf is NaN: a within-seed pair of two infinite scores is a tie (1/2), as in the ranks it is taken from."""
+    inf = np.inf
+    scores, labels, clusters = np.array([inf, inf, 0.0, 1.0]), np.array([1, 0, 1, 0]), np.array([0, 0, 1, 2])
+    assert cl.cross_cluster_auroc(scores, labels, clusters) == pytest.approx(_brute(scores, labels, clusters))
+
+
+def _files(tmp_path, rows, name="records.jsonl"):
+    path = tmp_path / name
+    path.write_text("".join(json.dumps(r) + "\n" for r in rows))
+    return str(path)
+
+
+def test_what_the_command_leaves_out_it_says_and_what_it_cannot_use_it_refuses(tmp_path, capsys):
+    rng = np.random.default_rng(5)
+    rows = _population(30, 3, rng, lambda s: 0.5) + [_record(100 + s, "natural", s % 2, 0.5, rng) for s in range(4)]
+    rows[0]["decisions"][0]["scores"]["rnd"] = 0.3                      # one seed's first draw carries one more signal
+    path = _files(tmp_path, rows)
+    assert main(["ceiling", path, "--bootstrap", "0"]) == 0
+    out = capsys.readouterr().out
+    assert "note: jepa:ck: 4 seeds left out: one draw each" in out
+    assert "note: jepa:ck: rnd left out for 29 of 30 seeds" in out
+    assert main(["ceiling", path, "--signals", "nmse,nosuch", "--bootstrap", "0"]) == 2
+    assert "no record carries 'nosuch'; the records carry" in capsys.readouterr().err
+    draws_only = _files(tmp_path, [r for r in rows if r["regime"] != "natural"], "draws.jsonl")
+    assert main(["ceiling", draws_only, "--bootstrap", "0"]) == 0
+    assert "no stack row: it is fitted on the natural run of every seed" in capsys.readouterr().out
+    every = _files(tmp_path, _population(10, 2, rng, lambda s: 0.0), "all_succeed.jsonl")
+    assert main(["ceiling", every, "--bootstrap", "0"]) == 2
+    assert "all 20 draws succeeded; an AUROC needs both failures and successes" in capsys.readouterr().err
+    assert main(["ceiling", path, "--prefix", "50", "--bootstrap", "0"]) == 2
+    assert "no episode reaches 50 decisions (the longest has 12): use --prefix 12" in capsys.readouterr().err
+    for bad, why in ((["--bootstrap", "10"], "--bootstrap must be 0 (no intervals) or >= 100"),
+                     (["--json", str(tmp_path)], "give a file in an existing folder")):
+        assert main(["ceiling", path, *bad]) == 2
+        assert why in capsys.readouterr().err
+
+
+def test_repeating_a_where_key_keeps_either_value(tmp_path, capsys):
+    rng = np.random.default_rng(6)
+    rows = _population(20, 2, rng, lambda s: 0.5)
+    for seed in range(20):                          # another fault of the same file, its onset inside the prefix
+        rows.append(_record(seed, "block_displaced", seed % 2, 0.5, rng, diverge=True) | {"fault_onset": 30})
+    path = _files(tmp_path, rows)
+    assert main(["ceiling", path, "--bootstrap", "0"]) == 2
+    assert "draws 'natural' and 'block_displaced' differ" in capsys.readouterr().err
+    assert main(["ceiling", path, "--where", "regime=natural", "--where", "regime=draw1", "--bootstrap", "0"]) == 0
+    assert "20 seeds reaching 10 decisions, 40 draws" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize("mangle, why", [
+    (lambda r: r.update(success="false"), "success must be true or false, got 'false'"),
+    (lambda r: r.update(success=None), "success must be true or false, got None"),
+    (lambda r: r["decisions"][2]["scores"].update(stac=[1, 2]), "a decision's 'stac' is malformed"),
+    (lambda r: r["decisions"][2].update(scores=[1, 2]), "a decision's 'scores' is malformed"),
+    (lambda r: r["decisions"][2].update(target_step=None), "a decision's 'target_step' is malformed"),
+    (lambda r: r["decisions"][2]["scores"].update(stac="abc"), "a decision's 'stac' is malformed"),
+])
+def test_a_malformed_record_is_refused_naming_its_line_and_field(tmp_path, capsys, mangle, why):
+    rng = np.random.default_rng(7)
+    rows = _population(4, 2, rng, lambda s: 0.5)
+    mangle(rows[3])
+    path = _files(tmp_path, rows)
+    assert main(["ceiling", path, "--bootstrap", "0"]) == 2
+    err = capsys.readouterr().err
+    assert f"{path}:4: " in err and why in err and "Traceback" not in err
+
+
+def test_a_cut_or_mislabelled_gzip_file_is_refused_with_the_fix(tmp_path, capsys):
+    import gzip
+    rng = np.random.default_rng(8)
+    blob = gzip.compress("".join(json.dumps(r) + "\n" for r in _population(10, 2, rng, lambda s: 0.5)).encode())
+    cut, plain = tmp_path / "cut.jsonl.gz", tmp_path / "plain.jsonl.gz"
+    cut.write_bytes(blob[: len(blob) // 2])
+    plain.write_text("{}\n")
+    for path in (cut, plain):
+        assert main(["ceiling", str(path), "--bootstrap", "0"]) == 2
+        assert "not a complete gzip file" in capsys.readouterr().err
