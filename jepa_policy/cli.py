@@ -89,7 +89,8 @@ def cmd_eval(args) -> int:
         return _eval_regimes(args, policy, calibration)
     report = evaluate(policy, episodes=args.episodes, seed=args.seed, num_envs=args.num_envs,
                       max_steps=args.max_steps, video_dir=args.video, out=args.out, workers=args.workers,
-                      save_rollouts=args.save_rollouts, residual_calibration=calibration)
+                      save_rollouts=args.save_rollouts, residual_calibration=calibration,
+                      tags={"arm": policy.model.cfg.arm, "checkpoint": str(args.checkpoint)})
     summary = {k: v for k, v in report.items() if k != "records"}
     from jepa_policy.published import PUBLISHED_TASKS, published_metrics
 

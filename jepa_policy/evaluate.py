@@ -173,7 +173,7 @@ def evaluate(policy, episodes: int, seed: int, num_envs: int = 4, max_steps: int
              keep_latents: bool = False, out: str | Path | None = None, pool: EnvPool | None = None,
              workers: int | None = 0, max_reruns: int = 2, shard: tuple[int, int] | None = None,
              save_rollouts: str | Path | None = None, residual_calibration: list[dict] | dict | None = None,
-             fault: dict | None = None) -> dict:
+             fault: dict | None = None, tags: dict | None = None) -> dict:
     """Run ``episodes`` rollouts with seeds seed, seed+1, ... in rounds of ``num_envs`` lockstep environments.
 
     The environments live in ``pool`` (a persistent ``EnvPool`` from ``make_pool``, reused across calls; its
@@ -183,7 +183,7 @@ def evaluate(policy, episodes: int, seed: int, num_envs: int = 4, max_steps: int
     times); the report lists each rerun. Per-decision events (``on_decision``) are delivered once their round
     has completed, so a rerun never delivers an event twice. Only the frames the policy uses are rendered
     (``policy.images_needed``) unless videos are written. Returns the report (success rate, mean NMSE,
-    per-episode records); ``out`` also writes the records as JSONL.
+    per-episode records); ``out`` also writes the records as JSONL; ``tags``: fields added to every record.
 
     Across machines (torchrun): ``shard=(rank, world)``, by default that of an initialised torch.distributed
     process group, gives rank r the rounds r, r + world, ...; every rank's records are gathered, so every rank
@@ -277,6 +277,8 @@ def evaluate(policy, episodes: int, seed: int, num_envs: int = 4, max_steps: int
         "episodes_by_rank": shares,
         "records": records,
     }
+    for r in records:   # e.g. the arm and checkpoint, so that records of several checkpoints never pool
+        r.update(tags or {})
     if out and rank == 0:
         Path(out).parent.mkdir(parents=True, exist_ok=True)
         with open(out, "w") as f:

@@ -95,6 +95,9 @@ def _number(v) -> float:
     return float(v)
 
 
+WHERE_DEFAULTS = {"regime": "natural"}   # what a record without the field is read as (eval without --faults)
+
+
 def parse_where(items) -> dict[str, set[str]]:
     """``--where KEY=VALUE`` options as {key: the values kept}; a key given twice keeps either value."""
     where: dict[str, set[str]] = {}
@@ -153,16 +156,24 @@ def load_records(paths, where: dict | None = None) -> list[Episode]:
     """Every episode record of the JSONL files (``.gz`` too); ``where``: keep records whose fields equal these
     ({key: value or a set of values})."""
     where = {k: {v} if isinstance(v, str) else set(v) for k, v in (where or {}).items()}
-    out = []
+    out, unnamed = [], defaultdict(set)
     for path in paths:
         for n, row in jsonl_rows(path, "write records with jepa-policy eval --faults all --out",
                                  "one episode record per line"):
             if not isinstance(row, dict) or "decisions" not in row:
                 raise ValueError(f"{path}:{n}: not an episode record (no 'decisions'); compare reads "
                                  "jepa-policy eval --out records")
-            if any(str(row.get(k)) not in kept for k, kept in where.items()):
+            if any(str(row.get(k, WHERE_DEFAULTS.get(k))) not in kept for k, kept in where.items()):
                 continue
             out.append(episode_of(row, f"{path}:{n}"))
+            if not row.get("group") and not row.get("checkpoint"):
+                unnamed[out[-1].group].add(str(path))
+    pooled = {g: files for g, files in unnamed.items() if len(files) > 1}
+    if pooled:
+        group, files = sorted(pooled.items())[0]
+        raise ValueError(f"records of {', '.join(sorted(files))} name no checkpoint, so they would be pooled as one "
+                         f"policy ({group!r}) although they may come from several; write them again with jepa-policy "
+                         "eval --out (it names the arm and checkpoint), or give one such file per run")
     if not out:
         chosen = " and ".join(f"{k}={'|'.join(sorted(v))}" for k, v in where.items())
         raise ValueError(f"no episode records in {', '.join(map(str, paths))}" + (f" with {chosen}" if chosen else "")

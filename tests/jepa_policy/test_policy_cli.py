@@ -86,7 +86,9 @@ def test_train_eval_protocols_from_the_command_line(pusht_demo_file, tmp_path, c
     assert report["episodes"] == 2 and 0.0 <= report["success_rate"] <= 1.0
     assert report["workers"] == 2 and report["reruns"] == []
     assert report["renderer"] == "none"   # PushT rasterises without OpenGL; MuJoCo tasks name their backend
-    assert len((tmp_path / "eval.jsonl").read_text().splitlines()) == 2
+    plain = [json.loads(line) for line in (tmp_path / "eval.jsonl").read_text().splitlines()]
+    assert len(plain) == 2   # named, so that compare never pools two checkpoints' records as one policy
+    assert {(r["arm"], r["checkpoint"]) for r in plain} == {("jepa", str(ckpt))}
     # faults only, one of them twice under labels: the records are tagged with the labels, no natural block
     assert main(["eval", "--checkpoint", str(ckpt), "--episodes", "2", "--seed", "3", "--max-steps", "10",
                  "--workers", "0", "--faults", "sensor_noise;sensor_noise:std=9,label=noisier", "--faults-only",

@@ -175,6 +175,10 @@ def test_repeating_a_where_key_keeps_either_value(tmp_path, capsys):
     path = _files(tmp_path, rows)
     assert main(["ceiling", path, "--bootstrap", "0"]) == 2
     assert "draws 'natural' and 'block_displaced' differ" in capsys.readouterr().err
+    for r in rows:
+        if r["regime"] == "natural":
+            del r["regime"]                         # jepa-policy eval without --faults writes no regime: natural
+    path = _files(tmp_path, rows)
     assert main(["ceiling", path, "--where", "regime=natural", "--where", "regime=draw1", "--bootstrap", "0"]) == 0
     assert "20 seeds reaching 10 decisions, 40 draws" in capsys.readouterr().out
 
@@ -207,3 +211,17 @@ def test_a_cut_or_mislabelled_gzip_file_is_refused_with_the_fix(tmp_path, capsys
     for path in (cut, plain):
         assert main(["ceiling", str(path), "--bootstrap", "0"]) == 2
         assert "not a complete gzip file" in capsys.readouterr().err
+
+
+def test_records_that_name_no_checkpoint_are_not_pooled_across_files(tmp_path, capsys):
+    """Two files of records without arm or checkpoint (as jepa-policy eval wrote them without --faults before it
+    named them) may come from two checkpoints: reading them as one policy would pool their raw scores."""
+    rng = np.random.default_rng(9)
+    rows = _population(6, 2, rng, lambda s: 0.5)
+    for r in rows:
+        del r["arm"], r["checkpoint"]
+    a = _files(tmp_path, rows[::2], "a.jsonl")
+    b = _files(tmp_path, rows[1::2], "b.jsonl")
+    assert main(["compare", a, b]) == 2
+    err = capsys.readouterr().err
+    assert "name no checkpoint, so they would be pooled as one policy" in err and "a.jsonl" in err
