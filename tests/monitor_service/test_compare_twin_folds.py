@@ -51,3 +51,19 @@ def test_a_score_whose_episode_mean_overflows_leaves_the_stack_standing():
     row = result["groups"]["jepa:c"]["views"]["whole"]["ranking"]["natural"]["stack"]
     assert row["failures"] + row["successes"] == 19 and row["auroc"] is not None   # only the overflowing one out
     assert "stack" in compare.markdown(result)
+
+
+def test_a_checkpoints_folds_do_not_depend_on_the_other_checkpoints_loaded_beside_it():
+    """The folds (and so the stack) of one group are the same whether it is compared alone or beside others."""
+    from monitor_service.compare import Episode, assign_folds
+
+    def group(name, n):
+        rng = np.random.default_rng(len(name))
+        return [Episode(s, bool(rng.random() < 0.5), 100, "natural", name, np.arange(3), {}, {}, None)
+                for s in range(n)]
+
+    alone = group("mip:b.pt", 40)
+    assign_folds(alone, 5)
+    beside = group("jepa:a.pt", 33) + group("mip:b.pt", 40)
+    assign_folds(beside, 5)
+    assert [e.fold for e in alone] == [e.fold for e in beside if e.group == "mip:b.pt"]
