@@ -90,7 +90,7 @@ def cmd_eval(args) -> int:
     report = evaluate(policy, episodes=args.episodes, seed=args.seed, num_envs=args.num_envs,
                       max_steps=args.max_steps, video_dir=args.video, out=args.out, workers=args.workers,
                       save_rollouts=args.save_rollouts, residual_calibration=calibration,
-                      tags={"arm": policy.model.cfg.arm, "checkpoint": str(args.checkpoint)})
+                      tags=_record_tags(args, policy))
     summary = {k: v for k, v in report.items() if k != "records"}
     from jepa_policy.published import PUBLISHED_TASKS, published_metrics
 
@@ -121,6 +121,11 @@ def _fault_spec(text: str) -> dict:
         except json.JSONDecodeError:
             raise ValueError(f"fault option {key}={value!r} is not a number or JSON list") from None
     return spec
+
+
+def _record_tags(args, policy) -> dict:
+    """What every eval record names: its arm and checkpoint (compare groups records by them, never pooling two)."""
+    return {"arm": policy.model.cfg.arm, "checkpoint": str(args.checkpoint)}
 
 
 def _eval_regimes(args, policy, calibration) -> int:
@@ -155,9 +160,7 @@ def _eval_regimes(args, policy, calibration) -> int:
         episodes = args.episodes if fault is None else min(args.fault_episodes, args.episodes)
         report = evaluate(policy, episodes=episodes, seed=args.seed, num_envs=args.num_envs,
                           max_steps=args.max_steps, workers=args.workers, residual_calibration=calibration,
-                          fault=fault)
-        for rec in report["records"]:
-            rec.update(regime=label, arm=policy.model.cfg.arm, checkpoint=str(args.checkpoint))
+                          fault=fault, tags={"regime": label, **_record_tags(args, policy)})
         records += report["records"]
         summary["regimes"][label] = {"episodes": episodes, "success_rate": report["success_rate"],
                                      "seconds": round(time.perf_counter() - t0, 1)}

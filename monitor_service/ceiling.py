@@ -210,8 +210,8 @@ def ceiling(episodes: list[cmp.Episode], prefix: int = cmp.PREFIX, n_bootstrap: 
                                     "ci": _cluster_bootstrap(scores[keep], y[keep], clusters[keep], n_bootstrap,
                                                              seed + 10 + i)}
         natural = [d for draws in seeds.values() for d in draws if d.regime == NATURAL]
-        members = cmp.stack_members(every if signals is None or cmp.STACK in signals else names)
         wanted = signals is None or cmp.STACK in signals
+        members = cmp.stack_members(every)
         if wanted and len(natural) < len(seeds):
             notes.append(f"{group}: no {cmp.STACK} row: it is fitted on the natural run of every seed and "
                          f"{len(seeds) - len(natural)} seeds have none (give the natural records too)")

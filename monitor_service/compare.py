@@ -95,7 +95,7 @@ def _number(v) -> float:
     return float(v)
 
 
-WHERE_DEFAULTS = {"regime": "natural"}   # what a record without the field is read as (eval without --faults)
+RECORD_DEFAULTS = {"regime": "natural"}   # a record without the field is read so (eval without --faults), --where too
 
 
 def parse_where(items) -> dict[str, set[str]]:
@@ -145,7 +145,7 @@ def episode_of(row: dict, where: str = "") -> Episode:
         known[RATIO] = target
     values[RANDOM] = np.array([random_score(seed, s) for s in steps], dtype=np.float64)
     known[RANDOM] = steps
-    regime = str(row.get("regime", "natural"))
+    regime = str(row.get("regime", RECORD_DEFAULTS["regime"]))
     group = str(row.get("group") or f"{row.get('arm', 'policy')}:{row.get('checkpoint', '')}")
     onset = row.get("fault_onset")
     return Episode(seed, success, length, regime, group, steps, known, values,
@@ -163,7 +163,7 @@ def load_records(paths, where: dict | None = None) -> list[Episode]:
             if not isinstance(row, dict) or "decisions" not in row:
                 raise ValueError(f"{path}:{n}: not an episode record (no 'decisions'); compare reads "
                                  "jepa-policy eval --out records")
-            if any(str(row.get(k, WHERE_DEFAULTS.get(k))) not in kept for k, kept in where.items()):
+            if any(str(row.get(k, RECORD_DEFAULTS.get(k))) not in kept for k, kept in where.items()):
                 continue
             out.append(episode_of(row, f"{path}:{n}"))
             if not row.get("group") and not row.get("checkpoint"):

@@ -317,9 +317,10 @@ def run_rollouts(policy, cfg: DemoConfig, *, arm: str, seed: int, phase: str, fi
         for start in range(0, episodes, cfg.num_envs):
             n = min(cfg.num_envs, episodes - start)
             report = evaluate(policy, episodes=n, seed=first_seed + start, num_envs=n, pool=pool,
-                              on_decision=on_decision if client is not None else None)
+                              on_decision=on_decision if client is not None else None,
+                              tags={"arm": arm, "train_seed": seed, "phase": phase})
             for rec in report["records"]:
-                rec.update(arm=arm, train_seed=seed, phase=phase, episode_id=episode_id(rec["seed"]))
+                rec["episode_id"] = episode_id(rec["seed"])
                 if client is not None:
                     client.outcome(rec["episode_id"], rec["success"], held_out=phase == "calibration",
                                    group=f"seed{seed}", length=rec["length"])
@@ -417,11 +418,11 @@ def run_failure_study(cfg, dataset: Path, checkpoints: dict, arms: tuple[str, ..
         for fault in (None, *cfg.failure_faults):
             t0 = time.perf_counter()
             n = cfg.failure_episodes if fault is None else cfg.failure_fault_episodes
-            report = evaluate(policy, episodes=n, seed=FAILURE_SEED, num_envs=cfg.num_envs, workers=cfg.workers,
-                              fault=None if fault is None else {"name": fault})
             regime = fault or "natural"
-            for rec in report["records"]:
-                rec.update(regime=regime, arm=arm, checkpoint=f"{arm}_seed{seed}", train_seed=seed)
+            report = evaluate(policy, episodes=n, seed=FAILURE_SEED, num_envs=cfg.num_envs, workers=cfg.workers,
+                              fault=None if fault is None else {"name": fault},
+                              tags={"regime": regime, "arm": arm, "checkpoint": f"{arm}_seed{seed}",
+                                    "train_seed": seed})
             records += report["records"]
             timing[f"{arm} {regime}"] = time.perf_counter() - t0
             print(f"   {arm} {regime}: {sum(r['success'] for r in report['records'])}/{n} successes "
