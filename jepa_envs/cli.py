@@ -8,6 +8,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import statistics
 import sys
 import time
 from dataclasses import asdict, dataclass
@@ -45,8 +46,13 @@ def _spec_or_exit(task: str):
 
 # -- make-demos -----------------------------------------------------------------------------------------------
 
+ROBOSUITE_EXPERT_TASKS = ("Lift", "Can")   # jepa_envs.tasks.robosuite_expert.EXPERTS (imported only when used)
+EXPERT_TASKS = ("PushT", "PushTStandard", *ROBOSUITE_EXPERT_TASKS)
+
+
 def _make_demos_args(p: argparse.ArgumentParser) -> None:
-    p.add_argument("task", help="task name: PushT or PushTStandard (gym-pusht's task)")
+    p.add_argument("task", help="task name: PushT, PushTStandard (gym-pusht's task), Lift or Can (robomimic's, on "
+                                "robosuite)")
     p.add_argument("--episodes", type=int, required=True, help="number of successful demonstrations")
     p.add_argument("--out", required=True, help="output HDF5 file (robomimic layout)")
     p.add_argument("--seed", type=int, default=0, help="first episode seed (episodes use seed, seed+1, ...)")
@@ -54,20 +60,24 @@ def _make_demos_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--difficulty", default=None,
                    help="PushT difficulty preset: easy (default), medium, hard, full (not for PushTStandard)")
     p.add_argument("--finish-threshold", type=float, default=None,
-                   help="coverage at which each demonstration ends, between the task's success threshold and 1 "
-                        "(default: the threshold itself; jepa-demo uses 0.9 on easy: demos that finish with a "
+                   help="PushT only: coverage at which each demonstration ends, between the task's success threshold "
+                        "and 1 (default: the threshold itself; jepa-demo uses 0.9 on easy: demos that finish with a "
                         "margin teach a policy to clear the threshold, see docs/training.md)")
+    p.add_argument("--no-images", action="store_true",
+                   help="Lift and Can only: render no camera (about ten times faster) and write states, actions and "
+                        "low-dim observations; `jepa-envs render-dataset` renders the frames later")
     p.add_argument("--workers", type=int, default=os.cpu_count() or 1,
-                   help="processes that plan episodes (default: one per core; the file is the same for any number)")
+                   help="processes that record episodes (default: one per core; the file is the same for any number)")
 
 
-@subcommand("make-demos", "write scripted-expert demonstrations to HDF5", _make_demos_args)
+@subcommand("make-demos", "write scripted-expert demonstrations to HDF5 (PushT, PushTStandard, Lift, Can)",
+            _make_demos_args)
 def make_demos(args: argparse.Namespace) -> int:
     spec = _spec_or_exit(args.task)
-    if spec.suite != "embedded":
+    if spec.name not in EXPERT_TASKS:
         raise SystemExit(
-            f"error: no scripted expert exists for {spec.name} ({spec.suite}); only PushT and PushTStandard have one. "
-            "Bring your own "
+            f"error: no scripted expert exists for {spec.name} ({spec.suite}); there are experts for "
+            f"{', '.join(EXPERT_TASKS)}. Bring your own "
             f"data: download the public {spec.suite} demonstrations (or record your own) as HDF5 in the "
             "robomimic layout data/demo_N/{obs/<camera>_image, obs/<low-dim keys>, actions, states} with "
             "data.attrs['env_args']; convert delta actions with `jepa-envs convert-abs-actions IN OUT`; then "
@@ -76,22 +86,42 @@ def make_demos(args: argparse.Namespace) -> int:
         raise SystemExit(f"error: --episodes must be >= 1, got {args.episodes}")
     if args.workers < 1:
         raise SystemExit(f"error: --workers must be >= 1, got {args.workers}")
+    robosuite = spec.name in ROBOSUITE_EXPERT_TASKS
+    if robosuite and (args.difficulty is not None or args.finish_threshold is not None):
+        raise SystemExit(f"error: --difficulty and --finish-threshold are PushT's options; {spec.name}'s expert "
+                         "ends each demonstration when the task's own success check has held for a few steps")
+    if args.no_images and not robosuite:
+        raise SystemExit(f"error: --no-images is for the robosuite tasks ({', '.join(ROBOSUITE_EXPERT_TASKS)}); "
+                         f"{spec.name} renders its frames in about a millisecond")
     from jepa_envs.datasets.hdf5 import write_dataset
-    from jepa_envs.tasks.pusht_expert import generate_demos
 
     t0 = time.perf_counter()
     try:
-        options = {} if args.difficulty is None else {"difficulty": args.difficulty}
-        episodes, env_args = generate_demos(args.episodes, seed=args.seed, image_size=args.image_size,
-                                            task=spec.name, workers=args.workers, progress=True,
-                                            finish_threshold=args.finish_threshold, **options)
+        if robosuite:
+            from jepa_envs.tasks.robosuite_expert import generate_demos as generate_robosuite_demos
+
+            episodes, env_args = generate_robosuite_demos(spec.name, args.episodes, seed=args.seed,
+                                                          image_size=args.image_size, images=not args.no_images,
+                                                          workers=args.workers, progress=True)
+        else:
+            from jepa_envs.tasks.pusht_expert import generate_demos
+
+            options = {} if args.difficulty is None else {"difficulty": args.difficulty}
+            episodes, env_args = generate_demos(args.episodes, seed=args.seed, image_size=args.image_size,
+                                                task=spec.name, workers=args.workers, progress=True,
+                                                finish_threshold=args.finish_threshold, **options)
     except (ValueError, TypeError) as exc:  # an option out of range or not of this task: say which and stop
         raise SystemExit(f"error: {exc}") from None
+    seconds = time.perf_counter() - t0
     write_dataset(args.out, episodes, env_args)
-    steps = sum(len(ep["actions"]) for ep in episodes)
+    lengths = [len(ep["actions"]) for ep in episodes]
     attempts = env_args["expert"]["attempts"]
-    print(f"wrote {len(episodes)} demos ({steps} steps, expert success {len(episodes)}/{attempts}) to {args.out} "
-          f"in {time.perf_counter() - t0:.1f} s")
+    print(f"wrote {len(episodes)} demos ({sum(lengths)} steps, expert success {len(episodes)}/{attempts}) to "
+          f"{args.out} in {time.perf_counter() - t0:.1f} s")
+    if robosuite:
+        print(f"episode length mean {sum(lengths) / len(lengths):.1f}, median {statistics.median(lengths):.1f} steps; "
+              f"{attempts} attempts recorded in {seconds:.1f} s with {args.workers} worker(s): "
+              f"{seconds / attempts:.2f} s per attempt, {60 * attempts / seconds:.1f} attempts/min")
     return 0
 
 

@@ -3,5 +3,6 @@
 ``spec`` (every task's facts), ``base`` (the JEPAEnv interface), ``entry`` (what ``gym.make`` calls), ``wrappers``,
 ``render`` (the measured OpenGL backend), ``rotations`` and ``abs_actions`` (action conventions);
 ``pusht`` + ``pusht_expert`` (the embedded 2-D task and its scripted demonstrator), ``robosuite_common`` with
-``robomimic_env``, ``libero_env`` (+ ``libero_setup``) and ``mimicgen_env`` (+ ``install_mimicgen``).
+``robomimic_env`` (+ ``robosuite_expert``, Lift's and Can's scripted demonstrators), ``libero_env``
+(+ ``libero_setup``) and ``mimicgen_env`` (+ ``install_mimicgen``).
 """
