@@ -17,7 +17,7 @@ import os
 import sys
 import time
 
-from jepa_operator import DEFAULT_OPERATOR, OperatorClient, OperatorError
+from jepa_operator import DEFAULT_OPERATOR, SECRET_ENV, OperatorClient, OperatorError
 
 # the operator socket the commands talk to: --operator, else JEPA_ROBOT_OPERATOR, else the loopback default
 OPERATOR_ENV = "JEPA_ROBOT_OPERATOR"
@@ -31,16 +31,23 @@ def _parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", required=True)
     default = os.environ.get(OPERATOR_ENV) or DEFAULT_OPERATOR
     where = f"operator socket (default {default}: ${OPERATOR_ENV}, else {DEFAULT_OPERATOR})"
-    for name, text in (("estop", "latch the emergency stop (takes effect mid-chunk)"),
-                       ("clear-estop", "release the emergency stop"), ("home", "drive the robot home"),
-                       ("status", "print the bridge status"), ("shutdown", "stop the bridge")):
-        cmd = sub.add_parser(name, help=text)
+    secret = (f"the operator credential the bridge made (default ${SECRET_ENV}, else "
+              "~/.config/jepa-robot/operator.secret); clear-estop, home, confirm and shutdown need it")
+    commands = [sub.add_parser(name, help=text) for name, text in (
+        ("estop", "latch the emergency stop (takes effect mid-chunk; any local process may)"),
+        ("clear-estop", "release the emergency stop (the operator's credential)"),
+        ("home", "drive the robot home (the operator's credential)"), ("status", "print the bridge status"),
+        ("shutdown", "stop the bridge (the operator's credential)"))]
+    confirm = sub.add_parser("confirm", help="confirm the episode outcome (the operator's credential)")
+    confirm.add_argument("outcome", choices=("success", "failure"))
+    for cmd in (*commands, confirm):
         cmd.add_argument("--operator", default=default, help=where)
         cmd.add_argument("--timeout", type=float, default=5.0, help="seconds to wait for the bridge")
-    confirm = sub.add_parser("confirm", help="confirm the episode outcome")
-    confirm.add_argument("outcome", choices=("success", "failure"))
-    confirm.add_argument("--operator", default=default, help=where)
-    confirm.add_argument("--timeout", type=float, default=5.0)
+        cmd.add_argument("--operator-secret", metavar="FILE", help=secret)
+        cmd.add_argument("--curve-server-key", metavar="FILE",
+                         help="a network operator socket: the bridge's public key (bridge.key)")
+        cmd.add_argument("--curve-client-key", metavar="FILE",
+                         help="a network operator socket: this operator's secret key (NAME.key_secret)")
     return parser
 
 
@@ -62,7 +69,13 @@ def _wait_gone(pid, timeout_s: float) -> bool | None:
 
 def run_operator_command(argv: list[str]) -> int:
     args = _parser().parse_args(argv)
-    with OperatorClient(args.operator, timeout_s=args.timeout) as op:
+    try:
+        op = OperatorClient(args.operator, timeout_s=args.timeout, secret_file=args.operator_secret,
+                            curve_server_key=args.curve_server_key, curve_client_key=args.curve_client_key)
+    except OperatorError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 1
+    with op:
         try:
             if args.command == "shutdown":
                 pid = op.status().get("pid")

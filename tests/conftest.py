@@ -1,7 +1,23 @@
 """Shared fixtures: small real data made by the project's own generators."""
 from __future__ import annotations
 
+import os
+
 import pytest
+
+
+@pytest.fixture(scope="session", autouse=True)
+def operator_secret(tmp_path_factory):
+    """The robot bridges of the suite (in-process and the subprocesses it starts, which inherit the environment)
+    and their operators share one credential file in a temporary folder, never the user's own."""
+    path = tmp_path_factory.mktemp("operator") / "operator.secret"
+    before = os.environ.get("JEPA_ROBOT_OPERATOR_SECRET")
+    os.environ["JEPA_ROBOT_OPERATOR_SECRET"] = str(path)
+    yield path
+    if before is None:
+        os.environ.pop("JEPA_ROBOT_OPERATOR_SECRET", None)
+    else:
+        os.environ["JEPA_ROBOT_OPERATOR_SECRET"] = before
 
 
 @pytest.fixture(scope="session")

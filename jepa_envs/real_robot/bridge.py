@@ -52,12 +52,15 @@ from zmq.utils.monitor import parse_monitor_message
 
 from jepa_envs.real_robot import protocol as P
 from jepa_envs.real_robot.backends.base import RobotBackend
+from jepa_operator import CredentialError, ensure_operator_secret
+
 from jepa_envs.real_robot.endpoints import (IO_THREADS, BridgeConfig, is_loopback, network_bind_problem,
-                                            open_control_socket)
+                                            check_rt_priority, open_control_socket, operator_bind_problem,
+                                            operator_curve, realtime_context)
 from jepa_envs.real_robot.episodes import check_manifest, latency_stats
 from jepa_envs.real_robot.estop import EStop
 from jepa_envs.real_robot.operator_channel import OperatorChannel
-from jepa_envs.real_robot.runner import EpisodeRunner, Pending
+from jepa_envs.real_robot.runner import EpisodeRunner, EStopLatched, Pending
 from jepa_envs.real_robot.safety import ActionGuard, SafetyConfig
 from jepa_envs.real_robot.sessions import Refused, SessionKeeper
 from jepa_envs.real_robot.wire import ControlWire, Incoming
@@ -92,8 +95,10 @@ class RobotBridge:
                                         action_range=(backend.action_low, backend.action_high))
         if problems:
             raise ValueError("the safety configuration does not fit this robot: " + "; ".join(problems))
-        bind_problem = network_bind_problem(self.config.control_address, self.config.curve_secret_key is not None,
-                                            self.config.insecure_network)
+        bind_problem = (network_bind_problem(self.config.control_address, self.config.curve_secret_key is not None,
+                                             self.config.insecure_network)
+                        or operator_bind_problem(self.config.operator_address,
+                                                 self.config.curve_secret_key is not None))
         if bind_problem:
             raise ValueError(bind_problem)
         self.guard = ActionGuard(self.safety, backend.action_low, backend.action_high)
@@ -108,7 +113,9 @@ class RobotBridge:
         self.runner = EpisodeRunner(backend, self.safety, self.guard, self.estop, self.chunk_budget,
                                     self.config.record_dir, self._between_actions,
                                     self._apply_estop_if_latched)
+        check_rt_priority(self.config.rt_priority)
         self._ctx = zmq.Context(io_threads=IO_THREADS)
+        realtime_context(self._ctx, self.config.rt_priority)
         self._auth = None
         self._control: zmq.Socket | None = None
         self._monitor: zmq.Socket | None = None
@@ -119,6 +126,7 @@ class RobotBridge:
         self._stop = threading.Event()
         self.control_endpoint = ""
         self.operator_endpoint = ""
+        self.operator_secret_file = ""
         # state below is touched only by the event-loop thread
         self.sessions = SessionKeeper(self.link_timeout, self.link_grace, self.heartbeat_interval)
         self._listening_since = self._turn_end = time.monotonic()
@@ -132,15 +140,29 @@ class RobotBridge:
         """Restore the e-stop latch, open both sockets; endpoints with port ``*`` resolve to the port bound."""
         if self._control is not None:
             return
-        reason = self.estop.restore()
+        try:
+            secret_file, secret = ensure_operator_secret(self.config.operator_secret_file)
+        except CredentialError as exc:
+            raise ValueError(str(exc)) from None
+        try:
+            reason = self.estop.restore()
+        except OSError as exc:   # a state file it cannot write: the latch would not survive a crash
+            raise ValueError(str(exc)) from None
+        if reason is None and self.config.start_latched:
+            reason = self.config.start_latched
+            self.estop.press(reason)
         if reason is not None:
             log.warning("the bridge starts with the e-stop latched: %s", reason)
         self._control, self._auth = open_control_socket(self._ctx, self.config)
         self._wire = ControlWire(self._control, self.counters)
         self.control_endpoint = self._control.getsockopt_string(zmq.LAST_ENDPOINT)
         self._monitor = self._control.get_monitor_socket(zmq.EVENT_DISCONNECTED)
+        self.operator_secret_file = str(secret_file)
         self._operator = OperatorChannel(self._ctx, self.config.operator_address, self.estop,
-                                         self._operator_command, lambda: self._guarded(self.backend.hold))
+                                         self._operator_command, lambda: self._guarded(self.backend.hold),
+                                         secret=secret, secret_file=str(secret_file),
+                                         curve=lambda sock: operator_curve(self.config, sock),
+                                         rt_priority=self.config.rt_priority)
         self.operator_endpoint = self._operator.endpoint
         for sock in (self._control, self._monitor, self._operator.loop_commands):
             self._poller.register(sock, zmq.POLLIN)
@@ -559,7 +581,10 @@ class RobotBridge:
                                             "clear-estop) before homing")
             if self.runner.executing:
                 return P.error(P.ERR_BUSY, "a chunk is executing; e-stop first or wait for it to finish")
-            self.runner.home()
+            try:
+                self.runner.home()
+            except EStopLatched as exc:   # pressed between the check above and the move: nothing moved
+                return P.error(P.ERR_ESTOP, str(exc))
         elif kind == P.OP_SHUTDOWN:
             self._stop.set()
             return {"type": P.RESULT, "ok": True}

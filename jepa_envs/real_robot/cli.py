@@ -61,8 +61,17 @@ def _parser() -> argparse.ArgumentParser:
                        help="allow a control socket reachable from the network without CurveZMQ (only on a "
                             "dedicated, isolated robot-policy link)")
     serve.add_argument("--no-prompt", action="store_true", help="never prompt on stdin for confirmation")
+    serve.add_argument("--operator-secret", metavar="FILE",
+                       help="the operator credential file the bridge creates (mode 600) or reuses (default "
+                            "$JEPA_ROBOT_OPERATOR_SECRET, else ~/.config/jepa-robot/operator.secret); clear-estop, "
+                            "home, confirm and shutdown need it")
+    serve.add_argument("--start-latched", metavar="REASON", help=argparse.SUPPRESS)   # the supervisor's restarts
     serve.add_argument("--state-file", help="keep the e-stop latch here across restarts: a bridge started after "
                                             "a crash (or with the e-stop still latched) starts latched")
+    serve.add_argument("--rt-priority", type=int, default=None,
+                       help="run the e-stop path (the operator thread and the bridge's ZeroMQ I/O threads) at this "
+                            "SCHED_FIFO priority (1-99; needs CAP_SYS_NICE, which the systemd unit grants): the e-stop's bound "
+                            "under CPU overload (docs/real_robot.md, 'E-stop and load')")
     serve.add_argument("-v", "--verbose", action="store_true")
 
     supervise = sub.add_parser("supervise", help="run `serve` and restart it with the e-stop latched after a crash; "
@@ -77,6 +86,10 @@ def _parser() -> argparse.ArgumentParser:
     check.add_argument("--task", help="a simulation task to check a [safety] table against (builds the sim)")
     check.add_argument("--insecure-network", action="store_true",
                        help="accept a network-reachable control socket without CurveZMQ (as serve would)")
+    check.add_argument("--bind", help="--task: the control socket serve would bind (default tcp://127.0.0.1:5555)")
+    check.add_argument("--operator-bind", help="--task: the operator socket serve would bind (default "
+                                               f"{DEFAULT_OPERATOR})")
+    check.add_argument("--curve-keys", help="--task: the CurveZMQ folder serve would use (`keys` wrote it)")
 
     observe = sub.add_parser("observe", help="watch the observations a bridge serves (observe-only or not)")
     observe.add_argument("--address", default="tcp://127.0.0.1:5555")
@@ -116,6 +129,12 @@ def _parser() -> argparse.ArgumentParser:
     bench.add_argument("--abort-runs", type=int, default=30, help="--load aborts: fresh bridges flooded")
     bench.add_argument("--nice", type=int, default=0,
                        help="--load: the bridges' niceness (the systemd unit's -10 needs root; default 0)")
+    bench.add_argument("--check-ms", type=float, default=0.0,
+                       help="--load held: the safety check slowed by this many milliseconds")
+    bench.add_argument("--process-fifo", type=int, default=None,
+                       help="--load: every thread of the bridges at this SCHED_FIFO priority (chrt), for comparison")
+    bench.add_argument("--rt-priority", type=int, default=None,
+                       help="--load: the bridges' e-stop path at this SCHED_FIFO priority (serve --rt-priority)")
     bench.add_argument("--realtime", action="store_true",
                        help="--load: the bridge paces actions at the task's rate, as on the robot (default: as "
                             "fast as the simulator runs, the CPU-bound worst case)")
@@ -127,13 +146,18 @@ def _read_toml(path: str | None) -> dict:
     if not path:
         return {}
     file = Path(path)
-    if not file.is_file():
-        raise SystemExit(f"config file {path} not found")
+    shown = path if len(path) <= 200 else path[:200] + "..."
     try:
+        if not file.is_file():
+            raise SystemExit(f"config file {shown} not found")
         with file.open("rb") as f:
             return tomllib.load(f)
+    except OSError as exc:   # a name too long, a folder we may not read ...
+        raise SystemExit(f"cannot read config file {shown}: {exc.strerror or exc}") from None
+    except UnicodeDecodeError as exc:
+        raise SystemExit(f"{shown} is not a UTF-8 text file (byte {exc.start}): a set-up file is TOML text") from None
     except tomllib.TOMLDecodeError as exc:
-        raise SystemExit(f"{path} is not valid TOML: {exc}") from None
+        raise SystemExit(f"{shown} is not valid TOML: {exc}") from None
 
 
 def _unknown_tables(raw: dict) -> list[str]:
@@ -216,8 +240,8 @@ def serve(args) -> int:
     except ValidationError as exc:
         print("\n".join(f"error: {line}" for line in config_errors(exc, prefix="")), file=sys.stderr)
         return EXIT_REFUSED
-    except (BackendUnavailable, FileNotFoundError, ValueError, zmq.ZMQError) as exc:
-        print(f"error: {exc}", file=sys.stderr)
+    except (BackendUnavailable, OSError, ValueError, zmq.ZMQError) as exc:
+        print(f"error: {str(exc)[:500]}", file=sys.stderr)
         return EXIT_REFUSED
     if not args.no_prompt and backend.success_source == "operator" and sys.stdin.isatty():
         bridge.on_confirmation_needed = _prompt_operator(bridge)
@@ -241,16 +265,20 @@ def _build_bridge(args):
     hardware moves."""
     import zmq
 
-    from jepa_envs.real_robot.bridge import BridgeConfig, RobotBridge, network_bind_problem
+    from jepa_envs.real_robot.bridge import BridgeConfig, RobotBridge
+    from jepa_envs.real_robot.endpoints import network_bind_problem, operator_bind_problem
 
     curve = _curve(args.curve_keys)
 
     def config_for(control: str, operator: str, record_dir: str | None, curve: dict) -> BridgeConfig:
         config = BridgeConfig(control, operator, record_dir, args.chunk_budget, args.observe_only,
-                              insecure_network=args.insecure_network, state_file=args.state_file, **curve)
+                              insecure_network=args.insecure_network, state_file=args.state_file,
+                              rt_priority=args.rt_priority, start_latched=args.start_latched,
+                              operator_secret_file=args.operator_secret, **curve)
         # refused before any hardware is opened (the bridge checks again before it binds)
-        problem = network_bind_problem(config.control_address, config.curve_secret_key is not None,
-                                       config.insecure_network)
+        problem = (network_bind_problem(config.control_address, config.curve_secret_key is not None,
+                                        config.insecure_network)
+                   or operator_bind_problem(config.operator_address, config.curve_secret_key is not None))
         if problem:
             raise SetupRefused(problem)
         return config
@@ -361,6 +389,9 @@ def check(args) -> int:
             raise SystemExit("a file without [[arms]] is a [safety] table for a simulation task: add --task NAME")
         task = _known_task(args.task)
         safety, errors = None, _unknown_tables(raw)
+        curve = _curve(args.curve_keys).get("curve_secret_key") if args.curve_keys else None
+        errors += _address_problems(args.bind or "tcp://127.0.0.1:5555", args.operator_bind or _operator_default(),
+                                    curve, args.insecure_network, notes)
         if not errors:
             try:
                 safety = SafetyConfig.model_validate(raw.get("safety", {}))
@@ -398,16 +429,16 @@ def _rules_off(safety, joints: bool) -> list[str]:
 
 def _address_problems(control: str, operator: str, curve: str | None, insecure_network: bool,
                       notes: list[str]) -> list[str]:
-    from jepa_envs.real_robot.bridge import is_loopback, network_bind_problem
+    from jepa_envs.real_robot.endpoints import is_loopback, network_bind_problem, operator_bind_problem
 
     problems = []
     for name, address in (("control_address", control), ("operator_address", operator)):
         if not address.startswith(("tcp://", "ipc://", "inproc://")) or (
                 address.startswith("tcp://") and not address.rsplit(":", 1)[-1].replace("*", "1").isdigit()):
             problems.append(f"{name} {address!r} is not a ZeroMQ endpoint like tcp://127.0.0.1:5555")
-    if not is_loopback(operator):
-        problems.append(f"operator_address {operator!r} is reachable from the network; operator commands "
-                        "(e-stop, home, confirm) must come from the robot computer: use tcp://127.0.0.1:PORT")
+    operator_problem = operator_bind_problem(operator, curve is not None)
+    if operator_problem:
+        problems.append(f"operator_address: {operator_problem}")
     bind_problem = network_bind_problem(control, curve is not None, insecure_network)
     if bind_problem:
         problems.append(f"control_address: {bind_problem}")

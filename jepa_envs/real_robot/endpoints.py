@@ -7,6 +7,7 @@ refused without CurveZMQ unless ``insecure_network`` says so (docs/real_robot.md
 """
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -30,6 +31,9 @@ class BridgeConfig:
     curve_authorized_dir: str | None = None          # CurveZMQ: public keys of the clients allowed to connect
     insecure_network: bool = False                   # allow a network bind without CurveZMQ (said explicitly)
     state_file: str | None = None                    # the e-stop latch across restarts (``estop.py``)
+    operator_secret_file: str | None = None          # the operator credential (None: jepa_operator's default)
+    start_latched: str | None = None                 # start with the e-stop latched, for this reason (supervisor)
+    rt_priority: int | None = None                   # SCHED_FIFO priority of the e-stop path (``realtime_path``)
 
 
 def is_loopback(endpoint: str) -> bool:
@@ -47,6 +51,51 @@ def network_bind_problem(control_address: str, curve: bool, insecure_network: bo
             "(--curve-keys, or curve_secret_key/curve_authorized_dir in the set-up file), bind 127.0.0.1 and "
             "tunnel over SSH, or pass --insecure-network on a dedicated, isolated robot-policy link "
             "(docs/real_robot.md, 'Network security')")
+
+
+def operator_bind_problem(operator_address: str, curve: bool) -> str | None:
+    """Why the operator socket may not bind here: reachable from the network without CurveZMQ. Anyone who can
+    reach it may press the e-stop; only CurveZMQ keeps strangers on the network off it and the operator's
+    credential out of sight (there is no --insecure-network for this socket)."""
+    if curve or is_loopback(operator_address):
+        return None
+    return (f"the operator socket {operator_address} would be reachable from the network without CurveZMQ: "
+            "anyone who can reach it could press or flood it and read the operator's credential; bind "
+            "tcp://127.0.0.1:PORT (operators on the robot computer or over SSH), or configure CurveZMQ "
+            "(--curve-keys, or curve_secret_key/curve_authorized_dir in the set-up file) and give each operator "
+            "an authorised key (docs/real_robot.md, 'Operator authentication')")
+
+
+def check_rt_priority(priority: int | None) -> None:
+    """Refuse (ValueError naming the fix) a real-time priority this process may not take: tried on the calling
+    thread and given back, before any thread of the bridge starts."""
+    if priority is None:
+        return
+    low, high = os.sched_get_priority_min(os.SCHED_FIFO), os.sched_get_priority_max(os.SCHED_FIFO)
+    if not low <= priority <= high:
+        raise ValueError(f"--rt-priority must be in [{low}, {high}] (SCHED_FIFO), got {priority}")
+    before = os.sched_getscheduler(0), os.sched_getparam(0)
+    try:
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
+    except PermissionError:
+        raise ValueError(f"--rt-priority {priority} needs the right to real-time scheduling (CAP_SYS_NICE, or "
+                         "LimitRTPRIO in the systemd unit: deploy/robot/jepa-robot-bridge.service); drop the "
+                         "option to run at normal priority") from None
+    os.sched_setscheduler(0, before[0], before[1])
+
+
+def realtime_context(ctx: zmq.Context, priority: int | None) -> None:
+    """The context's I/O threads (they read the e-stop's bytes off the socket) at SCHED_FIFO ``priority``; set
+    before the first socket starts them."""
+    if priority is not None:
+        ctx.set(zmq.THREAD_SCHED_POLICY, os.SCHED_FIFO)
+        ctx.set(zmq.THREAD_PRIORITY, priority)
+
+
+def realtime_thread(priority: int | None) -> None:
+    """The calling thread at SCHED_FIFO ``priority`` (Linux: pid 0 is the calling thread)."""
+    if priority is not None:
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
 
 
 # the bridge's ZeroMQ context has two I/O threads: the control socket's connections use the first, the operator
@@ -92,3 +141,12 @@ def _setup_curve(ctx: zmq.Context, sock: zmq.Socket, config: BridgeConfig) -> Th
     auth.configure_curve(domain="*", location=str(authorized))
     sock.curve_secretkey, sock.curve_publickey, sock.curve_server = secret, public, True
     return auth
+
+
+def operator_curve(config: BridgeConfig, sock: zmq.Socket) -> None:
+    """A network-reachable operator socket speaks CurveZMQ with the bridge's keys (the authenticator the control
+    socket started admits the authorised keys); a loopback one stays open to the robot computer's processes."""
+    if is_loopback(config.operator_address) or config.curve_secret_key is None:
+        return
+    public, secret = zmq.auth.load_certificate(config.curve_secret_key)
+    sock.curve_secretkey, sock.curve_publickey, sock.curve_server = secret, public, True

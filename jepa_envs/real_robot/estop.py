@@ -1,14 +1,23 @@
 """The e-stop latch: pressed from any thread, it stops the robot at once and outlives the bridge's process.
 
-``press`` sets the latch and calls the backend's ``emergency_stop`` in the caller's thread (the operator
-thread), without waiting for the event loop, the control socket or any other operator request. The event loop
-checks the latch before it decides each action, so nothing decided after the press moves the robot; an action
-decided just before it is followed by a hold as soon as its call returns (``bridge._execute``). The loop then
-interrupts the episode (``RobotBridge._apply_estop_if_latched``).
+The latch and the start of every motion share one lock (``motion``): the event loop starts an action only
+inside ``motion("action")``, which checks the latch under that lock, and ``press`` sets the latch under it. So
+once a press has set the latch no action starts, and an action that was already inside ``backend.apply``
+finishes first: the press waits for it (at most ``ACTION_WAIT_S``), then calls the backend's
+``emergency_stop``, then answers. The answer ``held: true`` therefore means the robot was told to hold after
+the last action that will ever start before a ``clear``. A long move (a homing move, a reset) runs inside
+``motion("move")``; a press does not wait for it: it latches and calls ``emergency_stop`` concurrently (the
+backend's contract), which stops that move, and nothing starts after it either.
+
+``press`` runs in the caller's thread (the operator thread), without waiting for the event loop, the control
+socket or any other operator request. The loop then interrupts the episode
+(``RobotBridge._apply_estop_if_latched``).
 
 With a ``state_file`` the latch survives the process: a bridge started after one that did not stop cleanly
 (a crash, a kill, a power cut: its state still says ``running``) starts latched, as does one started after an
-e-stop nobody cleared. Only an operator's ``clear`` releases it.
+e-stop nobody cleared. Only an operator's ``clear`` releases it. A state file that cannot be written is
+refused when the bridge starts (``check_state_file``): a latch that cannot be recorded would not survive a
+crash.
 """
 from __future__ import annotations
 
@@ -17,10 +26,16 @@ import logging
 import os
 import threading
 import time
+from contextlib import contextmanager
 from pathlib import Path
-from typing import Callable
+from typing import Callable, Iterator
 
 log = logging.getLogger(__name__)
+
+# a press waits this long at most for an action inside ``backend.apply`` (a driver's apply sets a target and
+# returns at once, a simulator's steps for milliseconds); past it (a hung driver call) the stop goes out
+# concurrently, the answer says so (``action_in_flight``), and the loop holds again when the call returns
+ACTION_WAIT_S = 0.05
 
 
 class EStop:
@@ -29,37 +44,62 @@ class EStop:
     def __init__(self, stop_robot: Callable[[], None], state_file: str | None = None):
         self.stop_robot = stop_robot
         self.state_file = Path(state_file) if state_file else None
-        self._latch = threading.Event()
-        # press (operator thread) and clear (event loop) set the latch and its facts under it; it is held for a
-        # few assignments only, never around the robot's stop or the state file, so a press never waits long
-        self._lock = threading.Lock()
+        # the latch, its facts and the motion under way change together under this condition's lock; it is held
+        # for a few assignments only, never around the robot's stop, a backend call or the state file
+        self._cv = threading.Condition(threading.Lock())
+        self._latched = False
+        self._moving: str | None = None        # "action" or "move" while the loop is inside one
         self.latched_at: float | None = None   # wall clock, comparable with the operator's
         self.reason: str | None = None
 
     @property
     def latched(self) -> bool:
-        return self._latch.is_set()
+        return self._latched
+
+    @contextmanager
+    def motion(self, kind: str = "action") -> Iterator[bool]:
+        """The loop's only way to move the robot: yields False (start nothing) when the latch is set, else True,
+        and a press waits until an ``action`` ends (a ``move`` it stops concurrently)."""
+        with self._cv:
+            if self._latched:
+                free = False
+            else:
+                free, self._moving = True, kind
+        try:
+            yield free
+        finally:
+            if free:
+                with self._cv:
+                    self._moving = None
+                    self._cv.notify_all()
 
     def press(self, reason: str = "emergency stop from the operator") -> dict:
-        """Latch and stop the robot now; the facts of the press (the operator's answer)."""
-        with self._lock:   # the latch and its facts together: a clear racing this press sees both or neither
-            self._latch.set()   # the loop refuses every action it decides from here on
+        """Latch (nothing starts from here on), let an action already under way finish, stop the robot; the
+        facts of the press (the operator's answer)."""
+        with self._cv:
+            newly = not self._latched
+            self._latched = True
             if self.latched_at is None:
                 self.latched_at, self.reason = time.time(), reason
             facts = {"estop": True, "latched_at": self.latched_at, "reason": self.reason}
+            waited = self._cv.wait_for(lambda: self._moving != "action", timeout=ACTION_WAIT_S)
+        if not waited:
+            log.error("an action was still inside the backend %.3f s after the e-stop; stopping concurrently",
+                      ACTION_WAIT_S)
         try:
             self.stop_robot()
             held = True
         except Exception:   # the latch stands whatever the driver did; the operator is told
             log.exception("the backend's emergency stop failed; the latch is set")
             held = False
-        self._write(running=True)
-        return {**facts, "held": held}
+        if newly:   # a flood of presses costs no disk writes
+            self._write(running=True)
+        return {**facts, "held": held, "action_in_flight": not waited}
 
     def clear(self) -> None:
         """The operator's release (``clear-estop``)."""
-        with self._lock:
-            self._latch.clear()
+        with self._cv:
+            self._latched = False
             self.latched_at = self.reason = None
         self._write(running=True)
 
@@ -67,6 +107,7 @@ class EStop:
     def restore(self) -> str | None:
         """At start: latch (and stop) when the previous bridge ended uncleanly or left the e-stop latched; the
         reason, or None when it starts free. Marks this process as running."""
+        self.check_state_file()
         previous = self._read()
         reason = None
         if previous.get("running"):
@@ -93,10 +134,27 @@ class EStop:
             return {"running": True}
         return state if isinstance(state, dict) else {"running": True}
 
+    def check_state_file(self) -> None:
+        """Refuse (OSError naming the file and the fix) a state file this process cannot write: the latch would
+        not survive a crash, and a supervisor would restart the bridge unlatched."""
+        if self.state_file is None:
+            return
+        if self.state_file.is_dir():
+            raise OSError(f"the e-stop state file {self.state_file} is a folder; pass a file path in it, e.g. "
+                          f"{self.state_file / 'bridge-state.json'}")
+        probe = self.state_file.with_name(self.state_file.name + ".tmp")
+        try:
+            probe.write_text("{}")
+            probe.unlink()
+        except OSError as exc:
+            raise OSError(f"the e-stop state file {self.state_file} cannot be written ({exc.strerror or exc}): the "
+                          "latch would not survive a crash; pass a --state-file in a folder this user can write "
+                          "(e.g. /var/lib/jepa-robot/bridge-state.json)") from None
+
     def _write(self, running: bool) -> None:
         if self.state_file is None:
             return
-        with self._lock:
+        with self._cv:
             state = {"running": running, "estop": self.latched, "reason": self.reason,
                      "latched_at": self.latched_at, "pid": os.getpid(), "time": time.time()}
         tmp = self.state_file.with_name(self.state_file.name + ".tmp")

@@ -20,6 +20,14 @@ bridges at the priority the systemd unit gives them (negative values need root).
   (slow to decode, under the stranger size limit) as fast as they go and reading the replies.
 * ``operator-flood``: the same with 300 connections on the operator socket and 3,995-byte arrays (under its
   4 KiB limit).
+* ``cpu``, ``cpu+flood``: twice the cores' worth of busy processes (and the flood): the e-stop under CPU
+  overload, with ``--nice``, ``--rt-priority`` (the e-stop path at SCHED_FIFO) or ``--process-fifo``.
+* ``estop-junk``, ``estop-junk-64``: 60-byte frames that contain ``estop`` but are none, at full speed from one
+  operator connection (64), for ``--flood-seconds``: whether ``status`` is answered during the flood (with and
+  without the operator's credential) and how soon after it.
+* ``held``, ``held+flood``: ``--trials`` e-stops, each at a random moment of a running chunk, on an instrumented
+  bridge in this process (safety check slowed by ``--check-ms``; a stranger flooding the control socket): the
+  actions that started after a held answer (``held_presses``).
 * ``aborts``: ``--abort-runs`` fresh bridges, each with a controller, flooded for ``--flood-seconds``; counts the
   bridges that died (libzmq's ``!_io_error`` abort is exit -6) and the controller links held or lost meanwhile.
 
@@ -29,6 +37,7 @@ latch (its ``latched_at``) minus the send time, where the bridge reports it. Pri
 """
 from __future__ import annotations
 
+import collections
 import json
 import os
 import random
@@ -42,7 +51,10 @@ import numpy as np
 import zmq
 
 from jepa_envs.real_robot import protocol as P
+from jepa_envs.real_robot.backends.sim import SimBackend
+from jepa_envs.real_robot.bridge import BridgeConfig, RobotBridge
 from jepa_envs.real_robot.proxy import BridgeError, RealRobotEnv
+from jepa_envs.real_robot.safety import SafetyConfig
 from jepa_operator import OperatorClient, OperatorError
 
 FLOOD_SOCKETS = 4
@@ -56,8 +68,12 @@ MANY_CONNECTIONS = 300
 STRANGER_JUNK = b"\xdd" + (15990).to_bytes(4, "big") + b"\x01" * 15990
 OPERATOR_JUNK = b"\xdd" + (3990).to_bytes(4, "big") + b"\x01" * 3990
 LOADS = {"flood": ["flood"], "operators": ["operators"], "operators+flood": ["operators", "flood"], "big": ["big"],
-         "flood-elsewhere": ["flood"], "many-strangers": ["strangers"], "operator-flood": ["opflood"]}
-SCENARIOS = (*LOADS, "aborts")
+         "flood-elsewhere": ["flood"], "many-strangers": ["strangers"], "operator-flood": ["opflood"],
+         # twice the cores' worth of busy processes: the CPU overload the e-stop's bound is stated under
+         "cpu": ["spin"] * (2 * (os.cpu_count() or 1)), "cpu+flood": ["spin"] * (2 * (os.cpu_count() or 1)) + ["flood"]}
+# the operator socket flooded with e-stop-like junk (one socket, 64): is the operator ever silenced?
+SILENCE = {"estop-junk": "estopjunk", "estop-junk-64": "estopjunk64"}
+SCENARIOS = (*LOADS, *SILENCE, "held", "held+flood", "aborts")
 
 
 # ----------------------------------------------------------------------------- the load, one process each
@@ -215,7 +231,169 @@ def run_controller(address: str) -> None:
     env.close()
 
 
-ROLES = {"flood": run_flood, "operators": run_operators, "big": run_big, "controller": run_controller,
+# 60 bytes that contain "estop" but are no e-stop: once decoded for free and charged to nothing (issue 45)
+ESTOP_LIKE_JUNK = b"\x81\xa4type\xa5estop" + b"\xc1" * 48
+
+
+def run_estop_junk(address: str, connections: int = 1) -> None:
+    """E-stop-like junk on the operator socket at full speed from ``connections`` DEALER sockets."""
+    run_many(address, ESTOP_LIKE_JUNK, connections)
+
+
+def operator_silence(operator: str, flood: "Child", flood_s: float, every_s: float = 0.1,
+                     timeout_s: float = 2.0, secret_file: str | None = None) -> dict:
+    """While ``flood`` runs for ``flood_s`` seconds: a ``status`` every ``every_s`` from a new connection without
+    the operator's credential and one with it, each answered or not within ``timeout_s``; then the flood
+    stops and ``status`` is asked (1 s timeout each) until answered. Latencies in ms; answers by kind."""
+    def ask(authenticated: bool, timeout: float) -> tuple[str, float]:
+        t0 = time.perf_counter()
+        try:
+            with OperatorClient(operator, timeout_s=timeout, secret_file=secret_file if authenticated
+                                else "/nonexistent/operator.secret") as op:
+                op.status()
+            kind = "result"
+        except OperatorError as exc:
+            kind = exc.code or "error"
+        except TimeoutError:
+            kind = "silence"
+        return kind, (time.perf_counter() - t0) * 1e3
+
+    during: dict[str, list] = {"open": [], "operator": []}
+    flood.wait_ready()
+    end = time.monotonic() + flood_s
+    while time.monotonic() < end:
+        during["open"].append(ask(False, timeout_s))
+        during["operator"].append(ask(True, timeout_s))
+        time.sleep(every_s)
+    flood.finish()
+    stopped, after = time.perf_counter(), []
+    while time.perf_counter() - stopped < 30:
+        kind, ms = ask(False, 1.0)
+        after.append((kind, ms))
+        if kind == "result":
+            break
+    return {"during": {who: {"answers": dict(collections.Counter(k for k, _ in xs)),
+                             "max_ms": max((ms for _, ms in xs), default=None)} for who, xs in during.items()},
+            "after_flood_first_answer_ms": (time.perf_counter() - stopped) * 1e3 if after[-1][0] == "result"
+            else None, "after_flood_tries": len(after)}
+
+
+class EventLog:
+    """Events in one total order (a counter under a lock), whatever thread logs them."""
+
+    def __init__(self):
+        self._lock = threading.Lock()
+        self._order = 0
+        self.events: list[tuple[int, str]] = []
+
+    def add(self, kind: str) -> None:
+        with self._lock:
+            self._order += 1
+            self.events.append((self._order, kind))
+
+
+def instrument(bridge, log: EventLog, check_s: float = 0.0) -> None:
+    """Log every action's start and end and every emergency stop of ``bridge``'s backend; slow its safety check
+    down by ``check_s`` (a real robot's checks may take milliseconds)."""
+    backend, guard = bridge.backend, bridge.guard
+    apply, stop, check = backend.apply, backend.emergency_stop, guard.check
+
+    def logged_apply(action):
+        log.add("start")
+        try:
+            return apply(action)
+        finally:
+            log.add("end")
+
+    def logged_stop():
+        log.add("stop")
+        stop()
+
+    def slow_check(*args):
+        if check_s:
+            time.sleep(check_s)
+        return check(*args)
+    backend.apply, backend.emergency_stop, guard.check = logged_apply, logged_stop, slow_check
+
+
+def hold_violations(events: list[tuple[int, str]]) -> list[str]:
+    """Every action started between a held answer ("answered") and the next "cleared"; every stop sent while an
+    action was inside apply."""
+    problems, answered, running = [], False, 0
+    for order, kind in events:
+        if kind == "start":
+            running += 1
+            if answered:
+                problems.append(f"an action started at {order}, after a held answer")
+        elif kind == "end":
+            running -= 1
+        elif kind == "stop" and running:
+            problems.append(f"the stop at {order} went out while an action was inside apply")
+        elif kind == "answered":
+            answered = True
+        elif kind == "cleared":
+            answered = False
+    return problems
+
+
+def held_presses(presses: int, check_s: float = 0.0, flood: bool = False, seed: int = 0) -> dict:
+    """``presses`` e-stops, each at a random moment of a running chunk, on an instrumented sim bridge in this
+    process (with a stranger flooding its control socket from another process when ``flood``); each answer
+    logged in the same order as the backend's calls, then cleared. The actions started after a held answer."""
+    config = BridgeConfig("tcp://127.0.0.1:*", "tcp://127.0.0.1:*", chunk_budget=10**6)
+    bridge = RobotBridge(SimBackend("PushT"), SafetyConfig(link_timeout_s=2.0, command_deadline_s=60.0), config)
+    bridge.start()
+    log = EventLog()
+    instrument(bridge, log, check_s)
+    rng = random.Random(seed)
+    env = RealRobotEnv(address=bridge.control_endpoint, client_name="controller", timeout_s=30.0)
+    op = OperatorClient(bridge.operator_endpoint, timeout_s=10.0)
+    stranger = Child("flood", bridge.control_endpoint) if flood else None
+    answers, mid_chunk = [], 0
+    try:
+        if stranger is not None:
+            stranger.wait_ready()
+        for _ in range(presses):
+            obs, _ = env.reset(seed=rng.randrange(2**31))
+            runner = threading.Thread(target=env.step_chunk, args=(np.tile(obs["agent_pos"], (8, 1)),))
+            runner.start()
+            time.sleep(rng.uniform(0.0, 0.01 + 8 * check_s))
+            mid_chunk += bridge.runner.executing
+            t0 = time.perf_counter()
+            op.estop()
+            answers.append((time.perf_counter() - t0) * 1e3)
+            log.add("answered")
+            runner.join(timeout=30)
+            op.clear_estop()
+            log.add("cleared")
+    finally:
+        if stranger is not None:
+            stranger.finish()
+        op.close()
+        env.close()
+        bridge.close()
+    problems = hold_violations(log.events)
+    x = np.asarray(answers)
+    return {"presses": presses, "check_ms": check_s * 1e3, "flood": flood, "mid_chunk": mid_chunk,
+            "actions_after_held_answer": sum("after a held answer" in p for p in problems),
+            "stops_during_apply": sum("while an action" in p for p in problems),
+            "answer_ms": {"p50": float(np.median(x)), "p99": float(np.percentile(x, 99)), "max": float(x.max())}}
+
+
+def run_spin(address: str) -> None:
+    """One core's worth of CPU load (a busy loop) until stdin closes; ``address`` is not used."""
+    stop = _until_stdin_closes()
+    print(json.dumps({"ready": True}), flush=True)
+    spins = 0
+    while not stop.is_set():
+        for _ in range(10_000):
+            spins += 1
+    print(json.dumps({"spins": spins}), flush=True)
+
+
+ROLES = {"flood": run_flood, "spin": run_spin, "estopjunk": run_estop_junk,
+         "estopjunk64": lambda address: run_estop_junk(address, 64), "operators": run_operators, "big": run_big,
+         "controller": run_controller,
          "strangers": lambda address: run_many(address, STRANGER_JUNK),
          "opflood": lambda address: run_many(address, OPERATOR_JUNK)}
 
@@ -249,9 +427,17 @@ class Child:
 class Bridge:
     """A sim bridge in a child process on free loopback ports (heartbeats on: the default link timeout)."""
 
-    def __init__(self, extra: tuple[str, ...] = (), nice: int = 0):   # extra serve arguments, e.g. ("--realtime",)
+    def __init__(self, extra: tuple[str, ...] = (), nice: int = 0, rt_priority: int | None = None,
+                 process_fifo: int | None = None):
+        """``extra``: more serve arguments, e.g. ("--realtime",); ``nice``: the process's niceness (the systemd
+        unit's Nice=-10); ``rt_priority``: the e-stop path at SCHED_FIFO (serve --rt-priority);
+        ``process_fifo``: every thread of the bridge at SCHED_FIFO (chrt), for comparison."""
         env = {**os.environ, "PYTHONUNBUFFERED": "1"}
-        priority = ["nice", "-n", str(nice)] if nice else []   # the systemd unit runs the bridge at Nice=-10
+        priority = ["nice", "-n", str(nice)] if nice else []
+        if process_fifo is not None:
+            priority = ["chrt", "-f", str(process_fifo)]
+        if rt_priority is not None:
+            extra = (*extra, "--rt-priority", str(rt_priority))
         self.proc = subprocess.Popen(
             [*priority, sys.executable, "-m", "jepa_envs.real_robot.cli", "serve", "--backend", "sim", "--task", "PushT",
              "--chunk-budget", "1000000", "--bind", "tcp://127.0.0.1:*", "--operator-bind", "tcp://127.0.0.1:*",
@@ -329,14 +515,16 @@ def time_estops(operator: str, trials: int, seed: int = 0) -> dict:
 def _summary(samples: list[float]) -> dict:
     x = np.asarray(samples, np.float64)
     if not x.size:
-        return {"p50_ms": None, "max_ms": None, "over_100ms": 0}
-    return {"p50_ms": float(np.median(x)), "max_ms": float(x.max()), "over_100ms": int((x > 100).sum())}
+        return {"p50_ms": None, "p99_ms": None, "max_ms": None, "over_100ms": 0}
+    return {"p50_ms": float(np.median(x)), "p99_ms": float(np.percentile(x, 99)), "max_ms": float(x.max()),
+            "over_100ms": int((x > 100).sum())}
 
 
-def scenario(name: str, trials: int, window_s: float, realtime: bool = False, nice: int = 0) -> dict:
+def scenario(name: str, trials: int, window_s: float, realtime: bool = False, nice: int = 0,
+             rt_priority: int | None = None, process_fifo: int | None = None) -> dict:
     """One load scenario on a fresh bridge with a controller: chunk rates and the e-stop under that load."""
-    bridge = Bridge(("--realtime",) if realtime else (), nice)
-    other = Bridge(nice=nice) if name == "flood-elsewhere" else None
+    bridge = Bridge(("--realtime",) if realtime else (), nice, rt_priority, process_fifo)
+    other = Bridge(nice=nice, rt_priority=rt_priority) if name == "flood-elsewhere" else None
     controller = Child("controller", bridge.control)
     controller.wait_ready()
     loads: list[Child] = []
@@ -348,7 +536,7 @@ def scenario(name: str, trials: int, window_s: float, realtime: bool = False, ni
         target = other or bridge
         for role in LOADS[name]:
             loads.append(Child(role, target.operator if role in ("operators", "opflood") else target.control))
-            if role == "flood":   # a loaded machine can take seconds to start it: time the window from its start
+            if role in ("flood", "spin"):   # a loaded machine can take seconds to start it: time from its start
                 loads[-1].wait_ready()
         time.sleep(0.3)
         loaded_from = time.time()
@@ -378,12 +566,12 @@ def scenario(name: str, trials: int, window_s: float, realtime: bool = False, ni
     return out
 
 
-def abort_runs(runs: int, flood_seconds: float) -> dict:
+def abort_runs(runs: int, flood_seconds: float, nice: int = 0, rt_priority: int | None = None) -> dict:
     """``runs`` fresh bridges flooded with a controller running; which died, which lost the controller's link."""
     died, lost_link, lines = 0, 0, []
     for run in range(runs):
         state = "alive"
-        bridge = Bridge()
+        bridge = Bridge(nice=nice, rt_priority=rt_priority)
         controller = Child("controller", bridge.control)
         controller.wait_ready()
         try:
@@ -419,21 +607,46 @@ def run_load_bench(args) -> int:
         load = f.read().split()[:3]
     print(f"load average before: {' '.join(load)} ({os.cpu_count()} CPUs); libzmq {zmq.zmq_version()}, "
           f"pyzmq {zmq.__version__}; bridge {'at 10 Hz' if args.realtime else 'as fast as it runs'}, "
-          f"niceness {args.nice}", flush=True)
+          f"niceness {args.nice}, e-stop path "
+          f"{'SCHED_FIFO ' + str(args.rt_priority) if args.rt_priority else 'at normal priority'}"
+          + (f", the whole bridge at SCHED_FIFO {args.process_fifo}" if args.process_fifo else ""),
+          flush=True)
     results = {"loadavg": load, "libzmq": zmq.zmq_version(), "pyzmq": zmq.__version__}
     for name in names:
+        if name in SILENCE:
+            bridge = Bridge(nice=args.nice, rt_priority=args.rt_priority, process_fifo=args.process_fifo)
+            try:
+                results[name] = r = operator_silence(bridge.operator, Child(SILENCE[name], bridge.operator),
+                                                     args.flood_seconds)
+            finally:
+                bridge.close()
+            print(f"{name}: during a {args.flood_seconds:g} s flood, status without the credential "
+                  f"{r['during']['open']['answers']} (max {r['during']['open']['max_ms']:.0f} ms), with it "
+                  f"{r['during']['operator']['answers']} (max {r['during']['operator']['max_ms']:.0f} ms); after it, "
+                  f"the first answer in {r['after_flood_first_answer_ms'] or float('nan'):.0f} ms", flush=True)
+            continue
+        if name in ("held", "held+flood"):
+            results[name] = r = held_presses(args.trials, args.check_ms / 1e3, flood=name == "held+flood")
+            a = r["answer_ms"]
+            print(f"{name}: {r['presses']} presses ({r['mid_chunk']} mid-chunk, safety check {args.check_ms:g} ms): "
+                  f"{r['actions_after_held_answer']} actions started after a held answer, "
+                  f"{r['stops_during_apply']} stops sent during an apply; answered p50 {a['p50']:.1f} ms, "
+                  f"p99 {a['p99']:.1f} ms, max {a['max']:.1f} ms", flush=True)
+            continue
         if name == "aborts":
-            results["aborts"] = r = abort_runs(args.abort_runs, args.flood_seconds)
+            results["aborts"] = r = abort_runs(args.abort_runs, args.flood_seconds, args.nice, args.rt_priority)
             print(f"aborts: {r['aborts']}/{r['runs']} bridges died under a {args.flood_seconds:g} s flood with a "
                   f"controller; the controller's link held or lost in {r['controller_link_lost_or_held']} of the "
                   "surviving runs", flush=True)
             for line in r["abort_lines"]:
                 print(f"  {line}")
             continue
-        results[name] = r = scenario(name, args.trials, args.window, args.realtime, args.nice)
+        results[name] = r = scenario(name, args.trials, args.window, args.realtime, args.nice, args.rt_priority,
+                                     args.process_fifo)
         e = r["estop"]
         answer, latched = _summary(e["answer_ms"]), _summary(e["latched_ms"])
-        print(f"{name}: e-stop answered p50 {answer['p50_ms'] or float('nan'):.1f} ms, max "
+        print(f"{name}: e-stop answered p50 {answer['p50_ms'] or float('nan'):.1f} ms, p99 "
+              f"{answer['p99_ms'] or float('nan'):.1f} ms, max "
               f"{answer['max_ms'] or float('nan'):.1f} ms ({answer['over_100ms']}/{e['trials']} over 100 ms, "
               f"{e['unacknowledged']} unacknowledged, {e['failures']} failed)"
               + (f"; latched p50 {latched['p50_ms']:.1f} ms, max {latched['max_ms']:.1f} ms" if e["latched_ms"]

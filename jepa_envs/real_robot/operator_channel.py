@@ -2,30 +2,39 @@
 
 The socket is a ROUTER (operators connect with REQ, ``jepa_operator.OperatorClient``), so one operator's request
 never waits for another's answer. Each turn the thread reads every request that is waiting (up to
-``TURN_REQUESTS``), and an e-stop is pressed the moment its frame is read: a frame of at most
-``ESTOP_FRAME_BYTES`` that names ``estop`` is decoded at once (an e-stop request is a 15-byte map), and when it
-is one, ``EStop.press`` latches and stops the robot in this thread and the answer goes out before the next frame
-is read. No other frame is decoded before the turn's reads are done, so the e-stop waits for at most one receive
-per connection ahead of it (the ROUTER takes one message per connection in turn), never for a decode. It never
-waits for the event loop, the control socket or another operator request.
+``TURN_REQUESTS``), and an e-stop is pressed the moment its frame is read: a frame equal to one of the exact
+e-stop messages (``jepa_operator.ESTOP_FRAMES``) needs no decoding, and ``EStop.press`` latches and stops the
+robot in this thread; the answer goes out before the next frame is read. An e-stop written another way (extra
+keys, padding) is an ordinary request: decoded within the budgets below, then pressed. The e-stop waits for at
+most one receive per connection ahead of it (the ROUTER takes one message per connection in turn), never for a
+decode, the event loop, the control socket or another operator request.
 
-Then the turn's other frames are decoded within two budgets (issue 35, F3: 300 connections of 4 KiB junk used
-to make the thread decode 256 of them per turn before pressing an e-stop): ``OPERATOR_PEER_RATE`` requests a
-second per connection (beyond it, one prepared ``rate_limited`` answer, unread) and ``OPERATOR_BYTES_RATE``
-bytes a second for all connections together (beyond it, a flood: dropped unread and unanswered, counted as
-``operator_dropped``). After a full turn of refused frames the thread pauses ``FLOOD_PAUSE_S``, so a flood takes
-a bounded share of the CPU and the GIL from the event loop; an e-stop then waits at most that pause plus one
-receive per connection.
+Who may ask what: ``estop`` and ``status`` are open to every local process; ``clear_estop``, ``home``,
+``confirm`` and ``shutdown`` need the operator credential, sent as the first of two frames
+(``jepa_operator``), compared in constant time before anything is decoded; without it they are refused
+(``unauthorized``) and change nothing. An authenticated request is also exempt from the shared budget below, so
+a flood of strangers never crowds the operator out.
+
+Then the turn's other frames are decoded within two budgets: ``OPERATOR_PEER_RATE`` requests a second per
+connection (beyond it, one prepared ``rate_limited`` answer, unread) and ``OPERATOR_BYTES_RATE`` bytes a second
+for all unauthenticated connections together (beyond it, the same prepared answer, unread; counted as
+``operator_dropped``). A frame is charged to that budget only when it fits in what is left, so the budget never
+goes negative and is full again a quarter of a second after any flood ends. Every request gets an answer:
+its result, ``busy``, ``rate_limited`` or the refusal that names the problem; none is left to time out. After a
+full turn of refused frames the thread pauses ``FLOOD_PAUSE_S``, so a flood takes a bounded share of the CPU
+and the GIL from the event loop; an e-stop then waits at most that pause plus one receive per connection.
 
 Every other command (status, confirm, home, clear_estop, shutdown) runs on the event loop, which owns the robot:
 the thread forwards it over an inproc socket the loop polls, and sends the loop's answer back when it comes,
 serving new requests (e-stops first) meanwhile. At most ``MAX_PENDING`` commands wait for the loop; more are
 answered ``busy`` at once. ``handle`` is the same entry for callers inside the bridge's process
-(``RobotBridge.command``), whose commands wait in a queue the loop serves on the same turn (``serve_loop``).
+(``RobotBridge.command``, trusted: no credential), whose commands wait in a queue the loop serves on the same
+turn (``serve_loop``).
 """
 from __future__ import annotations
 
 import collections
+import hmac
 import itertools
 import logging
 import queue
@@ -35,8 +44,10 @@ from typing import Callable
 
 import zmq
 
+from jepa_operator import ESTOP_FRAMES, ERR_UNAUTHORIZED, PRIVILEGED_COMMANDS
+
 from jepa_envs.real_robot import protocol as P
-from jepa_envs.real_robot.endpoints import OPERATOR_IO_AFFINITY
+from jepa_envs.real_robot.endpoints import OPERATOR_IO_AFFINITY, realtime_thread
 from jepa_envs.real_robot.estop import EStop
 from jepa_envs.real_robot.wire import PeerBuckets, decode_request, encode_reply
 
@@ -46,7 +57,6 @@ OPERATOR_COMMANDS = (P.OP_ESTOP, P.OP_CLEAR_ESTOP, P.OP_CONFIRM, P.OP_HOME, P.OP
 TURN_REQUESTS = 512     # requests read per turn (each e-stop among them pressed as soon as it is read)
 FLOOD_PAUSE_S = 0.001  # after a full turn of refused frames (a flood): the thread's share of CPU and GIL is bounded
 MAX_PENDING = 64        # operator commands waiting for the event loop
-ESTOP_FRAME_BYTES = 64  # an e-stop request is ~15 bytes; a frame up to this size naming "estop" is decoded at once
 OPERATOR_PEER_RATE = 100.0      # requests a second one operator connection gets decoded (bursts of ...)
 OPERATOR_PEER_BURST = 50
 OPERATOR_BYTES_RATE = 256 * 1024.0   # bytes a second decoded for all operator connections together (bursts of ...)
@@ -55,8 +65,8 @@ REMEMBERED_OPERATORS = 4096
 OPERATOR_RCVHWM = 8     # messages queued per operator connection
 _OPERATOR_RATE_LIMITED = P.encode(P.error(
     P.ERR_RATE, f"the operator socket decodes up to {OPERATOR_PEER_RATE:g} requests a second per connection and "
-                f"{OPERATOR_BYTES_RATE / 1024:g} KiB a second in all; this one was refused unread (an e-stop never "
-                "is); try again"))
+                f"{OPERATOR_BYTES_RATE / 1024:g} KiB a second for all unauthenticated ones; this one was refused "
+                "unread (an e-stop never is; the operator's credential skips the shared budget); try again"))
 _ids = itertools.count()
 
 
@@ -69,8 +79,13 @@ class OperatorChannel:
     """Owns the operator ROUTER in its own thread; ``loop_sockets`` are the event loop's end of the forwarding."""
 
     def __init__(self, ctx: zmq.Context, address: str, estop: EStop, answer: Callable[[dict], dict],
-                 on_failure: Callable[[], None], command_timeout_s: float = 5.0):
+                 on_failure: Callable[[], None], secret: bytes, command_timeout_s: float = 5.0,
+                 secret_file: str = "the operator credential file",
+                 curve: Callable[[zmq.Socket], None] | None = None, rt_priority: int | None = None):
         self.estop = estop
+        self.secret = secret            # the operator credential (jepa_operator.ensure_operator_secret)
+        self.secret_file = secret_file
+        self.rt_priority = rt_priority  # SCHED_FIFO for this thread (endpoints.realtime_thread), None: normal
         self.answer = answer            # the event loop's command (it owns the robot); may raise
         self.on_failure = on_failure    # called when ``answer`` fails: the robot holds
         self.command_timeout_s = float(command_timeout_s)
@@ -91,8 +106,10 @@ class OperatorChannel:
         # drains it, so its I/O thread's turns stay short and the e-stop's bytes are not queued behind them
         self.sock.setsockopt(zmq.RCVHWM, OPERATOR_RCVHWM)
         try:
+            if curve is not None:
+                curve(self.sock)
             self.sock.bind(address)
-        except zmq.ZMQError:
+        except (zmq.ZMQError, ValueError, OSError):
             self.sock.close(linger=0)
             raise
         self.endpoint = self.sock.getsockopt_string(zmq.LAST_ENDPOINT)
@@ -127,30 +144,36 @@ class OperatorChannel:
         self.sock.close(linger=500)   # the last answers (a shutdown's) still go out
 
     def _serve(self) -> None:
+        realtime_thread(self.rt_priority)
         poller = zmq.Poller()
         poller.register(self.sock, zmq.POLLIN)
         poller.register(self._from_loop, zmq.POLLIN)
         try:
             while not self._stop.is_set():
-                events = dict(poller.poll(50))
-                if self.sock in events and self._serve_requests() >= TURN_REQUESTS and FLOOD_PAUSE_S:
-                    # a full turn of refused frames: a flood. Pausing costs an e-stop at most this long (it is
-                    # then at most one frame per connection behind) and keeps this thread from taking the
-                    # event loop's CPU and the GIL at the flood's rate
-                    time.sleep(FLOOD_PAUSE_S)
-                if self._from_loop in events:
-                    self._send_answers()
+                try:
+                    events = dict(poller.poll(50))
+                    if self.sock in events and self._serve_requests() >= TURN_REQUESTS and FLOOD_PAUSE_S:
+                        # a full turn of refused frames: a flood. Pausing costs an e-stop at most this long (it
+                        # is then at most one frame per connection behind) and keeps this thread from taking the
+                        # event loop's CPU and the GIL at the flood's rate
+                        time.sleep(FLOOD_PAUSE_S)
+                    if self._from_loop in events:
+                        self._send_answers()
+                except Exception:   # never reached by input; a bug here must not end the e-stop's thread
+                    self._count("internal_errors")
+                    log.exception("operator thread error; the e-stop thread goes on")
+                    time.sleep(0.001)
             if self._from_loop.poll(200):   # the loop's last answer (a shutdown) was sent just before it stopped
                 self._send_answers()
         finally:
             self._close_thread_sockets()
 
     def _serve_requests(self) -> int:
-        """One turn: read what is waiting, pressing each e-stop the moment its frame is read and dropping a
-        flood's frames unread; then the rest, within the per-peer budget (module docstring). Returns how many
-        frames were refused."""
+        """One turn: read what is waiting, pressing each exact e-stop the moment its frame is read and refusing
+        what is over budget unread; then the rest, within the per-connection rate (module docstring). Returns
+        how many frames were refused unread."""
         later, dropped = [], 0
-        g = self._global   # all connections' decoding budget, refilled once a turn
+        g = self._global   # all unauthenticated connections' decoding budget, refilled once a turn
         now = time.monotonic()
         g[0] = min(float(OPERATOR_BYTES_BURST), g[0] + (now - g[1]) * OPERATOR_BYTES_RATE)
         g[1] = now
@@ -159,30 +182,27 @@ class OperatorChannel:
                 frames = self.sock.recv_multipart(zmq.NOBLOCK)
             except zmq.Again:
                 break
-            body = frames[-1]
-            # an e-stop is a small map naming "estop": recognised without decoding anything bigger
-            if len(body) <= ESTOP_FRAME_BYTES and b"estop" in body:
-                decoded = self._decode(frames)
-                route, message, _ = decoded
-                if message is not None and message["type"] == P.OP_ESTOP:
-                    self._send(route, self._press())
-                    continue
-            elif g[0] < max(len(body), 64):   # all connections' budget is spent: a flood, dropped unread
-                dropped += 1
+            route = _route(frames)
+            parts = frames[len(route):]
+            if len(parts) == 1 and parts[0] in ESTOP_FRAMES:
+                self._send(route, self._press())
                 continue
-            else:
-                decoded = None
-            g[0] -= max(len(body), 64)
-            later.append((frames, decoded))
-        refused = dropped
-        for frames, decoded in later:
-            if decoded is None:
-                if self._peer_over_rate(frames[0], now):   # this connection's own limit: told so, unread
-                    refused += 1
-                    self._send(_route(frames), _OPERATOR_RATE_LIMITED)
+            authenticated = len(parts) == 2 and hmac.compare_digest(parts[0], self.secret)
+            if not authenticated:
+                cost = max(sum(len(p) for p in parts), 64)
+                if g[0] < cost:   # the shared budget is spent: a flood; refused unread, the budget untouched
+                    dropped += 1
+                    self._send(route, _OPERATOR_RATE_LIMITED)
                     continue
-                decoded = self._decode(frames)
-            self._handle(*decoded)
+                g[0] -= cost
+            later.append((frames[0], route, parts, authenticated))
+        refused = dropped
+        for identity, route, parts, authenticated in later:
+            if self._peer_over_rate(identity, now):   # this connection's own limit: told so, unread
+                refused += 1
+                self._send(route, _OPERATOR_RATE_LIMITED)
+                continue
+            self._handle(route, *self._decode(parts, authenticated), authenticated)
         if refused:
             with self._lock:
                 for name, count in (("operator_dropped", dropped), ("operator_rate_limited", refused - dropped)):
@@ -190,11 +210,18 @@ class OperatorChannel:
                         self.counters[name] += count
         return refused
 
-    def _handle(self, route: list[bytes], message: dict | None, refusal: dict | None) -> None:
+    def _handle(self, route: list[bytes], message: dict | None, refusal: dict | None, authenticated: bool) -> None:
         if refusal is not None:
             self._send(route, refusal)
         elif message["type"] == P.OP_ESTOP:   # one that did not look like one (padded, reordered): pressed now
             self._send(route, self._press())
+        elif message["type"] in PRIVILEGED_COMMANDS and not authenticated:
+            self._count("operator_unauthorized")
+            self._send(route, P.error(ERR_UNAUTHORIZED, f"{message['type']} is the operator's command and needs the "
+                                                        f"operator credential ({self.secret_file}, readable by the "
+                                                        "bridge's user only: run `jepa-robot-bridge "
+                                                        f"{message['type'].replace('_', '-')}` as that user, or "
+                                                        "pass --operator-secret FILE); nothing was changed"))
         elif self._pending >= MAX_PENDING:
             self._count("operator_busy")
             self._send(route, P.error(P.ERR_BUSY, f"{self._pending} operator commands are waiting for the "
@@ -227,22 +254,25 @@ class OperatorChannel:
         except zmq.ZMQError:   # the operator's connection is gone or not reading; nothing is owed
             self._count("undeliverable")
 
-    def _decode(self, frames: list[bytes]) -> tuple[list[bytes], dict | None, dict | None]:
-        """(route, message, None) for a known operator command, else (route, None, the refusal that answers it);
-        the route is the sender's identity and, for a REQ socket, its empty delimiter."""
-        route = _route(frames)
-        body = frames[len(route):]
-        if len(body) != 1:
+    def _decode(self, parts: list[bytes], authenticated: bool) -> tuple[dict | None, dict | None]:
+        """(message, None) for a known operator command, else (None, the refusal that answers it). ``parts``
+        are the request's frames after the route: the message, or the credential and the message."""
+        if len(parts) == 2 and not authenticated:
+            self._count("operator_unauthorized")
+            return None, P.error(ERR_UNAUTHORIZED, "the operator credential sent does not match this bridge's "
+                                                   f"({self.secret_file}); nothing was changed")
+        if len(parts) not in (1, 2):
             self._count("malformed")
-            return route, None, P.error(P.ERR_BAD_MESSAGE, f"an operator request is one frame; got {len(body)}")
-        message, refusal = decode_request(body[0])
+            return None, P.error(P.ERR_BAD_MESSAGE, f"an operator request is one frame (or the credential and "
+                                                    f"one frame); got {len(parts)}")
+        message, refusal = decode_request(parts[-1])
         if refusal is None and message["type"] not in OPERATOR_COMMANDS:
             message, refusal = None, P.error(P.ERR_BAD_MESSAGE, f"unknown operator command {message['type'][:40]!r}; "
                                                                 "use estop, clear_estop, confirm, home, status, "
                                                                 "shutdown")
         if refusal is not None:
             self._count("malformed")
-        return route, message, refusal
+        return message, refusal
 
     def _press(self) -> dict:
         self._count("estops")

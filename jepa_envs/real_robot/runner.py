@@ -3,8 +3,8 @@ backend, and what is recorded of it.
 
 The bridge (``bridge.py``) decides who may ask and when; the runner decides what the robot does with it, top to
 bottom: ``reset`` starts an episode; ``run`` executes a synchronous step or chunk, action by action through
-``execute`` (the e-stop latch, the ActionGuard's bounds and jump limits, ``backend.apply``, a countermanding hold
-when the e-stop was pressed meanwhile, the joint limits), serving the bridge's sockets between two actions
+``execute`` (the e-stop latch, the ActionGuard's bounds and jump limits, ``backend.apply`` inside the latch's
+motion lock, the joint limits), serving the bridge's sockets between two actions
 (``between_actions``) so that an e-stop or a lost link stops the chunk at the next action boundary; ``finish``
 turns the outcome into the client's reply, or asks the operator to confirm it (``Pending``). The asynchronous
 alternative: ``stream`` replaces the queue, ``tick`` runs one action per control period, ``observe`` serves the
@@ -33,6 +33,10 @@ from jepa_envs.real_robot.streaming import StreamQueue
 log = logging.getLogger(__name__)
 
 MAX_HISTORY = 16            # frames an ``observe`` request may ask for
+
+
+class EStopLatched(RuntimeError):
+    """A motion was asked for while the e-stop is latched; nothing moved."""
 
 
 @dataclass
@@ -100,7 +104,11 @@ class EpisodeRunner:
         """Home the robot (or reset the simulator) and start a recorded episode; the reply with the first frame."""
         if self.running:
             self.end("interrupted", "reset before the episode ended")
-        obs, info = self.backend.reset(seed)
+        with self.estop.motion("move") as free:   # a press during this homing move stops it concurrently
+            if not free:
+                return P.error(P.ERR_ESTOP, "the emergency stop is latched; the operator must clear it "
+                                            "(jepa-robot-bridge clear-estop) before a new episode")
+            obs, info = self.backend.reset(seed)
         if self.estop.latched:   # pressed during the reset (a homing move): it stops here
             self._hold()
         manifest = {**manifest, "seed": seed, "backend": type(self.backend).__name__, "protocol": P.PROTOCOL_VERSION,
@@ -203,8 +211,15 @@ class EpisodeRunner:
             self._hold()
             ep.add_action(action, None)
             return None, report, True   # later actions assumed this one was reached
-        result = self.backend.apply(verdict.action)
-        if self.estop.latched:   # pressed while this action was decided or running: the hold comes after it
+        # the latch is checked again where the action starts, under the lock a press takes: a press during the
+        # safety check above starts nothing, and one during ``apply`` waits for it, then holds (estop.py)
+        with self.estop.motion("action") as free:
+            if free:
+                result = self.backend.apply(verdict.action)
+        if not free:
+            self.apply_estop()
+            return None, report, True
+        if self.estop.latched:   # pressed during a driver call longer than the press waits for: hold after it too
             self._hold()
         self.prev_action = verdict.action
         ep.add_action(action, verdict.action)
@@ -358,7 +373,11 @@ class EpisodeRunner:
         """The operator's homing move (it ends a running episode first)."""
         if self.running:
             self.end("interrupted", "homed by the operator")
-        self.backend.home()
+        with self.estop.motion("move") as free:
+            if not free:
+                raise EStopLatched("the emergency stop is latched; clear it (jepa-robot-bridge clear-estop) "
+                                   "before homing")
+            self.backend.home()
         if self.estop.latched:   # pressed during the homing move: it stops here
             self._hold()
         self.prev_action = self.backend.current_action()

@@ -6,7 +6,9 @@ is not retried, since the same file would be refused again. Any other end is a c
 bug): the child is started again after ``restart_delay_s`` (doubling up to ``MAX_DELAY_S`` while it keeps
 crashing within a minute), and because the crashed process never marked its state file clean, the new bridge
 starts with the e-stop latched and stops the robot at once (``estop.EStop.restore``); it moves again only
-after an operator's ``clear-estop``. On the robot computer systemd runs this supervisor
+after an operator's ``clear-estop``. The supervisor does not rely on the state file alone: every restart is
+also told to start latched (``--start-latched``), and a state file it cannot write is refused before the first
+start (exit 2), so a bridge is never restarted unlatched. On the robot computer systemd runs this supervisor
 (deploy/robot/jepa-robot-bridge.service) and restarts it if it dies itself.
 """
 from __future__ import annotations
@@ -15,6 +17,8 @@ import signal
 import subprocess
 import sys
 import time
+
+from jepa_envs.real_robot.estop import EStop
 
 EXIT_REFUSED = 2
 MAX_DELAY_S = 30.0
@@ -41,14 +45,20 @@ def supervise(serve_args: list[str], state_file: str, restart_delay_s: float = 1
         if child is not None and child.poll() is None:
             child.send_signal(signal.SIGINT)   # the bridge's clean stop: it holds the robot and marks its state
 
+    try:
+        EStop(lambda: None, state_file).check_state_file()
+    except OSError as exc:
+        print(f"error: {exc}", file=sys.stderr, flush=True)
+        return EXIT_REFUSED
     signal.signal(signal.SIGINT, stop)
     signal.signal(signal.SIGTERM, stop)
     delay = restart_delay_s
     restarts = 0
+    latched: list[str] = []
     while True:
         started = time.monotonic()
         child = subprocess.Popen([sys.executable, "-m", "jepa_envs.real_robot.cli", "serve", *serve_args,
-                                  "--state-file", state_file])
+                                  "--state-file", state_file, *latched])
         code = child.wait()
         if stopping or code == 0:
             print(f"supervisor: the bridge stopped cleanly after {restarts} restart(s)", file=sys.stderr, flush=True)
@@ -62,6 +72,8 @@ def supervise(serve_args: list[str], state_file: str, restart_delay_s: float = 1
         print(f"supervisor: the bridge ended with {describe_exit(code)}: restart {restarts + 1} in {delay:g}s, "
               "with the e-stop latched (clear-estop once the robot and the scene are checked)",
               file=sys.stderr, flush=True)
+        latched = ["--start-latched", f"restarted by the supervisor after the bridge ended with "
+                                      f"{describe_exit(code)}; check the robot and the scene, then clear-estop"]
         time.sleep(delay)
         if stopping:
             return 0

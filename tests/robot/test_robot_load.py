@@ -197,10 +197,10 @@ def test_operator_flood_the_estop_is_pressed_before_the_queued_junk_is_decoded(r
     decoded, at_press = [], []
     decode, press = channel._decode, bridge.estop.press
 
-    def counting_decode(frames):
-        if len(frames[-1]) > 1000:
+    def counting_decode(parts, authenticated):
+        if len(parts[-1]) > 1000:
             decoded.append(1)
-        return decode(frames)
+        return decode(parts, authenticated)
 
     def noting_press(*args):
         at_press.append(len(decoded))

@@ -318,7 +318,7 @@ def test_estop_press_and_clear_are_atomic():
     from jepa_envs.real_robot.estop import EStop
     stops = []
     estop = EStop(lambda: stops.append(1))
-    with estop._lock:
+    with estop._cv:
         presser = threading.Thread(target=estop.press)
         presser.start()
         presser.join(timeout=0.2)

@@ -65,9 +65,11 @@ def test_the_five_reported_crashes_get_answers(robot, ctx):
     req = _socket(ctx, zmq.REQ, bridge.control_endpoint)
     req.send(P.encode({"type": P.STEP, "action": [1.0, 2.0]}))
     assert _recv(req)["code"] == P.ERR_NOT_CONTROLLING
-    # 3. a two-frame message on the operator port
+    # 3. a two-frame message on the operator port (two frames are the credential and the message) and a three-frame
     op = _socket(ctx, zmq.REQ, bridge.operator_endpoint)
     op.send_multipart([P.encode({"type": P.OP_STATUS}), b"extra"])
+    assert _recv(op)["code"] == "unauthorized"
+    op.send_multipart([P.encode({"type": P.OP_STATUS}), b"extra", b"more"])
     assert "one frame" in _recv(op)["message"]
     op.send(P.encode({"type": P.OP_STATUS}))   # and the operator socket still works
     assert _recv(op)["status"]["task"] == "PushT"
