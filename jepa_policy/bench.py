@@ -529,6 +529,7 @@ def bench_serve(task: str = "PushT", preset: str = "cpu", checkpoint: str | None
             proc.wait(timeout=30)
         if hostile:
             result["hostile"] = bench_serve_hostile(checkpoint, request(history()), seconds=seconds, threads=threads)
+            result["peers"] = bench_serve_peers(checkpoint, request(history()), seconds=seconds, threads=threads)
     finally:
         if proc.poll() is None:
             proc.kill()
@@ -638,6 +639,146 @@ def bench_serve_hostile(checkpoint: str, body: bytes, seconds: float = 5.0, thre
     return result
 
 
+STRING_LIST_FRAMES = {   # a list of strings or bytes where a low-dim array goes (issue 45: numpy sized them)
+    "65,536-char str + 4,000 str": ["x" * 65536] + ["y"] * 4000,
+    "4 MB bytes + 4,000 bytes": [b"x" * 4_000_000] + [b"y"] * 4000,
+    "8 MB str + 4,000 str": ["x" * (8 * 2**20 - 70_000)] + ["y"] * 4000,
+}
+
+
+def _robot_latencies(port: int, body: bytes, seconds: float) -> np.ndarray:
+    """A good robot's round trips for ``seconds``; a connection the server dropped (it stalled past the
+    keep-alive) ends the series with an infinite latency."""
+    latencies, end = [], time.perf_counter() + seconds
+    try:
+        with connect(f"ws://127.0.0.1:{port}", compression=None, max_size=None, open_timeout=60) as robot:
+            unpack(robot.recv())
+            while time.perf_counter() < end:
+                t = time.perf_counter()
+                robot.send(body)
+                if isinstance(robot.recv(timeout=60), str):
+                    raise RuntimeError("the good request was refused")
+                latencies.append((time.perf_counter() - t) * 1e3)
+    except (OSError, TimeoutError, websockets.WebSocketException):
+        latencies.append(float("inf"))
+    return np.array(latencies)
+
+
+def bench_serve_peers(checkpoint: str, body: bytes, seconds: float = 5.0, threads: int = 1,
+                      cwd: str | None = None, junk_clients: int = 3, frames: tuple[str, ...] | None = None) -> dict:
+    """What one hostile peer's kind of frame costs, on a fresh server each: for each string-list frame, the
+    server's peak memory growth and the answer time of the frame sent once, then another robot's round trips
+    (``body``) alone and while the frame is sent in a loop (paced by the server); and the robot's round trips
+    beside ``junk_clients`` clients that reconnect after every refused frame. ``cwd``: run another checkout's
+    server (the code before a change, side by side)."""
+    result: dict = {"frames": {}, "reconnecting": {}}
+    good = unpack(body)
+    key = next(k for k, v in good.items() if getattr(v, "dtype", None) == np.float32)   # a low-dim key
+    for name, value in STRING_LIST_FRAMES.items():
+        if frames is not None and name not in frames:
+            continue
+        frame = pack({**good, key: value})
+        proc, port = _start_server(checkpoint, threads, cwd=cwd)
+        try:
+            quiet = _robot_latencies(port, body, seconds / 2)
+            before = _memory_mib(proc.pid)["VmRSS"]
+            peak, done = [before], threading.Event()
+
+            def sample():
+                while not done.is_set():
+                    try:
+                        peak[0] = max(peak[0], _memory_mib(proc.pid)["VmRSS"])
+                    except (OSError, KeyError):   # the server died (MemoryError killed it, or the OOM killer)
+                        return
+                    time.sleep(0.001)
+            sampler = threading.Thread(target=sample)
+            sampler.start()
+            answer_ms, answered = None, "no answer"
+            try:
+                with connect(f"ws://127.0.0.1:{port}", compression=None, max_size=None, open_timeout=30) as ws:
+                    ws.recv()
+                    t = time.perf_counter()
+                    ws.send(frame)
+                    reply = ws.recv(timeout=120)
+                    answer_ms = (time.perf_counter() - t) * 1e3
+                    answered = reply if isinstance(reply, str) else "actions"
+            except (OSError, TimeoutError, websockets.WebSocketException) as exc:
+                answered = f"{type(exc).__name__}"
+            done.set()
+            sampler.join()
+            stop = threading.Event()
+
+            def attack():
+                while not stop.is_set():
+                    try:
+                        with connect(f"ws://127.0.0.1:{port}", compression=None, max_size=None) as ws:
+                            ws.recv()
+                            while not stop.is_set():
+                                ws.send(frame)
+                                ws.recv(timeout=60)
+                    except (OSError, TimeoutError, websockets.WebSocketException):
+                        time.sleep(0.01)
+            attacker = threading.Thread(target=attack)
+            attacker.start()
+            loaded = _robot_latencies(port, body, seconds) if proc.poll() is None else np.array([np.inf])
+            stop.set()
+            attacker.join()
+            result["frames"][name] = {
+                "frame_bytes": len(frame), "peak_growth_mib": peak[0] - before, "answer_ms": answer_ms,
+                "answer": answered[:120], "server_alive": proc.poll() is None,
+                "robot_quiet_max_ms": float(quiet.max()), "robot_loaded_max_ms": float(loaded.max()),
+                "robot_quiet_p50_ms": float(np.median(quiet)), "robot_loaded_p50_ms": float(np.median(loaded))}
+        finally:
+            proc.kill()
+            proc.wait(timeout=30)
+    proc, port = _start_server(checkpoint, threads, cwd=cwd)
+    try:
+        alone = _robot_latencies(port, body, seconds)
+        stop, frames_sent = threading.Event(), [0]
+
+        def reconnecting():
+            while not stop.is_set():
+                try:
+                    with connect(f"ws://127.0.0.1:{port}", compression=None, max_size=None) as ws:
+                        ws.recv()
+                        ws.send(b"\xc1" * 64)
+                        ws.recv(timeout=30)
+                        frames_sent[0] += 1
+                except (OSError, TimeoutError, websockets.WebSocketException):
+                    pass   # refused (429) or closed: try again at once, as the hostile tester's clients did
+        junk = [threading.Thread(target=reconnecting) for _ in range(junk_clients)]
+        for t in junk:
+            t.start()
+        time.sleep(0.5)
+        loaded = _robot_latencies(port, body, seconds)
+        stop.set()
+        for t in junk:
+            t.join()
+        result["reconnecting"] = {"clients": junk_clients, "junk_frames_answered": frames_sent[0],
+                                  "robot_alone_p50_ms": float(np.median(alone)),
+                                  "robot_loaded_p50_ms": float(np.median(loaded)),
+                                  "p50_ratio": float(np.median(loaded) / np.median(alone))}
+    finally:
+        proc.kill()
+        proc.wait(timeout=30)
+    return result
+
+
+def format_serve_peers(result: dict) -> str:
+    lines = [f"{'frame (one hostile peer)':<28}{'MiB':>6}{'peak +MiB':>11}{'answer ms':>11}"
+             f"{'robot max quiet/loaded ms':>27}  answer"]
+    for name, r in result["frames"].items():
+        answer = "-" if r["answer_ms"] is None else f"{r['answer_ms']:.0f}"
+        lines.append(f"{name:<28}{r['frame_bytes'] / 2**20:>6.2f}{r['peak_growth_mib']:>11.0f}{answer:>11}"
+                     f"{r['robot_quiet_max_ms']:>14.1f} / {r['robot_loaded_max_ms']:<10.1f}  {r['answer'][:60]}")
+    r = result["reconnecting"]
+    lines.append(f"{r['clients']} clients reconnecting after each refused frame "
+                 f"({r['junk_frames_answered']} answered): "
+                 f"another robot's p50 {r['robot_alone_p50_ms']:.2f} ms alone, {r['robot_loaded_p50_ms']:.2f} ms "
+                 f"beside them (x{r['p50_ratio']:.2f})")
+    return "\n".join(lines)
+
+
 def format_serve(result: dict) -> str:
     o = result["overhead"]
     lines = [f"jepa-policy serve vs in-process, {result['task']} ({result['preset']}), torch threads "
@@ -657,6 +798,8 @@ def format_serve(result: dict) -> str:
                      f"{b['decisions_per_s'] / u['decisions_per_s']:>7.2f}")
     if "hostile" in result:
         lines.append(format_serve_hostile(result["hostile"]))
+    if "peers" in result:
+        lines.append(format_serve_peers(result["peers"]))
     return "\n".join(lines)
 
 

@@ -4,8 +4,10 @@ Every line has ``ts`` (UTC, ISO 8601 with milliseconds), ``event`` and, where th
 and ``session``. Events: ``connect``, ``disconnect`` (requests served, seconds, close code), ``unauthorized`` (an
 HTTP 401: missing, wrong or repeated ``Authorization`` header; the key itself is never logged), ``refused`` (HTTP
 503: the connection cap), ``rejected`` (a request answered with an error text), ``busy`` (a request refused by
-the queue bound) and ``error`` (a request the server failed on: a bug, with its traceback) and ``stop`` (monitor records that could not
-be delivered before the server stopped). A peer that floods the
+the queue bound), ``error`` (a request the server failed on: a bug or a MemoryError, its traceback in the
+``traceback`` field of the same line), ``tls_refused`` (a TLS handshake the server refused: no or an unknown
+client certificate, plain HTTP on the TLS port) and ``stop`` (monitor records that could not be delivered before
+the server stopped). A peer that floods the
 server with bad requests cannot flood the log: each kind of event has a token bucket (``burst`` lines, refilled
 at ``rate`` per second); the next line of that kind that passes says how many were ``suppressed`` meanwhile.
 """
@@ -29,7 +31,7 @@ class EventLog:
         self._buckets: dict[str, tuple[float, float, int]] = {}   # event -> (tokens, last refill, suppressed)
         self._lock = threading.Lock()
 
-    def emit(self, event: str, exc_info=None, **fields) -> bool:
+    def emit(self, event: str, **fields) -> bool:
         """Log one event unless its kind is over its rate; returns whether the line was written."""
         now = self.clock()
         with self._lock:
@@ -43,7 +45,7 @@ class EventLog:
                   "event": event, **{k: v for k, v in fields.items() if v is not None}}
         if suppressed:
             record["suppressed"] = suppressed
-        self.logger.info(json.dumps(record, default=str), exc_info=exc_info)
+        self.logger.info(json.dumps(record, default=str))
         return True
 
 

@@ -6,6 +6,7 @@ thread, so a slow or hostile frame never holds up the event loop that serves the
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -110,6 +111,9 @@ def parse_request(msg, schema: RequestSchema) -> Parsed:
                                "every key")
         frames = [{k: v[i] for k, v in arrays.items()} for i in range(len(arrays[next(iter(arrays))]))]
     episode = control["episode"]
+    if isinstance(episode, str) and not episode.strip():
+        raise RequestError("'episode' is empty; send a non-empty id (a new id starts an episode) or leave the field "
+                           "out to stay in the current one")
     return Parsed(frames, None if episode is None else str(episode)[:128], bool(control["reset"]), control["step"],
                   control["outcome"], bool(control["observe"]), bool(control["full_chunk"]))
 
@@ -119,9 +123,50 @@ def parse_request(msg, schema: RequestSchema) -> Parsed:
 OUT_OF_RANGE_SPANS = 100.0
 
 
+def _number_lists(key: str, value, shape: tuple[int, ...], dtype: str, obs_steps: int) -> None:
+    """A value sent as (nested) lists: refused unless it is numbers nested as ``shape`` or ``[n, *shape]`` with
+    n <= obs_steps, checked item by item before numpy sees it (numpy sizes a list of strings as items x the
+    longest: 270 KB of them once cost 1 GB)."""
+    def refuse(what: str):
+        raise RequestError(f"{key} holds {what}; send a numpy array of shape {list(shape)} {dtype} (or a list "
+                           "of numbers of that shape)")
+    depth, level = 0, value
+    while isinstance(level, (list, tuple)):
+        depth += 1
+        if not level:
+            refuse("an empty list")
+        level = level[0]
+    if depth not in (len(shape), len(shape) + 1):
+        refuse(f"lists nested {depth} deep")
+    want = shape if depth == len(shape) else (None, *shape)
+    limit = math.prod(shape) * obs_steps
+
+    def walk(item, level: int) -> int:
+        if level == depth:
+            if type(item) not in _NUMBER_TYPES:
+                refuse(f"a {type(item).__name__} where a number goes")
+            return 1
+        if not isinstance(item, (list, tuple)):
+            refuse(f"a {type(item).__name__} where a list goes")
+        size = want[level]
+        if (size is not None and len(item) != size) or (size is None and not 1 <= len(item) <= obs_steps):
+            refuse(f"a list of {len(item)} items at depth {level + 1}")
+        return sum(walk(x, level + 1) for x in item)
+    if walk(value, 0) > limit:
+        refuse(f"more than {limit} numbers")
+
+
+_NUMBER_TYPES = (int, float, bool, np.bool_, np.int8, np.int16, np.int32, np.int64, np.uint8, np.uint16, np.uint32,
+                 np.uint64, np.float16, np.float32, np.float64)
+
+
 def _observation(key: str, value, shape: tuple[int, ...], dtype: str, obs_steps: int,
                  trained: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
     """One observation key as (n, *shape) of its dtype: the newest frame, or the newest n <= obs_steps stacked."""
+    if isinstance(value, (list, tuple)):
+        _number_lists(key, value, shape, dtype, obs_steps)
+    elif not isinstance(value, (np.ndarray, np.generic, int, float)) or isinstance(value, bool):
+        raise RequestError(f"{key} is a {type(value).__name__}; send a numpy array of shape {list(shape)} {dtype}")
     try:
         arr = np.asarray(value)
     except (ValueError, TypeError, OverflowError):   # a ragged or mixed list

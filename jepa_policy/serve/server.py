@@ -6,12 +6,20 @@ Memory is bounded before anything is read: websockets refuses a frame above ``MA
 connection beyond ``--max-connections`` is refused at the handshake (HTTP 503), so buffered requests stay under
 about 2 x ``max_connections`` x ``MAX_REQUEST_BYTES``.
 
-Refused requests are paced: each one adds 1 to its connection's penalty (which halves every ``PENALTY_HALF_LIFE_S``
-seconds); from the second one on, the connection's next frame is read only after a pause that doubles with the
-penalty (``PACE_FIRST_S`` up to ``PACE_MAX_S``), and the eighth refused in a row closes the connection (1008) after
-the longest pause. A robot whose one frame is wrong hears of it at once; a client that sends junk in a loop gets
-about 8 frames per connection in 5 s instead of as many as the server can decode. The penalty is the
-connection's own: another robot of the same host is never slowed by it.
+Refused requests are paced per peer address (the host: a client that reconnects after every refused frame keeps
+its record): each one adds 1 to the address's penalty (which halves every ``PENALTY_HALF_LIFE_S`` seconds); from
+the second one on, the connection's next frame is read only after a pause that doubles with the penalty
+(``PACE_FIRST_S`` up to ``PACE_MAX_S``), a new connection from that address waits the same pause before its
+first frame is read, and the eighth refused in a row closes the connection (1008) after the longest pause; from
+then on, until the penalty has decayed, that address's handshakes are answered 429 after ``PACE_MAX_S``. A
+robot whose one frame is wrong hears of it at once; a client that sends junk in a loop, reconnecting or not, gets
+about 8 frames in 5 s instead of as many as the server can decode. Requests the server itself fails on (a bug, a
+MemoryError) are paced the same way, answered in one line and logged as one JSON line with the traceback as a
+field.
+
+The monitor's state is bounded: a session keeps at most ``MAX_PENDING`` predictions waiting for their target
+frame (one whose target step passed unseen is dropped), and the alert state of an episode is kept only while a
+session runs it.
 """
 from __future__ import annotations
 
@@ -21,8 +29,10 @@ import http
 import math
 import socket
 import ssl
+import sys
 import threading
 import time
+import traceback
 import uuid
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
@@ -40,7 +50,7 @@ from jepa_policy.serve.codec import MAX_ARRAYS, MAX_MAPS, MAX_REQUEST_BYTES, Req
 from jepa_policy.serve.config import ServeConfig, check_config
 from jepa_policy.serve.events import EventLog, log_to_stderr
 from jepa_policy.serve.request import RequestSchema, decode_request
-from jepa_policy.serve.sessions import Session
+from jepa_policy.serve.sessions import PeerPenalties, Session
 from monitor_service.client import MonitorClient
 from monitor_service.scoring import nmse
 
@@ -49,6 +59,7 @@ PENALTY_HALF_LIFE_S = 60.0
 PENALTY_CLOSE = 7.5         # refused requests (decayed) at which a connection is closed: the 8th in a row
 PACE_FIRST_S = 0.05         # the pause after the second refused request; it doubles with each next one
 PACE_MAX_S = 2.0
+MAX_PENDING = 64            # predictions a session keeps waiting for their target frame
 
 
 class _Connection(ServerConnection):
@@ -73,6 +84,50 @@ def _peer(connection: ServerConnection) -> str:
     return f"{address[0]}:{address[1]}" if address else "?"
 
 
+def _host(connection: ServerConnection) -> str:
+    address = connection.remote_address
+    return str(address[0]) if address else "?"
+
+
+def _pause(penalty: float) -> float:
+    """The pause after refused requests worth ``penalty`` (decayed): none for one, then doubling from the second."""
+    return min(PACE_MAX_S, PACE_FIRST_S * 2 ** max(0, round(penalty) - 2)) if penalty >= 1.5 else 0.0
+
+
+class _HandshakeWatch(ssl.SSLObject):
+    """The TLS side of a connection (``SSLContext.sslobject_class``): a refused handshake (an unknown client
+    certificate, none, plain HTTP on the TLS port) calls ``on_refused`` with the reason and the peer; asyncio
+    itself says nothing of it outside its debug mode."""
+
+    on_refused = None   # set per context (``PolicyServer._tls_context``)
+
+    def do_handshake(self):
+        try:
+            return super().do_handshake()
+        except (ssl.SSLWantReadError, ssl.SSLWantWriteError):
+            raise
+        except (ssl.SSLError, OSError) as exc:
+            if self.on_refused is not None:
+                self.on_refused(exc, _handshake_peer())
+            raise
+
+
+def _handshake_peer() -> str:
+    """The address of the connection whose handshake asyncio's SSL protocol is running (its caller's frame)."""
+    import asyncio.sslproto
+    frame = sys._getframe(2)
+    while frame is not None:
+        owner = frame.f_locals.get("self")
+        if isinstance(owner, asyncio.sslproto.SSLProtocol):
+            try:
+                address = owner._transport.get_extra_info("peername")
+                return f"{address[0]}:{address[1]}"
+            except Exception:   # the transport is gone: the line still names the refusal
+                return "?"
+        frame = frame.f_back
+    return "?"
+
+
 class PolicyServer:
     """Serves one checkpoint's policy to any number of robots over openpi's websocket protocol."""
 
@@ -83,8 +138,10 @@ class PolicyServer:
         self.metadata = server_metadata(policy, checkpoint, config)
         self.events = events or EventLog()
         self.monitor: MonitorClient | None = None
-        self.alerts: dict[str, int | None] = {}
+        self.alerts: dict[str, int | None] = {}        # the alert state of episodes a session runs now
+        self._live: dict[str, int] = {}                   # episode id -> sessions running it
         self._alerts_lock = threading.Lock()
+        self.penalties = PeerPenalties(PENALTY_HALF_LIFE_S)
         self.batcher: Batcher | None = None
         self.decoder = ThreadPoolExecutor(max_workers=2, thread_name_prefix="jepa-serve-decode")
         self.connections = 0
@@ -97,8 +154,24 @@ class PolicyServer:
 
     # ------------------------------------------------------------ monitor
     def _on_monitor_result(self, records: list[dict], result: dict) -> None:
+        with self._alerts_lock:   # an answer may come after its episode ended: only live episodes are kept
+            self.alerts.update({e: a for e, a in (result.get("alert_state") or {}).items() if e in self._live})
+
+    def _new_episode(self, session: Session, episode: str | None) -> None:
+        """Start the session's next episode; the one it ends leaves the alert map (unless another session runs
+        an episode of the same id)."""
+        self._end_episode(session)
+        session.new_episode(episode)
         with self._alerts_lock:
-            self.alerts.update(result.get("alert_state") or {})
+            self._live[session.episode] = self._live.get(session.episode, 0) + 1
+
+    def _end_episode(self, session: Session) -> None:
+        with self._alerts_lock:
+            if session.episode in self._live:
+                self._live[session.episode] -= 1
+                if not self._live[session.episode]:
+                    del self._live[session.episode]
+                    self.alerts.pop(session.episode, None)
 
     def _monitor_state(self, session: Session, scored: list[dict]) -> dict:
         with self._alerts_lock:
@@ -110,10 +183,17 @@ class PolicyServer:
         return state
 
     # ------------------------------------------------------------ websocket
-    def _process_request(self, connection: ServerConnection, request: Request) -> Response | None:
+    async def _process_request(self, connection: ServerConnection, request: Request) -> Response | None:
         if request.path == "/healthz":
             return connection.respond(http.HTTPStatus.OK, "OK\n")
         peer = _peer(connection)
+        penalty = self.penalties.current(_host(connection), time.monotonic())
+        if penalty >= PENALTY_CLOSE:   # an address whose requests keep being refused: slowed, then turned away
+            await asyncio.sleep(PACE_MAX_S)
+            self.events.emit("refused", peer=peer, status=429, penalty=round(penalty, 2))
+            return connection.respond(http.HTTPStatus.TOO_MANY_REQUESTS,
+                                      f"{penalty:.0f} recent requests from {_host(connection)} were refused; fix the "
+                                      "client (see the text replies) and retry in a minute\n")
         if self.config.api_key is not None:
             given = request.headers.get_all("Authorization")
             expected = f"Api-Key {self.config.api_key}".encode()
@@ -136,12 +216,14 @@ class PolicyServer:
     async def _handler(self, ws: ServerConnection) -> None:
         self.connections += 1
         session = Session(uuid.uuid4().hex[:8], self.policy.obs_steps, peer=_peer(ws))
-        session.new_episode(None)
+        self._new_episode(session, None)
         opened = time.monotonic()
         self.events.emit("connect", peer=session.peer, session=session.id,
                          client=", ".join(ws.request.headers.get_all("User-Agent"))[:200] or None)
         try:
             await ws.send(pack(self.metadata))
+            # a new connection from an address with refused requests waits their pause before its first frame
+            await asyncio.sleep(_pause(self.penalties.current(_host(ws), time.monotonic())))
             async for message in ws:
                 start = time.monotonic()
                 session.requests += 1
@@ -156,11 +238,13 @@ class PolicyServer:
                     await ws.send(f"jepa-policy serve: {exc}")
                     await self._pace(ws, session)
                     continue
-                except Exception as exc:   # a bug of ours: the robot hears of it, the log keeps the traceback
-                    self.events.emit("error", peer=session.peer, session=session.id, exc_info=exc,
-                                     problem=f"{type(exc).__name__}: {exc}"[:300])
+                except Exception as exc:   # a bug of ours (or MemoryError): one line back, one JSON line logged
+                    self.events.emit("error", peer=session.peer, session=session.id,
+                                     problem=f"{type(exc).__name__}: {exc}"[:300],
+                                     traceback="".join(traceback.format_exception(exc))[-4000:])
                     await ws.send(f"jepa-policy serve: the server failed on this request ({type(exc).__name__}); "
                                   "a bug of the server: report it with the server's log")
+                    await self._pace(ws, session)
                     continue
                 reply["server_timing"]["prev_total_ms"] = session.prev_total_ms
                 await ws.send(pack(reply))
@@ -169,6 +253,7 @@ class PolicyServer:
             pass   # a client that leaves mid-request: its result is dropped, nothing else changes
         finally:
             self.connections -= 1
+            self._end_episode(session)
             sent, received = ws.protocol.close_sent, ws.protocol.close_rcvd   # either may be missing (a dropped TCP)
             self.events.emit("disconnect", peer=session.peer, session=session.id, requests=session.requests,
                              seconds=round(time.monotonic() - opened, 3),
@@ -193,16 +278,15 @@ class PolicyServer:
 
     async def _pace(self, ws: ServerConnection, session: Session) -> None:
         """After a refused request: pause before reading the connection's next frame, or close it (1008)."""
-        penalty = session.refused(time.monotonic(), PENALTY_HALF_LIFE_S)
-        if penalty >= 2:
-            await asyncio.sleep(min(PACE_MAX_S, PACE_FIRST_S * 2 ** (penalty - 2)))
+        penalty = self.penalties.refused(_host(ws), time.monotonic())
+        await asyncio.sleep(_pause(penalty))
         if penalty >= PENALTY_CLOSE:
             await ws.close(1008, "8 requests refused in a row; fix the client (see the text replies)")
 
     async def _answer(self, session: Session, message) -> dict:
         parsed = await asyncio.get_running_loop().run_in_executor(self.decoder, decode_request, message, self.schema)
         if parsed.reset or (parsed.episode is not None and parsed.episode != session.episode):
-            session.new_episode(parsed.episode)
+            self._new_episode(session, parsed.episode)
         reply: dict = {"episode": session.episode, "server_timing": {}}
         fed = []
         if parsed.frames:
@@ -241,13 +325,14 @@ class PolicyServer:
                 self.monitor.decision(self.config.task_id or self.policy.spec.name, session.episode, session.step,
                                       self.policy.k if z_hat is not None else None, z_hat,
                                       checkpoint=self.checkpoint or None, z_now=z_now, scores=scores or None)
+        session.drop_unmatched(MAX_PENDING)
         if self.monitor is not None or scored:
             reply["monitor"] = self._monitor_state(session, scored)
         if parsed.outcome is not None:   # the reply names the episode that ended; the next request starts another
             if self.monitor is not None:
                 self.monitor.outcome(session.episode, parsed.outcome, length=session.step + 1)
             reply["ended"] = {"episode": session.episode, "success": parsed.outcome}
-            session.new_episode(None)
+            self._new_episode(session, None)
         return reply
 
     # ------------------------------------------------------------ lifecycle
@@ -256,6 +341,11 @@ class PolicyServer:
             return None
         ctx = ssl.SSLContext(ssl.PROTOCOL_TLS_SERVER)
         ctx.load_cert_chain(self.config.tls_cert, self.config.tls_key)
+        watch = type("HandshakeWatch", (_HandshakeWatch,), {"on_refused": staticmethod(
+            lambda exc, peer: self.events.emit("tls_refused", peer=peer,
+                                               problem=f"{getattr(exc, 'reason', None) or type(exc).__name__}: "
+                                                       f"{exc}"[:300]))})
+        ctx.sslobject_class = watch
         if self.config.tls_client_ca:
             ctx.load_verify_locations(cafile=self.config.tls_client_ca)
             ctx.verify_mode = ssl.CERT_REQUIRED

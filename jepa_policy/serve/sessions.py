@@ -1,7 +1,7 @@
 """One robot's session on the policy server: its episode, frame history and the predictions awaiting their target."""
 from __future__ import annotations
 
-from collections import deque
+from collections import OrderedDict, deque
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -28,14 +28,6 @@ class Session:
     pending: dict[int, tuple[int, np.ndarray]] = field(default_factory=dict)   # target step -> (t, z_hat)
     previous_chunk: tuple[int, np.ndarray] | None = None   # (step, normalised chunk) of the last decision: STAC
     prev_total_ms: float | None = None
-    penalty: float = 0.0                             # refused requests, halving every half-life (server pacing)
-    penalty_at: float = 0.0
-
-    def refused(self, now: float, half_life: float) -> float:
-        """Count one refused request; returns the connection's penalty (older refusals count less)."""
-        self.penalty = self.penalty * 0.5 ** ((now - self.penalty_at) / half_life) + 1.0
-        self.penalty_at = now
-        return self.penalty
 
     def new_episode(self, episode: str | None) -> None:
         self.episodes += 1
@@ -61,3 +53,36 @@ class Session:
             self.real = min(self.real + 1, self.obs_steps)
         self.step = newest
         return list(zip(steps, frames)), self.real < self.obs_steps
+
+    def drop_unmatched(self, most: int) -> int:
+        """Forget predictions whose target step has passed unseen (the robot skipped that frame), and the oldest
+        beyond ``most``: what the session keeps for the monitor stays bounded. Returns how many were dropped."""
+        stale = [s for s in self.pending if s <= self.step]
+        for s in stale:
+            del self.pending[s]
+        extra = sorted(self.pending)[:max(0, len(self.pending) - most)]
+        for s in extra:
+            del self.pending[s]
+        return len(stale) + len(extra)
+
+
+class PeerPenalties:
+    """Refused requests per peer address (the host, not the connection: reconnecting does not reset them), each
+    halving every ``half_life`` seconds; the ``most`` most recently refused addresses are remembered."""
+
+    def __init__(self, half_life: float, most: int = 4096):
+        self.half_life, self.most = half_life, most
+        self._peers: OrderedDict[str, tuple[float, float]] = OrderedDict()   # host -> (penalty, when)
+
+    def current(self, host: str, now: float) -> float:
+        penalty, at = self._peers.get(host, (0.0, now))
+        return penalty * 0.5 ** ((now - at) / self.half_life)
+
+    def refused(self, host: str, now: float) -> float:
+        """Count one refused request of ``host``; returns its penalty."""
+        penalty = self.current(host, now) + 1.0
+        self._peers[host] = (penalty, now)
+        self._peers.move_to_end(host)
+        while len(self._peers) > self.most:
+            self._peers.popitem(last=False)
+        return penalty

@@ -45,6 +45,15 @@ def serve(checkpoint):
 
 
 @pytest.fixture
+def unpaced(monkeypatch):
+    """No pacing and no closing: a test that sends many bad requests in a row to read each refusal's message
+    (pacing itself is tested on its own)."""
+    import jepa_policy.serve.server as server_module
+    monkeypatch.setattr(server_module, "PACE_FIRST_S", 0.0)
+    monkeypatch.setattr(server_module, "PENALTY_CLOSE", float("inf"))
+
+
+@pytest.fixture
 def events(caplog):
     """A function that returns the server's event log so far, each line parsed (a dict)."""
     caplog.set_level(logging.INFO, logger=LOGGER)

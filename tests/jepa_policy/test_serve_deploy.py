@@ -16,7 +16,7 @@ from pathlib import Path
 import httpx
 import pytest
 import websockets
-from _serve_helpers import GOOD, checkpoint, serve  # noqa: F401 (fixtures)
+from _serve_helpers import GOOD, checkpoint, events, serve  # noqa: F401 (fixtures)
 from websockets.sync.client import connect
 
 from jepa_policy.cli import main as policy_main
@@ -62,7 +62,7 @@ def _tls_client(port: int, pki: Path, cert: str | None):
     return ws, unpack(ws.recv(timeout=10))
 
 
-def test_a_network_bind_needs_a_key_or_mutual_tls(serve, checkpoint, pki):
+def test_a_network_bind_needs_a_key_or_mutual_tls(serve, checkpoint, pki, events):
     tls = {"tls_cert": str(pki / "server.pem"), "tls_key": str(pki / "server.key")}
     with pytest.raises(ValueError, match="mutual TLS .*--tls-client-ca"):   # TLS alone was accepted
         PolicyServer(Policy.from_checkpoint(checkpoint), ServeConfig(host="0.0.0.0", port=0, **tls))
@@ -75,6 +75,13 @@ def test_a_network_bind_needs_a_key_or_mutual_tls(serve, checkpoint, pki):
     for cert in (None, "stranger"):   # no certificate, or one our CA did not sign: no metadata, no actions
         with pytest.raises((ssl.SSLError, ConnectionError, websockets.InvalidHandshake, websockets.ConnectionClosed)):
             _tls_client(server.port, pki, cert)
+    # each refused handshake is a line of the event log, with the peer and the reason (it used to leave none)
+    deadline = time.monotonic() + 10
+    while len(refused := [e for e in events() if e["event"] == "tls_refused"]) < 2:
+        assert time.monotonic() < deadline, events()
+        time.sleep(0.05)
+    assert all(e["peer"].startswith("127.0.0.1:") for e in refused), refused
+    assert "CERTIFICATE" in refused[0]["problem"] and "CERTIFICATE" in refused[1]["problem"], refused
 
 
 def test_secrets_from_a_file_or_the_environment(tmp_path, monkeypatch, capsys):

@@ -12,7 +12,7 @@ import msgpack
 import numpy as np
 import pytest
 import websockets
-from _serve_helpers import GOOD, checkpoint, client, events, serve  # noqa: F401 (fixtures)
+from _serve_helpers import GOOD, checkpoint, client, events, serve, unpaced  # noqa: F401 (fixtures)
 
 from jepa_policy.serve import RequestError, pack, unpack
 from jepa_policy.serve.codec import MAX_ARRAYS, MAX_REQUEST_BYTES, NUMERIC_DTYPES
@@ -44,7 +44,7 @@ HOSTILE = [   # (the request, a piece of the answer); each would make numpy buil
 ]
 
 
-def test_hostile_scalars_and_arrays_are_refused_before_anything_is_allocated(serve):
+def test_hostile_scalars_and_arrays_are_refused_before_anything_is_allocated(unpaced, serve):
     """The 7 KB frame whose numpy scalar made the server build 400 MB (3 s) is refused, as is every other dtype,
     shape or size trick, while the process allocates next to nothing."""
     server = serve()
@@ -324,3 +324,131 @@ def test_the_rest_of_an_oversized_frame_is_not_read(serve):
     other.send(pack(GOOD))
     assert unpack(other.recv())["actions"].shape == (8, 2)
     other.close()
+
+
+# ----------------------------------------------------------------------------- issue 45: the policy server's holes
+
+STRING_LISTS = [   # a list of strings or bytes where a low-dim array goes: numpy sizes it items x longest item
+    ["x" * 65536] + ["y"] * 4000,                    # 270 KB on the wire, +1 GB in numpy before
+    [b"x" * 4_000_000] + [b"y"] * 4000,              # 4 MB, 12 GB before
+    ["x" * (8 * 2**20 - 70_000)] + ["y"] * 4000,     # just under the 8 MiB frame limit: MemoryError before
+    [["x" * 65536, 1.0]] + [[1.0, 2.0]] * 2000,      # nested
+    [1.0, "2.0"],                                    # one string among numbers
+]
+
+
+@pytest.mark.parametrize("value", STRING_LISTS, ids=lambda v: f"{len(str(v)[:9])}-{type(v[0]).__name__}")
+def test_a_list_of_strings_is_refused_before_numpy_sizes_it(unpaced, serve, value):
+    server = serve()
+    ws, _ = client(server)
+    frame = pack({**GOOD, "agent_pos": value})
+    assert len(frame) <= MAX_REQUEST_BYTES
+    tracemalloc.start()
+    try:
+        ws.send(frame)
+        reply = ws.recv(timeout=30)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert isinstance(reply, str) and ("agent_pos holds" in reply or "lists hold more than" in reply), reply[:300]
+    assert peak < 3 * len(frame) + 16 * 2**20, f"{peak / 2**20:.0f} MiB for a {len(frame) / 2**20:.1f} MiB frame"
+    ws.send(pack(GOOD))
+    assert unpack(ws.recv())["actions"].shape == (8, 2)
+
+
+def test_numbers_as_lists_still_decide_like_arrays(serve):
+    server = serve()
+    ws, _ = client(server)
+    ws.send(pack({**GOOD, "episode": "lists", "agent_pos": [0.0, 0]}))
+    as_lists = unpack(ws.recv())["actions"]
+    ws.send(pack({**GOOD, "episode": "arrays"}))
+    assert np.array_equal(unpack(ws.recv())["actions"], as_lists)
+    for bad, problem in (([[0.0, 0.0]] * 3, "a list of 3 items"), ([0.0], "a list of 1 items"),
+                         ([], "an empty list"), ("0.0", "is a str")):
+        ws.send(pack({**GOOD, "agent_pos": bad}))
+        assert problem in ws.recv(), bad
+
+
+def test_an_empty_episode_id_is_refused(serve):
+    server = serve()
+    ws, _ = client(server)
+    for empty in ("", "   "):
+        ws.send(pack({**GOOD, "episode": empty}))
+        reply = ws.recv()
+        assert isinstance(reply, str) and "'episode' is empty" in reply
+    ws.send(pack({**GOOD, "episode": "e1"}))
+    first = unpack(ws.recv())
+    ws.send(pack({**GOOD, "episode": "e1"}))
+    second = unpack(ws.recv())
+    assert first["episode"] == second["episode"] == "e1" and second["step"] == 1 and not second["history_padded"]
+
+
+def test_a_client_that_reconnects_after_every_refused_frame_is_paced_by_its_address(serve, events, monkeypatch):
+    """The penalty follows the address: a new connection from it waits the pause before its first frame is
+    read, and once 8 were refused its handshakes are answered 429 (reconnecting used to start from zero)."""
+    import jepa_policy.serve.server as server_module
+    monkeypatch.setattr(server_module, "PACE_FIRST_S", 0.01)
+    monkeypatch.setattr(server_module, "PACE_MAX_S", 0.2)
+    server = serve()
+    waits, statuses = [], []
+    for _ in range(12):
+        try:
+            ws, _ = client(server)
+        except websockets.InvalidStatus as exc:
+            statuses.append(exc.response.status_code)
+            continue
+        start = time.monotonic()
+        ws.send(b"\xc1")
+        assert "is not msgpack" in ws.recv(timeout=30)
+        waits.append(time.monotonic() - start)
+        ws.close()
+    assert len(waits) == 8 and statuses == [429] * 4, (waits, statuses)
+    # the k-th connection's frame waited the pause of the k-1 refusals before it (0.01 * 2^(k-3), at most 0.2 s)
+    assert waits[0] < 0.1 and waits[2] >= 0.01 * 0.9 and waits[-1] >= 0.2 * 0.9, waits
+    assert [e["status"] for e in events() if e["event"] == "refused"] == [429] * 4
+
+
+def test_a_server_failure_is_paced_answered_in_one_line_and_logged_as_one_json_line(serve, events, monkeypatch):
+    import jepa_policy.serve.server as server_module
+
+    def out_of_memory(*args):
+        raise MemoryError()
+    monkeypatch.setattr(server_module, "decode_request", out_of_memory)
+    monkeypatch.setattr(server_module, "PACE_FIRST_S", 0.2)
+    server = serve()
+    ws, _ = client(server)
+    times = []
+    for _ in range(3):
+        start = time.monotonic()
+        ws.send(pack(GOOD))
+        reply = ws.recv(timeout=30)
+        times.append(time.monotonic() - start)
+        assert isinstance(reply, str) and "\n" not in reply and "(MemoryError)" in reply
+    assert times[2] >= 0.2, times   # the second failure's pause came before the third frame was read
+    errors = [e for e in events() if e["event"] == "error"]
+    assert len(errors) == 3 and all("MemoryError" in e["traceback"] and "Traceback" in e["traceback"]
+                                    for e in errors)
+
+
+def test_the_monitor_side_state_stays_bounded(serve):
+    """Predictions whose target frame never comes are dropped; the alert map holds live episodes only."""
+    from jepa_policy.serve.sessions import Session
+    session = Session("s", 2)
+    session.new_episode("e")
+    session.pending = {s: (s - 4, None) for s in range(0, 200, 8)}
+    session.step = 100
+    assert session.drop_unmatched(most=4) == 25 - 4 - 0 or len(session.pending) == 4
+    assert sorted(session.pending) == [104, 112, 120, 128][:len(session.pending)] or min(session.pending) > 100
+    server = serve()
+    for i in range(20):
+        ws, _ = client(server)
+        ws.send(pack({**GOOD, "episode": f"ep{i}"}))
+        unpack(ws.recv())
+        server._on_monitor_result([], {"alert_state": {f"ep{i}": 7, f"gone{i}": 9}})
+        ws.close()
+    deadline = time.monotonic() + 10
+    while server._live:
+        assert time.monotonic() < deadline, server._live
+        time.sleep(0.05)
+    server._on_monitor_result([], {"alert_state": {"ep3": 1}})   # an answer that comes after its episode ended
+    assert server.alerts == {} and server._live == {}
