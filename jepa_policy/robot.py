@@ -1,6 +1,6 @@
 """``jepa-policy robot``: run a policy for N episodes on a robot bridge (real or simulated) and summarise them.
 
-The bridge (``jepa_envs.real_robot``) owns the per-task chunk budget, the safety rules and the per-episode
+The bridge (``jepa_robot``) owns the per-task chunk budget, the safety rules and the per-episode
 records; this runner is the policy side. By default it is Sec. 4.8's synchronous loop (each decision completes
 before its actions execute); ``--async`` uses the asynchronous executor instead (``jepa_envs.real_robot.
 executor``: the next chunk is inferred while the current one executes). It tags every episode with the

@@ -9,10 +9,10 @@ HASH=$(cat pyproject.toml scripts/setup.sh | sha256sum | cut -c1-16)
 # The install must resolve to this checkout from anywhere (-P: the current folder does not count), or a copy
 # moved to a new path would pass the check through the current folder while the console scripts fail elsewhere.
 installed_here() {
-  "$PY" -P -c "import pathlib, sys, jepa_envs, jepa_policy, monitor_service, jepa_operator
+  "$PY" -P -c "import pathlib, sys, jepa_envs, jepa_policy, monitor_service, jepa_robot
 here = pathlib.Path.cwd().resolve()
 sys.exit(any(pathlib.Path(m.__file__).resolve().parents[1] != here
-             for m in (jepa_envs, jepa_policy, monitor_service, jepa_operator)))" 2>/dev/null
+             for m in (jepa_envs, jepa_policy, monitor_service, jepa_robot)))" 2>/dev/null
 }
 if [ -f "$STAMP" ] && [ "$(cat "$STAMP")" = "$HASH" ] && installed_here; then
   exit 0

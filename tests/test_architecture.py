@@ -3,9 +3,11 @@
     jepa_envs  <-  jepa_policy  <-  jepa_policy.demo (the main job)
     monitor_service stands alone; anyone may import its client and its scores (``monitor_service.scoring``,
     the one d_NMSE); the main job also starts its server and runs its study of alert rules on the rollouts.
-    jepa_operator (the import-light operator commands and the robot protocol's version) imports no project
-    module and may be imported by anyone; its command line hands other subcommands to jepa_envs as a new
-    process, not an import.
+    jepa_robot is the robot bridge, a service: it serves jepa_envs tasks (so it imports jepa_envs) and nothing
+    imports it but for its wire: ``jepa_robot.operator`` (the import-light operator client, the protocol
+    version, the operator's credential; imports no project module), ``jepa_robot.operator_cli`` (the console
+    script: the operator module only) and ``jepa_robot.protocol`` (the messages both ends speak and the
+    loopback rule; the operator module only), which the proxy env in jepa_envs and the policy server import.
 
 Every import counts, at module level or inside a function. Imports of project modules inside functions are
 allowed only in command-line modules (``cli.py``), where they keep ``--help`` and small commands fast; anywhere
@@ -21,7 +23,9 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
-PACKAGES = ("jepa_envs", "jepa_policy", "monitor_service", "jepa_operator")
+PACKAGES = ("jepa_envs", "jepa_policy", "monitor_service", "jepa_robot")
+# the robot bridge's wire: what the rest of the project may import of it; it imports no project module beyond
+ROBOT_WIRE = ("jepa_robot.operator", "jepa_robot.operator_cli", "jepa_robot.protocol")
 LAZY_IMPORTS_ALLOWED_IN = ("cli.py",)
 
 
@@ -131,10 +135,15 @@ def layer_violations(edges: list[Edge]) -> list[str]:
     for e in edges:
         src, dst = e.source, e.target
         where = f"{src} imports {dst} (line {e.line})"
-        if src.startswith("jepa_operator") and not dst.startswith("jepa_operator"):
-            bad.append(f"{where}: jepa_operator stands alone (it must start without the heavy stack)")
-        elif src.startswith("jepa_envs") and not dst.startswith(("jepa_envs", "jepa_operator")):
-            bad.append(f"{where}: jepa_envs imports nothing outside itself but the operator package")
+        if src in ROBOT_WIRE and dst != "jepa_robot.operator":
+            bad.append(f"{where}: the robot's wire imports only jepa_robot.operator (the operator commands must "
+                       "start without the heavy stack)")
+        elif src.startswith("jepa_robot") and not dst.startswith(("jepa_robot", "jepa_envs")):
+            bad.append(f"{where}: the robot bridge imports only itself and the tasks of jepa_envs")
+        elif not src.startswith("jepa_robot") and dst.startswith("jepa_robot") and dst not in ROBOT_WIRE:
+            bad.append(f"{where}: outside the robot bridge, only its wire ({', '.join(ROBOT_WIRE)}) may be imported")
+        elif src.startswith("jepa_envs") and not dst.startswith(("jepa_envs", "jepa_robot")):
+            bad.append(f"{where}: jepa_envs imports nothing outside itself but the robot's wire")
         elif src.startswith("monitor_service") and not dst.startswith("monitor_service"):
             bad.append(f"{where}: monitor_service stands alone")
         elif src.startswith("jepa_policy") and not src.startswith("jepa_policy.demo"):
@@ -205,7 +214,11 @@ def test_checker_finds_upward_imports(tmp_path):
     _write_package(tmp_path, {
         "jepa_envs/__init__.py": "",
         "jepa_envs/real_robot/__init__.py": "",
-        "jepa_envs/real_robot/cli.py": "def run():\n    from jepa_policy.policy import Policy\n",
+        "jepa_envs/real_robot/proxy.py": "from jepa_robot import bridge\n",
+        "jepa_robot/__init__.py": "",
+        "jepa_robot/bridge.py": "",
+        "jepa_robot/protocol.py": "import jepa_envs.real_robot\n",
+        "jepa_robot/cli.py": "def run():\n    from jepa_policy.policy import Policy\n",
         "jepa_policy/__init__.py": "",
         "jepa_policy/policy.py": "from jepa_envs import real_robot\n",
         "jepa_policy/train.py": "from jepa_policy.demo import report\nfrom monitor_service import service\n",
@@ -217,9 +230,11 @@ def test_checker_finds_upward_imports(tmp_path):
     })
     found = import_edges(tmp_path)
     bad = layer_violations(found)
-    assert any("jepa_envs.real_robot.cli imports jepa_policy.policy" in b for b in bad)
+    assert any("jepa_robot.cli imports jepa_policy.policy" in b for b in bad)
+    assert any("jepa_envs.real_robot.proxy imports jepa_robot.bridge" in b for b in bad)
+    assert any("jepa_robot.protocol imports jepa_envs.real_robot" in b for b in bad)
     assert any("jepa_policy.train imports jepa_policy.demo.report" in b for b in bad)
     assert any("jepa_policy.train imports monitor_service.service" in b for b in bad)
     assert any("monitor_service.service imports jepa_envs" in b for b in bad)
-    assert len(bad) == 4   # the policy importing envs and the main job importing the client are the allowed shape
+    assert len(bad) == 6   # the policy importing envs and the main job importing the client are the allowed shape
     assert hidden_imports(found) == []   # the one nested import sits in a cli.py

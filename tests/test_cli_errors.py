@@ -2,7 +2,7 @@
 
 One table for all five programs: a missing, truncated, foreign or crafted file, an unknown task, an impossible
 number, a service that is not there. Each row runs the program's own ``main`` (in this process, which is what
-the console script calls; ``jepa-robot-bridge`` hands non-operator commands to ``jepa_envs.real_robot.cli``),
+the console script calls; ``jepa-robot-bridge`` hands non-operator commands to ``jepa_robot.cli``),
 and a few run as real console scripts in a subprocess.
 """
 from __future__ import annotations
@@ -17,7 +17,7 @@ import pytest
 import torch
 
 from jepa_envs.cli import main as envs_main
-from jepa_envs.real_robot.cli import main as bridge_main
+from jepa_robot.cli import main as bridge_main
 from jepa_policy.checkpoint import FORMAT
 from jepa_policy.cli import main as policy_main
 from jepa_policy.demo.job import main as demo_main

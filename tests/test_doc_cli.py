@@ -41,11 +41,11 @@ CLIS = {
     "jepa-envs": _main("jepa_envs.cli"),
     "jepa-policy": _main("jepa_policy.cli"),
     "jepa-monitor": _main("monitor_service.cli"),
-    "jepa-robot-bridge": _main("jepa_envs.real_robot.cli"),   # what jepa_operator.cli hands everything to
+    "jepa-robot-bridge": _main("jepa_robot.cli"),   # what jepa_robot.operator_cli hands everything to
     "jepa-demo": _main("jepa_policy.demo.job"),
 }
 MODULES = {"jepa_envs.cli": "jepa-envs", "jepa_policy.cli": "jepa-policy", "monitor_service.cli": "jepa-monitor",
-           "jepa_envs.real_robot.cli": "jepa-robot-bridge", "jepa_operator.cli": "jepa-robot-bridge",
+           "jepa_robot.cli": "jepa-robot-bridge", "jepa_robot.operator_cli": "jepa-robot-bridge",
            "jepa_policy.demo.job": "jepa-demo"}
 SHELL = {"|", "||", "&", "&&", ";", ">", ">>", "<", "2>&1", ")", "("}
 # placeholders the documents write in capitals where the parser wants a number
@@ -416,7 +416,7 @@ def test_the_readme_bridge_and_robot_pair_runs_as_written(reader_folder, tmp_pat
                   and "sim" in c.argv)
     robot = next(c for c in readme if c.cli == "jepa-policy" and c.argv[:1] == ("robot",))
     control, operator = f"tcp://127.0.0.1:{_free_port()}", f"tcp://127.0.0.1:{_free_port()}"
-    process = subprocess.Popen([sys.executable, "-m", "jepa_envs.real_robot.cli", *bridge.argv, "--bind", control,
+    process = subprocess.Popen([sys.executable, "-m", "jepa_robot.cli", *bridge.argv, "--bind", control,
                                 "--operator-bind", operator, "--no-prompt", "--record-dir", str(tmp_path / "rec"),
                                 "--chunk-budget", "3"],   # a short episode: what is checked is the pairing
                                cwd=reader_folder, env={**os.environ, "OMP_NUM_THREADS": "1"},

@@ -29,7 +29,7 @@ from gymnasium import spaces
 from zmq.utils.monitor import parse_monitor_message
 
 from jepa_envs.tasks.base import JEPAEnv
-from jepa_envs.real_robot import protocol as P
+from jepa_robot import protocol as P
 from jepa_envs.tasks.spec import TaskSpec
 
 

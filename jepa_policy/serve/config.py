@@ -8,7 +8,7 @@ import sys
 from dataclasses import dataclass
 from pathlib import Path
 
-from jepa_envs.real_robot.protocol import is_loopback_host
+from jepa_robot.protocol import is_loopback_host
 
 MONITOR_BUFFER = 100_000
 API_KEY_ENV = "JEPA_POLICY_API_KEY"

@@ -1,0 +1,127 @@
+"""The e-stop's answer means held: from the moment a press is answered, no action starts until an operator clears it.
+
+An instrumented backend logs, in one global order, every action's start and end and every emergency stop; the
+operator's answers are logged in the same order. With the safety check slowed to 20 ms (a real robot's checks
+may take that long), a press lands between the check and ``backend.apply`` most of the time: before the motion
+lock, 21 of 30 presses had an action start after the held answer.
+"""
+from __future__ import annotations
+
+import random
+import threading
+import time
+
+import numpy as np
+import pytest
+
+from jepa_robot.estop import EStop
+from jepa_robot.load_bench import EventLog as Log
+from jepa_robot.load_bench import hold_violations as _violations
+from jepa_robot.load_bench import instrument as _instrument
+
+pytestmark = pytest.mark.timeout(240)
+
+
+def test_no_action_starts_after_the_held_answer_with_a_slow_safety_check(robot):
+    bridge = robot.bridge()
+    log = Log()
+    _instrument(bridge, log, check_s=0.02)
+    env = robot.client(bridge)
+    op = robot.operator(bridge)
+    rng = random.Random(0)
+    presses = in_check = 0
+    for _ in range(30):
+        obs, _ = env.reset(seed=presses)
+        chunk = np.tile(obs["agent_pos"], (8, 1))
+        runner = threading.Thread(target=env.step_chunk, args=(chunk,))
+        runner.start()
+        time.sleep(rng.uniform(0.005, 0.15))
+        in_check += bridge.runner.executing
+        answer = op.estop()
+        log.add("answered")
+        assert answer["estop"] and answer["held"] and not answer["action_in_flight"]
+        runner.join(timeout=20)
+        assert not runner.is_alive()
+        presses += 1
+        op.clear_estop()
+        log.add("cleared")
+    assert presses == 30 and in_check >= 20, "most presses landed while a chunk ran"
+    assert _violations(log.events) == []
+    assert sum(kind == "stop" for _, kind in log.events) == 30
+
+
+def test_a_press_waits_for_the_action_inside_apply_then_holds():
+    """Deterministic: an action is inside apply when the press comes; the press's stop goes out after it ends,
+    and a motion asked for after the latch is refused."""
+    log = Log()
+    estop = EStop(lambda: log.add("stop"))
+    inside, release = threading.Event(), threading.Event()
+
+    def action():
+        with estop.motion("action") as free:
+            assert free
+            log.add("start")
+            inside.set()
+            release.wait(5)
+            log.add("end")
+    mover = threading.Thread(target=action)
+    mover.start()
+    assert inside.wait(5)
+    answers = []
+    presser = threading.Thread(target=lambda: answers.append(estop.press()))
+    presser.start()
+    time.sleep(0.02)
+    assert estop.latched and presser.is_alive(), "latched at once, but the answer waits for the action"
+    release.set()
+    mover.join(5)
+    presser.join(5)
+    assert [k for _, k in log.events] == ["start", "end", "stop"]
+    assert answers[0]["held"] and not answers[0]["action_in_flight"]
+    with estop.motion("action") as free:
+        assert not free
+
+
+def test_a_hung_driver_call_does_not_delay_the_stop_and_is_reported():
+    """An action stuck inside the driver: the press waits ACTION_WAIT_S at most, stops concurrently and says so."""
+    from jepa_robot.estop import ACTION_WAIT_S
+    estop = EStop(lambda: None)
+    inside, release = threading.Event(), threading.Event()
+
+    def action():
+        with estop.motion("action"):
+            inside.set()
+            release.wait(5)
+    mover = threading.Thread(target=action)
+    mover.start()
+    assert inside.wait(5)
+    start = time.monotonic()
+    answer = estop.press()
+    elapsed = time.monotonic() - start
+    release.set()
+    mover.join(5)
+    assert answer["held"] and answer["action_in_flight"]
+    assert ACTION_WAIT_S <= elapsed < ACTION_WAIT_S + 1.0
+
+
+def test_a_long_move_is_stopped_concurrently_not_waited_for():
+    """A homing move holds no press back: the stop goes out while it runs, and no move starts after the latch."""
+    log = Log()
+    estop = EStop(lambda: log.add("stop"))
+    inside, release = threading.Event(), threading.Event()
+
+    def home():
+        with estop.motion("move") as free:
+            assert free
+            inside.set()
+            release.wait(5)
+    mover = threading.Thread(target=home)
+    mover.start()
+    assert inside.wait(5)
+    start = time.monotonic()
+    answer = estop.press()
+    assert time.monotonic() - start < 0.04 and answer["held"]
+    assert [k for _, k in log.events] == ["stop"]
+    release.set()
+    mover.join(5)
+    with estop.motion("move") as free:
+        assert not free
