@@ -7,12 +7,8 @@ from __future__ import annotations
 
 import gymnasium as gym
 
-from jepa_envs import moved
-
-moved.install()
-
-from jepa_envs.tasks.entry import creator  # noqa: E402
-from jepa_envs.tasks.spec import TaskSpec, all_task_specs, get_task_spec, register_task  # noqa: E402
+from jepa_envs.tasks.entry import creator
+from jepa_envs.tasks.spec import TaskSpec, all_task_specs, get_task_spec, register_task
 
 _ENTRY_POINTS = {
     "embedded": "jepa_envs.tasks.pusht_variants:make_pusht",   # variant="embedded" (default) or "standard"

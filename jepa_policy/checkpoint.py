@@ -12,7 +12,6 @@ import os
 import pickle
 import random
 import re
-import warnings
 from pathlib import Path
 
 import numpy as np
@@ -21,7 +20,7 @@ import torch
 from jepa_envs.errors import first_line
 from jepa_policy.blocks import BasePolicyModel
 from jepa_policy.config import ModelConfig
-from jepa_policy.model import build_model as _build_model   # the old name below is served by __getattr__
+from jepa_policy.model import build_model
 
 FORMAT = "jepa-policy-checkpoint/1"
 EMA_PREFIX = "module."   # torch's AveragedModel keeps the averaged network under .module
@@ -69,16 +68,6 @@ def safe_load(path: Path, map_location="cpu", what: str = "checkpoint"):
 def _first_line(text: str) -> str:
     """The first sentence of an error text, bounded (torch's messages run on for paragraphs)."""
     return first_line(text).split(". ")[0]
-
-
-def __getattr__(name: str):
-    """``jepa_policy.checkpoint.build_model`` (before model construction moved beside the model), for one
-    release, with a DeprecationWarning naming the new place."""
-    if name == "build_model":
-        warnings.warn("jepa_policy.checkpoint.build_model moved to jepa_policy.model.build_model; the old name goes "
-                      "away in the next release", DeprecationWarning, stacklevel=2)
-        return _build_model
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
 def rng_state() -> dict:
@@ -150,7 +139,7 @@ def load_checkpoint(path: str | Path, map_location="cpu") -> dict:
 
 def load_model(ckpt: dict, ema: bool = True) -> BasePolicyModel:
     """The network of a loaded checkpoint with its EMA weights (``ema=False``: the raw training weights)."""
-    model = _build_model(ModelConfig.from_dict(ckpt["model_config"]))
+    model = build_model(ModelConfig.from_dict(ckpt["model_config"]))
     if ema:
         state = {k[len(EMA_PREFIX):]: v for k, v in ckpt["ema"].items() if k.startswith(EMA_PREFIX)}
     else:

@@ -398,17 +398,3 @@ def test_two_step_objective_is_learnable_on_a_fixed_batch():
     assert history[-1]["loss"] < 0.5 * history[0]["loss"]
     assert history[-1]["loss_act_step1"] < 0.5 * history[0]["loss_act_step1"]   # the refinement pass learns
     assert history[-1]["loss_future_step1"] < history[0]["loss_future_step1"]
-
-
-def test_build_model_lives_beside_the_model_and_the_old_path_warns():
-    """Model construction moved from checkpoint.py to model.py (issue 37); the old import works for one release."""
-    import warnings
-
-    with pytest.warns(DeprecationWarning, match="moved to jepa_policy.model.build_model"):
-        from jepa_policy.checkpoint import build_model as old
-    assert old is build_model
-    with warnings.catch_warnings():
-        warnings.simplefilter("error")
-        from jepa_policy.checkpoint import load_model  # noqa: F401  (other names: no warning)
-    with pytest.raises(ImportError):
-        from jepa_policy.checkpoint import no_such_name  # noqa: F401
