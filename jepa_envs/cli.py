@@ -190,18 +190,22 @@ def install_mimicgen_cmd(args: argparse.Namespace) -> int:
 
 
 def _convert_args(p: argparse.ArgumentParser) -> None:
-    # the converter module imports robosuite-facing code; it loads only when this subcommand is built
-    from jepa_envs.datasets.convert_abs_actions import cli_add_arguments
-
-    cli_add_arguments(p)
+    p.add_argument("input", help="robomimic / MimicGen HDF5 file with delta actions and states")
+    p.add_argument("output", help="where to write the copy with absolute actions")
 
 
 @subcommand("convert-abs-actions", "delta -> absolute actions (position, 6-D rotation, gripper) by state replay",
             _convert_args)
 def convert_abs_actions(args: argparse.Namespace) -> int:
-    from jepa_envs.datasets.convert_abs_actions import cli_run
+    # the converter replays states in robosuite: imported only when this subcommand runs
+    from jepa_envs.datasets.convert_abs_actions import convert_abs_actions as convert
 
-    return cli_run(args)
+    try:
+        out = convert(args.input, args.output)
+    except (FileNotFoundError, KeyError, ValueError) as e:
+        raise SystemExit(f"error: {e}") from None
+    print(f"wrote {out} (actions: absolute position + 6-D rotation + gripper; originals in actions_delta)")
+    return 0
 
 
 # -- LeRobotDataset v3.0 -------------------------------------------------------------------------------------

@@ -10,7 +10,6 @@ import re
 from pathlib import Path
 
 from jepa_envs.errors import USER_ERRORS, user_error
-from jepa_policy.train import TRAIN_HELP, TrainConfig
 
 
 def _non_negative(text: str) -> int:
@@ -25,6 +24,8 @@ def _non_negative(text: str) -> int:
 
 def _add_train_args(parser: argparse.ArgumentParser) -> None:
     """One flag per TrainConfig field (CleanRL style); unset flags keep the preset's value."""
+    from jepa_policy.train import TRAIN_HELP, TrainConfig
+
     parser.add_argument("--config", help="JSON file of TrainConfig fields (e.g. a run's train_config.json)")
     parser.add_argument("--preset", default="paper", help="preset of configs/<task>.json (paper, cpu, quick)")
     for f in dataclasses.fields(TrainConfig):
@@ -39,8 +40,8 @@ def _add_train_args(parser: argparse.ArgumentParser) -> None:
             parser.add_argument(flag, dest=f.name, type=type(default), default=None, help=text)
 
 
-def _train_config(args) -> TrainConfig:
-    from jepa_policy.train import load_config
+def _train_config(args):
+    from jepa_policy.train import TrainConfig, load_config
 
     overrides = {f.name: getattr(args, f.name) for f in dataclasses.fields(TrainConfig)
                  if getattr(args, f.name) is not None}
@@ -353,12 +354,15 @@ def cmd_serve(args) -> int:
     return 0
 
 
-def build_parser() -> argparse.ArgumentParser:
+def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
+    """The whole command line; given ``argv``, train's flags only when it runs train: they are generated from
+    ``TrainConfig``, whose module imports torch, which ``jepa-policy --help`` and every other command need not."""
     parser = argparse.ArgumentParser(prog="jepa-policy", description=__doc__)
     sub = parser.add_subparsers(dest="command", required=True)
 
     p = sub.add_parser("train", help="train a policy (torchrun for several GPUs / nodes)")
-    _add_train_args(p)
+    if argv is None or argv[:1] == ["train"]:
+        _add_train_args(p)
     p.set_defaults(func=cmd_train)
 
     p = sub.add_parser("eval", help="seeded rollouts of a checkpoint: success rate and per-decision NMSE")
@@ -557,7 +561,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
+    argv = sys.argv[1:] if argv is None else list(argv)
+    args = build_parser(argv).parse_args(argv)
     try:
         return args.func(args)
     except USER_ERRORS as exc:

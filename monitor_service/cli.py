@@ -367,11 +367,12 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    # after parsing: --help needs neither SQLAlchemy nor pydantic
     from sqlalchemy.exc import DBAPIError
 
     from monitor_service.settings import unknown_variables
 
-    args = build_parser().parse_args(argv)
     for warning in unknown_variables():
         print(f"jepa-monitor: warning: {warning}", file=sys.stderr)
     try:

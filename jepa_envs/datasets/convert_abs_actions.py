@@ -7,10 +7,8 @@ motion.
 """
 from __future__ import annotations
 
-import argparse
 import json
 import shutil
-import sys
 from pathlib import Path
 
 import h5py
@@ -100,31 +98,3 @@ def convert_abs_actions(in_path: str | Path, out_path: str | Path, progress: boo
         backend.close()
         tmp.unlink(missing_ok=True)
     return out_path
-
-
-def cli_add_arguments(parser) -> None:
-    """Arguments of ``jepa-envs convert-abs-actions IN OUT`` (and ``python -m jepa_envs.datasets.convert_abs_actions``)."""
-    parser.add_argument("input", help="robomimic / MimicGen HDF5 file with delta actions and states")
-    parser.add_argument("output", help="where to write the copy with absolute actions")
-
-
-def cli_run(args) -> int:
-    """Convert one file; prints where the result went."""
-    try:
-        out = convert_abs_actions(args.input, args.output)
-    except (FileNotFoundError, KeyError, ValueError) as e:
-        print(f"error: {e}", file=sys.stderr)
-        return 1
-    print(f"wrote {out} (actions: absolute position + 6-D rotation + gripper; originals in actions_delta)")
-    return 0
-
-
-def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m jepa_envs.datasets.convert_abs_actions",
-                                     description="Replace a dataset's delta actions by absolute ones.")
-    cli_add_arguments(parser)
-    return cli_run(parser.parse_args(argv))
-
-
-if __name__ == "__main__":
-    raise SystemExit(main())
