@@ -29,15 +29,16 @@ def _add_train_args(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--config", help="JSON file of TrainConfig fields (e.g. a run's train_config.json)")
     parser.add_argument("--preset", default="paper", help="preset of configs/<task>.json (paper, cpu, quick)")
     for f in dataclasses.fields(TrainConfig):
-        flag = "--" + f.name.replace("_", "-")
+        # the run folder is every command's --out; --out-dir stays while docs/training.md still names it
+        flags = ("--out", "--out-dir") if f.name == "out_dir" else ("--" + f.name.replace("_", "-"),)
         default = getattr(TrainConfig(), f.name)
         text = f"{TRAIN_HELP[f.name]} (paper default {default!r})"
         if isinstance(default, bool):
-            parser.add_argument(flag, dest=f.name, action=argparse.BooleanOptionalAction, default=None, help=text)
+            parser.add_argument(*flags, dest=f.name, action=argparse.BooleanOptionalAction, default=None, help=text)
         elif isinstance(default, dict):
-            parser.add_argument(flag, dest=f.name, type=json.loads, default=None, help=TRAIN_HELP[f.name])
+            parser.add_argument(*flags, dest=f.name, type=json.loads, default=None, help=TRAIN_HELP[f.name])
         else:
-            parser.add_argument(flag, dest=f.name, type=type(default), default=None, help=text)
+            parser.add_argument(*flags, dest=f.name, type=type(default), default=None, help=text)
 
 
 def _train_config(args):
@@ -235,7 +236,7 @@ def cmd_bench_rollouts(args) -> int:
 
     result = bench_rollouts(args.task, workers=args.workers, episodes=args.episodes, num_envs=args.num_envs,
                             max_steps=args.max_steps, repeats=args.repeats, preset=args.preset,
-                            progress=not args.quiet)
+                            progress=not args.no_progress)
     print(json.dumps(result, default=str) if args.json else format_rollouts(result))
     return 0
 
@@ -466,7 +467,9 @@ def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
     p.add_argument("--max-steps", type=int, default=60, help="episode step limit")
     p.add_argument("--repeats", type=int, default=2, help="timed evaluations per pool, interleaved")
     p.add_argument("--preset", default="cpu", help="model shapes of this preset")
-    p.add_argument("--quiet", action="store_true", help="no plan, time estimate or progress bar on stderr")
+    # --quiet stays while docs/rollouts.md still names it
+    p.add_argument("--no-progress", "--quiet", dest="no_progress", action="store_true",
+                   help="no plan, time estimate or progress bar on stderr")
     p.add_argument("--json", action="store_true", help="print JSON instead of a line")
     p.set_defaults(func=cmd_bench_rollouts)
 

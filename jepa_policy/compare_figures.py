@@ -1,5 +1,5 @@
-"""Figures of a ``jepa-monitor compare --json`` result: the natural-failure ROC curves (per checkpoint and view)
-and the median alert delay after a fault's onset (per single-signal detector and fault). Kept out of
+"""Figures of a ``jepa-monitor compare --out FILE.json`` result: the natural-failure ROC curves (per checkpoint and
+view) and the median alert delay after a fault's onset (per single-signal detector and fault). Kept out of
 ``monitor_service`` so the monitor's image needs no matplotlib.
 
     python3 -m jepa_policy.compare_figures compare.json --out DIR
@@ -89,13 +89,13 @@ def delay_figure(result: dict, path: Path) -> Path | None:
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python3 -m jepa_policy.compare_figures", description=__doc__.split("\n\n")[0])
-    p.add_argument("result", help="the --json file of jepa-monitor compare")
+    p.add_argument("result", help="the JSON file of jepa-monitor compare --out FILE.json")
     p.add_argument("--out", required=True, help="folder for compare_roc.png and compare_delay.png")
     args = p.parse_args(argv)
     try:
         result = json.loads(Path(args.result).read_text())
         if "groups" not in result:
-            raise ValueError("not a jepa-monitor compare --json result (no 'groups')")
+            raise ValueError("not a jepa-monitor compare result (no 'groups'); write one with --out FILE.json")
     except (OSError, ValueError) as exc:
         print(f"compare_figures: error: {args.result}: {exc}", file=sys.stderr)
         return 2

@@ -29,6 +29,7 @@ from pathlib import Path
 
 import httpx
 import numpy as np
+from tqdm import tqdm
 
 from monitor_service.client import MonitorClient
 from monitor_service.encoding import MSGPACK_CONTENT_TYPE, pack
@@ -254,9 +255,15 @@ def _line(mode: str, ours: dict, floor: dict | None) -> str:
 def run_bench(dim: int = 1024, seconds: float = 8.0, concurrency: int = 8, batch: int = 64, batch_concurrency: int = 2,
               host: str | None = None, port: int | None = None, admin_key: str | None = None,
               database_url: str | None = None, servers: int = 1, workers: int = 1, client_decisions: int = 20_000,
-              floor: bool = True) -> dict:
-    """Run every mode against the service (started here, or at ``host:port``) and the floor; print and return."""
+              floor: bool = True, progress: bool = False, out=None) -> dict:
+    """Run every mode against the service (started here, or at ``host:port``) and the floor; print each row to
+    ``out`` (default stdout) as it is measured (``progress``: a bar of the modes on stderr) and return every
+    number."""
     results: dict = {"dim": dim, "load_average_before": os.getloadavg(), "modes": {}}
+
+    def echo(text: str) -> None:
+        tqdm.write(text, file=out or sys.stdout)   # above the bar, when there is one
+
     with tempfile.TemporaryDirectory(prefix="jepa-monitor-bench-") as tmp, ExitStack() as stack:
         tmp = Path(tmp)
         if host or port:
@@ -283,26 +290,30 @@ def run_bench(dim: int = 1024, seconds: float = 8.0, concurrency: int = 8, batch
         if floor:
             proc, floor_target = start_floor(tmp)
             stack.callback(proc.kill)
-        print(f"jepa-monitor bench: latent dim {dim}, {where}; {seconds:g} s per mode; load average "
-              f"{results['load_average_before'][0]:.2f} before the run (2xx = committed, alerts evaluated)", flush=True)
+        echo(f"jepa-monitor bench: latent dim {dim}, {where}; {seconds:g} s per mode; load average "
+              f"{results['load_average_before'][0]:.2f} before the run (2xx = committed, alerts evaluated)")
         modes = [(f"json, 1 record/request x{concurrency}", False, 0, concurrency),
                  (f"msgpack, 1 record/request x{concurrency}", True, 0, concurrency),
                  (f"msgpack, {batch} decisions/request x{batch_concurrency}", True, batch, batch_concurrency)]
+        bar = stack.enter_context(tqdm(total=len(modes) + bool(client_decisions), desc="jepa-monitor bench",
+                                       unit="mode", disable=not progress, file=sys.stderr))
         for name, binary, size, conns in modes:
             ours = load(targets, binary, size, dim, conns, seconds, "svc")
             theirs = load([floor_target], binary, size, dim, conns, seconds, "floor") if floor_target else None
             results["modes"][name] = {"service": ours, "floor": theirs}
-            print(_line(name, ours, theirs), flush=True)
+            echo(_line(name, ours, theirs))
+            bar.update()
         if client_decisions:
             row = client_end_to_end(targets[0], dim, client_decisions, seconds)
+            bar.update()
             results["modes"]["MonitorClient end to end"] = row
-            print(f"{'MonitorClient end to end':<34}{row['decisions_per_s']:>23.0f} dec/s   call p50 "
-                  f"{row['call_p50_us']:.1f} us p99 {row['call_p99_us']:.1f} us per decision", flush=True)
+            echo(f"{'MonitorClient end to end':<34}{row['decisions_per_s']:>23.0f} dec/s   call p50 "
+                  f"{row['call_p50_us']:.1f} us p99 {row['call_p99_us']:.1f} us per decision")
         if database_url and database_url.startswith("postgresql") and not (host or port):
             check = _verify_no_lost_updates(database_url)
             results["postgres_check"] = check
-            print(f"PostgreSQL, {servers} servers: {check['decisions']} decisions on {check['episodes']} episodes; "
-                  f"episodes whose counters disagree with their rows: {check['mismatched_episodes']}", flush=True)
+            echo(f"PostgreSQL, {servers} servers: {check['decisions']} decisions on {check['episodes']} episodes; "
+                  f"episodes whose counters disagree with their rows: {check['mismatched_episodes']}")
         results["load_average_after"] = os.getloadavg()
-        print(f"load average after the run: {results['load_average_after'][0]:.2f}", flush=True)
+        echo(f"load average after the run: {results['load_average_after'][0]:.2f}")
     return results

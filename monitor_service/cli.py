@@ -254,9 +254,12 @@ def cmd_bench(args) -> int:
     results = run_bench(dim=args.dim, seconds=args.seconds, concurrency=args.concurrency, batch=args.batch,
                         batch_concurrency=args.batch_concurrency, host=args.host, port=args.port,
                         admin_key=args.admin_key, database_url=args.database_url, servers=args.servers,
-                        workers=args.workers, client_decisions=args.client_decisions, floor=not args.no_floor)
+                        workers=args.workers, client_decisions=args.client_decisions, floor=not args.no_floor,
+                        progress=not args.no_progress, out=sys.stderr if args.json else sys.stdout)
+    if args.out:
+        Path(args.out).write_text(json.dumps(results, indent=2))
     if args.json:
-        Path(args.json).write_text(json.dumps(results, indent=2))
+        print(json.dumps(results, indent=2))
     return 0
 
 
@@ -361,7 +364,9 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--workers", type=int, default=1, help="uvicorn workers per server started here")
     s.add_argument("--client-decisions", type=int, default=20_000, help="MonitorClient end-to-end decisions (0: skip)")
     s.add_argument("--no-floor", action="store_true", help="skip the bare FastAPI + SQLite comparison")
-    s.add_argument("--json", help="also write every number to this file")
+    s.add_argument("--json", action="store_true", help="print every number as JSON (the rows go to stderr)")
+    s.add_argument("--out", metavar="FILE.json", help="also write every number to this file as JSON")
+    s.add_argument("--no-progress", action="store_true", help="no progress bar on stderr")
     s.set_defaults(func=cmd_bench)
     return p
 

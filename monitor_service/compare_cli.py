@@ -33,9 +33,10 @@ def add_parser(sub) -> argparse.ArgumentParser:
                         "peak of a 3-decision running mean) over the view's decisions")
     s.add_argument("--bootstrap", type=int, default=2000, help="AUROC bootstrap resamples (default 2000)")
     s.add_argument("--seed", type=int, default=0, help="seed of the folds, the band split and the bootstrap")
-    s.add_argument("--json", metavar="FILE", help="write every figure as JSON (with the natural-failure ROC "
-                                                  "curves: python3 -m jepa_policy.compare_figures draws them)")
-    s.add_argument("--markdown", metavar="FILE", help="write the tables as Markdown")
+    s.add_argument("--json", action="store_true", help="print every figure as JSON instead of the summary")
+    s.add_argument("--out", action="append", default=[], metavar="FILE.json|FILE.md",
+                   help="write every figure as JSON (.json, with the natural-failure ROC curves: python3 -m "
+                        "jepa_policy.compare_figures draws them) or the tables as Markdown (.md); repeatable")
     s.set_defaults(func=run)
     return s
 
@@ -52,19 +53,27 @@ def run(args) -> int:
     views = tuple(v.strip() for v in args.views.split(",") if v.strip())
     if not views or set(views) - {"prefix", "whole"}:
         raise ValueError(f"--views takes prefix and/or whole, got {args.views!r}")
+    _check_out(args.out, (".json", ".md"))
     episodes = load_records(args.records, where)
     result = compare(episodes, alpha=args.alpha, folds=args.folds, prefix=args.prefix, seed=args.seed,
                      n_bootstrap=args.bootstrap, rule_names=tuple(r.strip() for r in args.rules.split(",")),
                      views=views, signals=[s.strip() for s in args.signals.split(",")] if args.signals else None,
                      aggregate=args.aggregate)
     result["seconds"] = round(time.perf_counter() - t0, 1)
-    if args.json:
-        Path(args.json).write_text(json.dumps(result, indent=1))
-    if args.markdown:
-        Path(args.markdown).write_text(markdown(result))
-    print(summary_text(result))
+    for path in args.out:
+        Path(path).write_text(markdown(result) if path.endswith(".md") else json.dumps(result, indent=1))
+    print(json.dumps(result, indent=1) if args.json else summary_text(result))
     print(f"\n{len(episodes)} episodes compared in {result['seconds']} s", file=sys.stderr)
     return 0
+
+
+def _check_out(paths, suffixes: tuple[str, ...]) -> None:
+    """Every --out names a file of a known kind in an existing folder (checked before the work, not after it)."""
+    for path in paths:
+        if not path.endswith(suffixes):
+            raise ValueError(f"--out {path}: name a {' or '.join(suffixes)} file (the suffix picks what is written)")
+        if Path(path).is_dir() or not Path(path).parent.is_dir():
+            raise ValueError(f"--out {path}: give a file in an existing folder")
 
 
 CEILING_HELP = ("how far any score of an episode's first decisions can predict its outcome: the same seeds run "
@@ -85,7 +94,8 @@ def add_ceiling_parser(sub) -> argparse.ArgumentParser:
     s.add_argument("--signals", help="comma-separated signals to set beside the ceiling (default: every one)")
     s.add_argument("--bootstrap", type=int, default=2000, help="bootstrap resamples over seeds (default 2000)")
     s.add_argument("--seed", type=int, default=0, help="seed of the bootstrap and the stack's folds")
-    s.add_argument("--json", metavar="FILE", help="write every figure as JSON")
+    s.add_argument("--json", action="store_true", help="print every figure as JSON instead of the summary")
+    s.add_argument("--out", metavar="FILE.json", help="write every figure as JSON")
     s.set_defaults(func=run_ceiling)
     return s
 
@@ -101,14 +111,13 @@ def run_ceiling(args) -> int:
     if args.bootstrap < 0 or 0 < args.bootstrap < 100:
         raise ValueError(f"--bootstrap must be 0 (no intervals) or >= 100 resamples (a 95 % interval from fewer is "
                          f"noise), got {args.bootstrap}")
-    if args.json and (Path(args.json).is_dir() or not Path(args.json).parent.is_dir()):
-        raise ValueError(f"--json {args.json}: give a file in an existing folder")
+    _check_out([args.out] if args.out else [], (".json",))
     episodes = load_records(args.records, where)
     result = ceiling(episodes, prefix=args.prefix, n_bootstrap=args.bootstrap, seed=args.seed,
                      signals=[s.strip() for s in args.signals.split(",")] if args.signals else None)
     result["seconds"] = round(time.perf_counter() - t0, 1)
-    if args.json:
-        Path(args.json).write_text(json.dumps(result, indent=1))
-    print(summary_text(result))
+    if args.out:
+        Path(args.out).write_text(json.dumps(result, indent=1))
+    print(json.dumps(result, indent=1) if args.json else summary_text(result))
     print(f"\n{len(episodes)} episodes read in {result['seconds']} s", file=sys.stderr)
     return 0

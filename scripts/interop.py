@@ -102,7 +102,7 @@ def check_lerobot(py: str, work: Path) -> dict:
                                                              for i in range(len(ours["lengths"]))]}
     train = run([sys.executable, "-m", "jepa_policy.cli", "train", "--task", "PushT", "--preset", "quick",
                  "--dataset", str(written), "--steps", "2", "--warmup-steps", "1", "--eval-every", "0",
-                 "--out-dir", str(work / "train-from-lerobot"), "--no-progress"], "jepa-policy train --dataset ROOT")
+                 "--out", str(work / "train-from-lerobot"), "--no-progress"], "jepa-policy train --dataset ROOT")
     row["train_from_root"] = json.loads(train)["step"] == 2
     row["ok"] = all(row[k] for k in ("actions_equal", "state_equal", "episode_boundaries_equal", "tasks_equal",
                                      "train_from_root")) and row["frames"]["psnr_db"] is not None

@@ -53,7 +53,7 @@ def _checkpoint(work: Path) -> Path:
     out = work / "openpi-run"
     subprocess.run([sys.executable, "-m", "jepa_policy.cli", "train", "--task", "PushT", "--preset", "quick",
                     "--dataset", str(demos), "--steps", "20", "--warmup-steps", "5", "--eval-every", "0",
-                    "--out-dir", str(out), "--no-progress"], check=True, capture_output=True)
+                    "--out", str(out), "--no-progress"], check=True, capture_output=True)
     return out / "checkpoints" / "latest.pt"
 
 

@@ -273,7 +273,7 @@ def check_lerobot_layout(lerobot_py: str, work: Path) -> dict:
                                                 np.concatenate([e["obs"]["agent_pos"] for e in episodes])))
     result["frames_psnr_db"] = round(psnr(got["obs/top_image"], frames), 1)
     done = _run([sys.executable, "-m", "jepa_policy.cli", "train", "--task", "PushTStandard", "--preset", "quick",
-                 "--dataset", str(root), "--steps", "2", "--warmup-steps", "1", "--eval-every", "0", "--out-dir",
+                 "--dataset", str(root), "--steps", "2", "--warmup-steps", "1", "--eval-every", "0", "--out",
                  str(work / "train"), "--no-progress"], "jepa-policy train --dataset ROOT", env)
     result["train_from_root"] = json.loads(done.stdout.strip().splitlines()[-1])["step"] == 2
     refusals = {}
@@ -281,12 +281,12 @@ def check_lerobot_layout(lerobot_py: str, work: Path) -> dict:
         bad = work / f"lerobot-bad-{len(refusals)}"
         _lerobot_write(lerobot_py, episodes, bad, work, **kwargs)
         out = subprocess.run([sys.executable, "-m", "jepa_policy.cli", "train", "--task", "PushTStandard", "--preset",
-                              "quick", "--dataset", str(bad), "--steps", "2", "--out-dir", str(work / "bad"),
+                              "quick", "--dataset", str(bad), "--steps", "2", "--out", str(work / "bad"),
                               "--no-progress"], capture_output=True, text=True, env=env)
         lines = out.stderr.strip().splitlines()
         refusals[name] = {"exit": out.returncode, "lines": len(lines), "message": lines[-1] if lines else ""}
     out = subprocess.run([sys.executable, "-m", "jepa_policy.cli", "train", "--task", "PushT", "--preset", "quick",
-                          "--dataset", str(root), "--steps", "2", "--out-dir", str(work / "bad"), "--no-progress"],
+                          "--dataset", str(root), "--steps", "2", "--out", str(work / "bad"), "--no-progress"],
                          capture_output=True, text=True, env=env)
     lines = out.stderr.strip().splitlines()
     refusals["lerobot/pusht as --task PushT"] = {"exit": out.returncode, "lines": len(lines),

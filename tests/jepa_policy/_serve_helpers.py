@@ -24,7 +24,7 @@ def checkpoint(tmp_path_factory, pusht_demo_file):
     path = out / "checkpoints" / "latest.pt"
     if not path.is_file():
         assert policy_main(["train", "--task", "PushT", "--preset", "quick", "--dataset", str(pusht_demo_file),
-                            "--steps", "4", "--warmup-steps", "1", "--eval-every", "0", "--out-dir", str(out),
+                            "--steps", "4", "--warmup-steps", "1", "--eval-every", "0", "--out", str(out),
                             "--no-progress"]) == 0
     return path
 

@@ -40,7 +40,7 @@ def crafted(tmp_path_factory):
 def trained(tmp_path_factory, pusht_demo_file):
     out = tmp_path_factory.mktemp("run")
     assert main(["train", "--task", "PushT", "--preset", "quick", "--dataset", str(pusht_demo_file), "--steps", "2",
-                 "--warmup-steps", "1", "--eval-every", "0", "--out-dir", str(out), "--no-progress"]) == 0
+                 "--warmup-steps", "1", "--eval-every", "0", "--out", str(out), "--no-progress"]) == 0
     return out / "checkpoints" / "latest.pt"
 
 
@@ -71,9 +71,9 @@ def test_object_arrays_are_refused_too(tmp_path):
     ["protocols", "{ckpt}"],
     ["robot", "--checkpoint", "{ckpt}", "--address", "tcp://127.0.0.1:9", "--episodes", "1", "--no-wait"],
     ["train", "--task", "PushT", "--preset", "quick", "--dataset", "{demos}", "--resume", "{ckpt}",
-     "--out-dir", "{tmp}/resumed", "--no-progress"],
+     "--out", "{tmp}/resumed", "--no-progress"],
     ["train", "--task", "PushT", "--preset", "quick", "--dataset", "{demos}", "--model",
-     '{{"encoder_weights": "{weights}"}}', "--steps", "2", "--out-dir", "{tmp}/encoder", "--no-progress"],
+     '{{"encoder_weights": "{weights}"}}', "--steps", "2", "--out", "{tmp}/encoder", "--no-progress"],
     ["serve", "--checkpoint", "{ckpt}", "--port", "0"],
 ], ids=["eval", "audit", "protocols", "robot", "train-resume", "train-encoder-weights", "serve"])
 def test_every_command_refuses_a_crafted_file(command, crafted, pusht_demo_file, tmp_path, capsys):

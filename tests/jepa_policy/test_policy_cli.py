@@ -54,7 +54,7 @@ def test_bench_train_reports_throughput_and_memory(capsys):
 
 def test_bench_rollouts_prints_its_plan_an_estimate_and_a_progress_bar(capsys):
     """Square's default ran ~3.5 minutes in silence: the plan, the expected time and a bar of episodes go to
-    stderr (stdout keeps the result line); --quiet keeps stderr clean."""
+    stderr (stdout keeps the result line); --no-progress keeps stderr clean."""
     argv = ["bench", "rollouts", "--task", "PushT", "--workers", "1", "--episodes", "3", "--num-envs", "2",
             "--max-steps", "10", "--repeats", "1"]
     assert main(argv) == 0
@@ -66,7 +66,7 @@ def test_bench_rollouts_prints_its_plan_an_estimate_and_a_progress_bar(capsys):
                         r"take about [\d.]+ min of env time \(plus the policy's\)", lines[1])
     assert any(re.match(r"PushT rollouts: 100%.* 6/6 ", line) for line in lines), err   # 2 evaluations x 3 episodes
     assert out.startswith("PushT rollouts (3 episodes of <= 10 steps") and "records identical: True" in out
-    assert main(argv + ["--quiet"]) == 0
+    assert main(argv + ["--no-progress"]) == 0
     assert capsys.readouterr().err == ""
 
 
@@ -74,7 +74,7 @@ def test_train_eval_protocols_from_the_command_line(pusht_demo_file, tmp_path, c
     out = tmp_path / "run"
     assert main(["train", "--task", "PushT", "--preset", "quick", "--dataset", str(pusht_demo_file),
                  "--steps", "4", "--warmup-steps", "1", "--eval-every", "2", "--eval-episodes", "1",
-                 "--eval-workers", "1", "--out-dir", str(out), "--no-progress"]) == 0
+                 "--eval-workers", "1", "--out", str(out), "--no-progress"]) == 0
     summary = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert summary["step"] == 4 and [p["step"] for p in summary["eval_curve"]] == [2, 4]
     logged = [json.loads(line) for line in (out / "log.jsonl").read_text().splitlines()]
@@ -156,7 +156,7 @@ def test_documented_resume_of_a_stopped_run_goes_on_to_the_end(pusht_demo_file, 
     """`--config RUN/train_config.json --resume RUN/checkpoints/latest.pt` after --stop-at: trains on, says so."""
     run = tmp_path / "run"
     assert main(["train", "--task", "PushT", "--preset", "quick", "--dataset", str(pusht_demo_file), "--steps", "6",
-                 "--warmup-steps", "1", "--stop-at", "3", "--out-dir", str(run), "--no-progress"]) == 0
+                 "--warmup-steps", "1", "--stop-at", "3", "--out", str(run), "--no-progress"]) == 0
     assert json.loads(capsys.readouterr().out.strip().splitlines()[-1])["step"] == 3
     assert json.loads((run / "train_config.json").read_text())["stop_at"] == 3
     assert main(["train", "--config", str(run / "train_config.json"), "--resume",

@@ -181,13 +181,16 @@ def test_the_command_writes_json_and_markdown_and_refuses_bad_input_in_one_line(
     out_json, out_md = tmp_path / "c.json", tmp_path / "c.md"
     assert monitor_main(["compare", str(path), "--where", "arm=jepa", "--rules", "fast", "--bootstrap", "200",
                          "--signals", "stac,nmse",
-                         "--json", str(out_json), "--markdown", str(out_md)]) == 0
+                         "--out", str(out_json), "--out", str(out_md)]) == 0
     printed = capsys.readouterr().out
     assert "natural 90 (30 failed), block_displaced 10 (10 failed)" in printed
     result = json.loads(out_json.read_text())
     assert result["groups"]["jepa:jepa.pt"]["views"]["whole"]["ranking"]["natural"]["stac"]["auroc"] == 1.0
     md = out_md.read_text()
     assert "| stac | 1.000 [1.00, 1.00] | 1.000 [1.00, 1.00] |" in md and "## Detection, block_displaced" in md
+    assert monitor_main(["compare", str(path), "--where", "arm=jepa", "--rules", "fast", "--bootstrap", "200",
+                         "--signals", "stac,nmse", "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["groups"] == result["groups"]   # --json: the same figures, printed
 
     bad = tmp_path / "bad.jsonl"
     bad.write_text(json.dumps(rows[0]) + "\n{not json\n")
@@ -196,7 +199,8 @@ def test_the_command_writes_json_and_markdown_and_refuses_bad_input_in_one_line(
                           (["compare", str(bad)], f"{bad}:2: not JSON"),
                           (["compare", str(path), "--where", "arm=diffusion"], "no episode records in "),
                           (["compare", str(path), "--folds", "1"], "--folds must be >= 2"),
-                          (["compare", str(path), "--rules", "slow"], "unknown rule setting")):
+                          (["compare", str(path), "--rules", "slow"], "unknown rule setting"),
+                          (["compare", str(path), "--out", str(tmp_path / "c.txt")], "name a .json or .md file")):
         assert monitor_main(argv) == 2
         err = capsys.readouterr().err.strip()
         assert err.startswith("jepa-monitor: error: ") and message in err and "\n" not in err

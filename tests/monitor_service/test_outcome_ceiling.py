@@ -119,7 +119,7 @@ def test_the_command_reads_record_files_and_writes_its_figures(tmp_path, capsys)
     natural.write_text("".join(json.dumps(r) + "\n" for r in rows if r["regime"] == "natural"))
     draws.write_text("".join(json.dumps(r) + "\n" for r in rows if r["regime"] != "natural"))
     out = tmp_path / "ceiling.json"
-    assert main(["ceiling", str(natural), str(draws), "--bootstrap", "100", "--json", str(out)]) == 0
+    assert main(["ceiling", str(natural), str(draws), "--bootstrap", "100", "--out", str(out)]) == 0
     text = capsys.readouterr().out
     assert "80 seeds reaching 10 decisions, 320 draws" in text and "leave-one-out" in text and "stack" in text
     saved = json.loads(out.read_text())["groups"]["jepa:ck"]
@@ -162,7 +162,8 @@ def test_what_the_command_leaves_out_it_says_and_what_it_cannot_use_it_refuses(t
     assert main(["ceiling", path, "--prefix", "50", "--bootstrap", "0"]) == 2
     assert "no episode reaches 50 decisions (the longest has 12): use --prefix 12" in capsys.readouterr().err
     for bad, why in ((["--bootstrap", "10"], "--bootstrap must be 0 (no intervals) or >= 100"),
-                     (["--json", str(tmp_path)], "give a file in an existing folder")):
+                     (["--out", str(tmp_path / "x.json" / "y.json")], "give a file in an existing folder"),
+                     (["--out", str(tmp_path / "ceiling.txt")], "name a .json file")):
         assert main(["ceiling", path, *bad]) == 2
         assert why in capsys.readouterr().err
 

@@ -1,5 +1,6 @@
 """Against a real uvicorn server in a subprocess: kill -9 restart, link outage, concurrent writers, workers."""
 import asyncio
+import json
 import os
 import signal
 import time
@@ -214,6 +215,25 @@ def test_bench_compares_the_service_with_the_floor_in_one_run(capsys):
     assert modes["MonitorClient end to end"]["decisions"] == 40
     text = capsys.readouterr().out
     assert "| floor" in text and "| ratio" in text and "load average" in text
+
+
+def test_bench_command_prints_json_with_json_and_writes_it_with_out(tmp_path, capsys):
+    from monitor_service.cli import main
+
+    saved = tmp_path / "bench.json"
+    assert main(["bench", "--dim", "8", "--seconds", "0.3", "--concurrency", "1", "--batch", "4",
+                 "--batch-concurrency", "1", "--client-decisions", "0", "--no-floor", "--json", "--out",
+                 str(saved)]) == 0
+    out, err = capsys.readouterr()
+    printed = json.loads(out)                       # stdout is the JSON alone; the rows went to stderr
+    assert list(printed["modes"]) == ["json, 1 record/request x1", "msgpack, 1 record/request x1",
+                                      "msgpack, 4 decisions/request x1"]
+    assert json.loads(saved.read_text())["modes"].keys() == printed["modes"].keys()
+    assert "jepa-monitor bench: latent dim 8" in err and "jepa-monitor bench:" not in out
+    assert main(["bench", "--dim", "8", "--seconds", "0.3", "--concurrency", "1", "--batch", "4",
+                 "--batch-concurrency", "1", "--client-decisions", "0", "--no-floor"]) == 0
+    out, err = capsys.readouterr()
+    assert "jepa-monitor bench: latent dim 8" in out and "jepa-monitor bench" in err   # the rows, and the bar
 
 
 def test_bench_runs_against_a_server_someone_else_started(db_url, tmp_path, capsys):

@@ -53,7 +53,7 @@ def test_train_dataset_root_trains_on_the_layout_as_it_is(standard_demos, tmp_pa
     monkeypatch.setenv("JEPA_DATA_CACHE", str(tmp_path / "cache"))
     _, root = _export(standard_demos, tmp_path, "std")
     assert main(["train", "--task", "PushTStandard", "--preset", "quick", "--dataset", str(root), "--steps", "2",
-                 "--warmup-steps", "1", "--eval-every", "0", "--out-dir", str(tmp_path / "run"),
+                 "--warmup-steps", "1", "--eval-every", "0", "--out", str(tmp_path / "run"),
                  "--no-progress"]) == 0
     assert json.loads(capsys.readouterr().out.strip().splitlines()[-1])["step"] == 2
 
