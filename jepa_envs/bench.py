@@ -17,11 +17,14 @@ Each comparison is bounded by ``--steps`` and a time budget, so the default run 
 from __future__ import annotations
 
 import os
+import sys
 import time
 from typing import Callable
 
 import gymnasium as gym
 import numpy as np
+from tqdm import tqdm
+
 import jepa_envs  # noqa: F401  (registers the ids)
 from jepa_envs.tasks import pusht_standard
 from jepa_envs.tasks.pusht import coverage
@@ -111,8 +114,10 @@ def buildable_tasks() -> list[TaskSpec]:
     return [spec for spec in all_task_specs() if backend_available(spec.suite)[0]]
 
 
-def run_bench(tasks: list[str] | None = None, steps: int = 1000, budget_s: float = 3.0) -> list[dict]:
-    """Measure and print the table; tasks that fail to build are reported and skipped."""
+def run_bench(tasks: list[str] | None = None, steps: int = 1000, budget_s: float = 3.0,
+              progress: bool = False) -> list[dict]:
+    """Measure and print the table (``progress``: a bar of the tasks on stderr); tasks that fail to build are
+    reported and skipped."""
     specs = [get_task_spec(t) for t in tasks] if tasks else buildable_tasks()
     print(f"jepa-envs bench: up to {steps} steps or {budget_s:.0f} s per comparison; "
           "chunked loop = n_action_steps per chunk, obs_steps history + future frame k rendered; raw and ours "
@@ -121,18 +126,18 @@ def run_bench(tasks: list[str] | None = None, steps: int = 1000, budget_s: float
               f"{'every-step st/s':>16}{'on-demand st/s':>15}{'speed-up':>9}{'frames':>8}{'load':>12}")
     print(header)
     rows = []
-    for spec in specs:
+    for spec in tqdm(specs, desc="jepa-envs bench", unit="task", disable=not progress):
         load_before = os.getloadavg()[0]
         try:
             row = bench_task(spec, steps, budget_s)
         except Exception as exc:  # one backend failing to build must not hide the others' numbers
-            print(f"{spec.name:<20}skipped: {type(exc).__name__}: {exc}")
+            tqdm.write(f"{spec.name:<20}skipped: {type(exc).__name__}: {exc}", file=sys.stdout)
             continue
         row["load"] = (load_before, os.getloadavg()[0])
         rows.append(row)
-        print(f"{row['task']:<20}{row['raw']:>10.1f}{row['ours']:>11.1f}{row['overhead']:>+9.1%}  "
+        tqdm.write(f"{row['task']:<20}{row['raw']:>10.1f}{row['ours']:>11.1f}{row['overhead']:>+9.1%}  "
               f"{row['every']:>16.1f}{row['on_demand']:>15.1f}{row['speedup']:>8.2f}x{row['rendered_fraction']:>8.0%}"
-              f"{row['load'][0]:>6.1f}-{row['load'][1]:<5.1f}")
+              f"{row['load'][0]:>6.1f}-{row['load'][1]:<5.1f}", file=sys.stdout)
     return rows
 
 
@@ -160,17 +165,18 @@ for line in sys.stdin:
 
 
 def bench_gym_pusht(python: str, steps: int = 1000, budget_s: float = 10.0, block: int = 50,
-                    obs_types: tuple[str, ...] = ("pixels_agent_pos", "state")) -> list[dict]:
+                    obs_types: tuple[str, ...] = ("pixels_agent_pos", "state"), progress: bool = False) -> list[dict]:
     """Steps/s of our standard PushT against gym-pusht 0.1.8's own env (run by ``python``, the interpreter of a
     venv that has gym-pusht: `make interop` builds .cache/interop/gym_pusht), interleaved in blocks of ``block``
     steps of the same uniform random targets, per gym-pusht ``obs_type`` (``pixels_agent_pos``: the 96 px image
     observation included); rates from the median block time, wall clock and CPU time (each process's own: on a
-    loaded machine the wall clock also counts the time another process held the core)."""
+    loaded machine the wall clock also counts the time another process held the core); ``progress``: a bar of
+    the rows on stderr."""
     import subprocess
 
     rows = []
     actions = np.random.default_rng(0).uniform(0, 512, (max(steps, block) + 1000, 2)).astype(np.float32)
-    for obs_type in obs_types:
+    for obs_type in tqdm(obs_types, desc="gym-pusht bench", unit="row", disable=not progress):
         child = subprocess.Popen([python, "-c", _GYM_PUSHT_CHILD, obs_type, str(len(actions))], stdin=subprocess.PIPE,
                                  stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
         try:
@@ -221,14 +227,14 @@ def bench_gym_pusht(python: str, steps: int = 1000, budget_s: float = 10.0, bloc
     return rows
 
 
-def run_bench_gym_pusht(python: str, steps: int = 1000, budget_s: float = 10.0) -> list[dict]:
+def run_bench_gym_pusht(python: str, steps: int = 1000, budget_s: float = 10.0, progress: bool = False) -> list[dict]:
     """Measure and print the table of ``bench_gym_pusht``."""
     print(f"jepa-envs bench --gym-pusht: our PushTStandard beside gym-pusht's own env ({python}), same random "
           f"targets, interleaved blocks of 50 steps, up to {steps} steps or {budget_s:.0f} s per row; "
           f"{os.cpu_count()} cores, load = 1-minute load average around the row")
     print(f"{'obs_type':<18}{'gym-pusht st/s wall':>20}{'ours':>8}{'ratio':>8}{'gym-pusht st/s CPU':>20}{'ours':>8}"
           f"{'ratio':>8}{'load':>12}")
-    rows = bench_gym_pusht(python, steps, budget_s)
+    rows = bench_gym_pusht(python, steps, budget_s, progress=progress)
     for r in rows:
         print(f"{r['obs_type']:<18}{r['gym_pusht']:>20.1f}{r['ours']:>8.1f}{r['ratio']:>7.2f}x"
               f"{r['gym_pusht_cpu']:>20.1f}{r['ours_cpu']:>8.1f}{r['ratio_cpu']:>7.2f}x{r['load'][0]:>6.1f}-{r['load'][1]:<5.1f}")

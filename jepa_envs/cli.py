@@ -68,6 +68,7 @@ def _make_demos_args(p: argparse.ArgumentParser) -> None:
                         "low-dim observations; `jepa-envs render-dataset` renders the frames later")
     p.add_argument("--workers", type=int, default=os.cpu_count() or 1,
                    help="processes that record episodes (default: one per core; the file is the same for any number)")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar on stderr (for logs)")
 
 
 @subcommand("make-demos", "write scripted-expert demonstrations to HDF5 (PushT, PushTStandard, Lift, Can)",
@@ -102,13 +103,13 @@ def make_demos(args: argparse.Namespace) -> int:
 
             episodes, env_args = generate_robosuite_demos(spec.name, args.episodes, seed=args.seed,
                                                           image_size=args.image_size, images=not args.no_images,
-                                                          workers=args.workers, progress=True)
+                                                          workers=args.workers, progress=not args.no_progress)
         else:
             from jepa_envs.tasks.pusht_expert import generate_demos
 
             options = {} if args.difficulty is None else {"difficulty": args.difficulty}
             episodes, env_args = generate_demos(args.episodes, seed=args.seed, image_size=args.image_size,
-                                                task=spec.name, workers=args.workers, progress=True,
+                                                task=spec.name, workers=args.workers, progress=not args.no_progress,
                                                 finish_threshold=args.finish_threshold, **options)
     except (ValueError, TypeError) as exc:  # an option out of range or not of this task: say which and stop
         raise SystemExit(f"error: {exc}") from None
@@ -162,6 +163,7 @@ def _bench_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--gym-pusht", metavar="PYTHON",
                    help="instead: our PushTStandard's steps/s beside gym-pusht's own env, run by this interpreter "
                         "(a venv with gym-pusht 0.1.8; `make interop` builds .cache/interop/gym_pusht)")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar on stderr (for logs)")
 
 
 @subcommand("bench", "steps/s raw backend vs our interface, and render-every-step vs render-on-demand", _bench_args)
@@ -169,16 +171,17 @@ def bench(args: argparse.Namespace) -> int:
     if args.renderers:
         from jepa_envs.tasks.render import bench_renderers
 
-        bench_renderers(frames=args.frames)
+        bench_renderers(frames=args.frames, progress=not args.no_progress)
         return 0
     if args.gym_pusht:
         from jepa_envs.bench import run_bench_gym_pusht
 
-        run_bench_gym_pusht(args.gym_pusht, args.steps, args.seconds if args.seconds != 3.0 else 10.0)
+        run_bench_gym_pusht(args.gym_pusht, args.steps, args.seconds if args.seconds != 3.0 else 10.0,
+                            progress=not args.no_progress)
         return 0
     from jepa_envs.bench import run_bench
 
-    run_bench(args.tasks, args.steps, args.seconds)
+    run_bench(args.tasks, args.steps, args.seconds, progress=not args.no_progress)
     return 0
 
 
@@ -192,6 +195,7 @@ def install_mimicgen_cmd(args: argparse.Namespace) -> int:
 def _convert_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("input", help="robomimic / MimicGen HDF5 file with delta actions and states")
     p.add_argument("output", help="where to write the copy with absolute actions")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar on stderr (for logs)")
 
 
 @subcommand("convert-abs-actions", "delta -> absolute actions (position, 6-D rotation, gripper) by state replay",
@@ -201,7 +205,7 @@ def convert_abs_actions(args: argparse.Namespace) -> int:
     from jepa_envs.datasets.convert_abs_actions import convert_abs_actions as convert
 
     try:
-        out = convert(args.input, args.output)
+        out = convert(args.input, args.output, progress=not args.no_progress)
     except (FileNotFoundError, KeyError, ValueError) as e:
         raise SystemExit(f"error: {e}") from None
     print(f"wrote {out} (actions: absolute position + 6-D rotation + gripper; originals in actions_delta)")
@@ -281,6 +285,7 @@ def _render_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--size", type=int, help="image size (default: the task's, 84)")
     p.add_argument("--replay", action="store_true",
                    help="then replay the written actions open-loop in the task's gym env from each recorded start")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar on stderr (for logs)")
 
 
 @subcommand("render-dataset", "render a raw dataset's recorded states into image observations (robomimic's "
@@ -290,7 +295,7 @@ def render_dataset_cmd(args: argparse.Namespace) -> int:
 
     t0 = time.perf_counter()
     report = render_dataset(args.src, args.out, task=args.task, cameras=tuple(args.cameras), size=args.size,
-                            progress=True)
+                            progress=not args.no_progress)
     report["seconds"] = round(time.perf_counter() - t0, 1)
     if args.replay:
         report["replay_in_env"] = replay_in_env(args.out, report["task"])

@@ -163,10 +163,14 @@ class DemoWriter:
         self.data = self.file.create_group("data")
         return self
 
-    def add(self, ep: dict) -> None:
-        """Append one episode (the dict ``write_dataset`` takes)."""
+    def add(self, ep: dict, name: str | None = None) -> None:
+        """Append one episode (the dict ``write_dataset`` takes) as ``data/<name>`` (default: demo_N, N counting
+        the episodes written), e.g. the name it had in the file it was read from."""
         _check_episode(self.episodes, ep)
-        g = self.data.create_group(f"demo_{self.episodes}")
+        name = f"demo_{self.episodes}" if name is None else name
+        if not re.fullmatch(r"demo_\d+", name) or name in self.data:
+            raise ValueError(f"episode name {name!r} must be demo_N and not written before")
+        g = self.data.create_group(name)
         n = len(ep["actions"])
         g.attrs["num_samples"] = n
         for key, value in (ep.get("attrs") or {}).items():

@@ -29,6 +29,7 @@ import os
 from pathlib import Path
 
 import numpy as np
+from tqdm import tqdm
 
 from jepa_envs.datasets.convert_abs_actions import delta_to_abs_by_replay
 from jepa_envs.datasets.hdf5 import DatasetError, DemoWriter, demo_names, load_dataset, open_hdf5, resolve_task
@@ -89,7 +90,7 @@ def render_dataset(src: str | Path, out: str | Path, task: str | None = None, ca
         episodes = []
         try:
             with DemoWriter(out, renderer.output_env_args()) as writer:
-                for i, name in enumerate(names):
+                for name in tqdm(names, desc="render-dataset", unit="episode", disable=not progress):
                     demo = data[name]
                     states, actions = demo["states"][()], demo["actions"][()]
                     model = demo.attrs.get("model_file")
@@ -97,12 +98,8 @@ def render_dataset(src: str | Path, out: str | Path, task: str | None = None, ca
                     for key in ("rewards", "dones"):
                         if key in demo:
                             episode[key] = demo[key][()]
-                    writer.add(episode)
+                    writer.add(episode, name=name)   # the source's names: its demo_3 stays demo_3
                     episodes.append({"demo": name, "steps": len(actions), **report})
-                    if progress:
-                        print(f"  {name}: {len(actions)} steps, " + ", ".join(
-                            f"{k} {v:.4g}" if isinstance(v, float) else f"{k} {v}" for k, v in report.items()),
-                            flush=True)
         finally:
             renderer.close()
     return {"task": spec.name, "episodes": episodes, "out": str(out), "cameras": list(spec.cameras),

@@ -21,6 +21,8 @@ import time
 from importlib.metadata import version
 from pathlib import Path
 
+from tqdm import tqdm
+
 CANDIDATES = ("egl", "osmesa")
 REFERENCE = "osmesa"
 MARGIN = 0.10        # a backend other than the reference must be this much faster per frame to be chosen
@@ -146,16 +148,18 @@ def use_renderer(verbose: bool = True) -> str:
     return choice
 
 
-def bench_renderers(frames: int = 20, size: int = 84, threads: tuple[int, ...] | None = None) -> list[dict]:
+def bench_renderers(frames: int = 20, size: int = 84, threads: tuple[int, ...] | None = None,
+                    progress: bool = False) -> list[dict]:
     """Print and return ms per ``size`` px frame for every backend and Mesa llvmpipe thread count, side by side
-    in one run, with whether its frames equal the reference's and which backend this machine uses."""
+    in one run, with whether its frames equal the reference's and which backend this machine uses
+    (``progress``: a bar of the probes on stderr)."""
     cores = os.cpu_count() or 1
     threads = threads or tuple(sorted({1, cores}))
     rows = []
-    for name in CANDIDATES:
-        for t in threads:
-            row = probe(name, frames, size, extra_env={"LP_NUM_THREADS": str(t)})
-            rows.append({**row, "lp_num_threads": t})
+    probes = [(name, t) for name in CANDIDATES for t in threads]
+    for name, t in tqdm(probes, desc="renderers", unit="probe", disable=not progress):
+        row = probe(name, frames, size, extra_env={"LP_NUM_THREADS": str(t)})
+        rows.append({**row, "lp_num_threads": t})
     # today's default path: osmesa with llvmpipe's default thread count (one per core)
     reference = next((r for r in rows if r["renderer"] == REFERENCE and "error" not in r
                       and r["lp_num_threads"] == cores), None)

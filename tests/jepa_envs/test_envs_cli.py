@@ -16,7 +16,11 @@ def test_make_demos_writes_a_loadable_file(tmp_path, capsys):
     out = tmp_path / "demos.hdf5"
     assert main(["make-demos", "PushT", "--episodes", "2", "--out", str(out), "--seed", "5",
                  "--image-size", "32"]) == 0
-    assert "wrote 2 demos" in capsys.readouterr().out
+    printed, err = capsys.readouterr()
+    assert "wrote 2 demos" in printed and "PushT demos: 100%" in err     # the bar, on stderr
+    assert main(["make-demos", "PushT", "--episodes", "2", "--out", str(tmp_path / "again.hdf5"), "--seed", "5",
+                 "--image-size", "32", "--no-progress"]) == 0
+    assert capsys.readouterr().err == ""
     ds = load_dataset(out, cache_dir=False)
     assert ds.num_episodes() == 2 and ds.spec.name == "PushT"
     assert ds.obs["top_image"].shape[1:] == (32, 32, 3)
@@ -56,7 +60,8 @@ def test_list_and_info(capsys):
 
 def test_bench_prints_a_row_per_task(capsys):
     assert main(["bench", "--tasks", "PushT", "--steps", "64", "--seconds", "2"]) == 0
-    out = capsys.readouterr().out
+    out, err = capsys.readouterr()
+    assert "jepa-envs bench: 100%" in err and "1/1" in err
     row = next(line for line in out.splitlines() if line.startswith("PushT "))
     raw, ours = (float(v) for v in row.split()[1:3])
     assert raw > 0 and ours > 0 and row.split()[3].endswith("%")   # the overhead column (the load follows)
@@ -68,7 +73,9 @@ GYM_PUSHT_PYTHON = Path(__file__).resolve().parents[2] / ".cache" / "interop" / 
 def test_bench_against_gym_pusht_refuses_an_interpreter_without_it_in_one_line(capsys):
     assert main(["bench", "--gym-pusht", sys.executable]) == 2
     err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and "gym-pusht did not start in" in err[0] and "No module named 'gym_pusht'" in err[0]
+    assert "gym-pusht did not start in" in err[-1] and "No module named 'gym_pusht'" in err[-1]   # below the bar
+    assert main(["bench", "--gym-pusht", sys.executable, "--no-progress"]) == 2
+    assert capsys.readouterr().err.strip().splitlines() == err[-1:]
 
 
 @pytest.mark.skipif(not GYM_PUSHT_PYTHON.exists(), reason="gym-pusht's venv is built by `make interop`")

@@ -16,12 +16,13 @@ from jepa_envs.datasets.render_dataset import render_dataset, replay_in_env
 from jepa_envs.tasks.spec import get_task_spec
 
 
-def _raw_file(path, env_args, episodes):
-    """A raw dataset as robomimic stores one before dataset_states_to_obs: states and actions only."""
+def _raw_file(path, env_args, episodes, first: int = 0):
+    """A raw dataset as robomimic stores one before dataset_states_to_obs: states and actions only (demo_<first>,
+    demo_<first + 1>, ...)."""
     with h5py.File(path, "w") as f:
         data = f.create_group("data")
         data.attrs["env_args"] = json.dumps(env_args)
-        for i, ep in enumerate(episodes):
+        for i, ep in enumerate(episodes, first):
             g = data.create_group(f"demo_{i}")
             g.create_dataset("states", data=ep["states"])
             g.create_dataset("actions", data=ep["actions"])
@@ -55,6 +56,33 @@ def test_pusht_states_re_render_to_the_live_frames(tmp_path):
             assert np.array_equal(f[f"data/demo_{i}/obs/top_image"][()], frames)
             assert np.array_equal(f[f"data/demo_{i}/actions"][()], episodes[i]["actions"])
     assert len(load_dataset(tmp_path / "out.hdf5", cache_dir=False).episode_ends) == 2
+
+
+def test_episodes_keep_their_names_and_the_bar_goes_to_stderr(tmp_path, capsys):
+    """A file of demo_1..demo_3 (robomimic files skip numbers; their masks name demos) was written as
+    demo_0..demo_2 without a word; the names are kept now. The bar is on stderr, off with progress=False."""
+    env = gym.make("JEPA/PushT-v0").unwrapped
+    episodes = []
+    for seed in (1, 2, 3):
+        env.reset(seed=seed)
+        states = [env.get_state()]
+        actions = [np.full(2, 256.0, np.float32)] * 3
+        for action in actions[:-1]:
+            env.step(action)
+            states.append(env.get_state())
+        episodes.append({"states": np.array(states), "actions": np.array(actions)})
+    env.close()
+    raw = _raw_file(tmp_path / "raw.hdf5", {"env_name": "PushT", "type": "jepa_envs", "env_kwargs": {}}, episodes,
+                    first=1)
+    report = render_dataset(raw, tmp_path / "out.hdf5", progress=True)
+    out, err = capsys.readouterr()
+    assert [e["demo"] for e in report["episodes"]] == ["demo_1", "demo_2", "demo_3"]
+    with h5py.File(tmp_path / "out.hdf5") as f:
+        assert sorted(f["data"]) == ["demo_1", "demo_2", "demo_3"]
+        assert np.array_equal(f["data/demo_2/states"][()], episodes[1]["states"])
+    assert out == "" and "render-dataset: 100%" in err and "3/3" in err
+    render_dataset(raw, tmp_path / "quiet.hdf5", progress=False)
+    assert capsys.readouterr() == ("", "")
 
 
 def test_a_file_without_states_or_environment_is_refused(tmp_path):
