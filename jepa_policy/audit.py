@@ -29,6 +29,7 @@ import math
 
 import numpy as np
 import torch
+from tqdm import tqdm
 
 from jepa_policy.dataset import WindowDataset
 from monitor_service.scoring import nmse_rows
@@ -88,16 +89,20 @@ def manifest(num_windows: int, samples: int = 4096, seed: int = 0) -> np.ndarray
     return np.sort(rng.choice(num_windows, size=min(samples, num_windows), replace=False))
 
 
-def _batches(windows: WindowDataset, idx: np.ndarray, batch_size: int, device):
-    for start in range(0, len(idx), batch_size):
+def _batches(windows: WindowDataset, idx: np.ndarray, batch_size: int, device, progress: str = ""):
+    """(obs, future_obs) batches of the manifest ``idx``; ``progress``: a bar on stderr of that name."""
+    starts = range(0, len(idx), batch_size)
+    for start in tqdm(starts, desc=progress, unit="batch", disable=not progress):
         batch = windows[idx[start:start + batch_size]]
         yield ({k: v.to(device) for k, v in batch["obs"].items()},
                {k: v.to(device) for k, v in batch["future_obs"].items()})
 
 
 @torch.inference_mode()
-def audit_checkpoint(policy, demos, samples: int = 4096, seed: int = 0, batch_size: int = 256) -> dict:
-    """Spectral statistics of each view (``VIEWS``) on a fixed manifest of dataset windows."""
+def audit_checkpoint(policy, demos, samples: int = 4096, seed: int = 0, batch_size: int = 256,
+                     progress: bool = False) -> dict:
+    """Spectral statistics of each view (``VIEWS``) on a fixed manifest of dataset windows (``progress``: a bar
+    of its batches on stderr)."""
     model = policy.model
     if not hasattr(model, "representations"):
         raise ValueError(f"arm {model.cfg.arm!r} has no fused representation c_t to audit (the collapse audit "
@@ -105,7 +110,7 @@ def audit_checkpoint(policy, demos, samples: int = 4096, seed: int = 0, batch_si
     windows = WindowDataset.from_demos(demos)
     idx = manifest(len(windows), samples, seed)
     views: dict[str, list[np.ndarray]] = {}
-    for obs, _ in _batches(windows, idx, batch_size, policy.device):
+    for obs, _ in _batches(windows, idx, batch_size, policy.device, "collapse audit" if progress else ""):
         for name, x in model.representations(obs).items():
             views.setdefault(name, []).append(x.double().cpu().numpy())
     return {"samples": int(len(idx)), "seed": seed, "primary": "c_t",
@@ -153,15 +158,16 @@ def retrieval_stats(scores: np.ndarray, permutations: int = 1000, seed: int = 0)
 
 @torch.inference_mode()
 def retrieval_audit(policy, demos, samples: int = 4096, pool: int = POOL, seed: int = 0, permutations: int = 1000,
-                    batch_size: int = 256) -> dict:
-    """Sec. 4.9 retrieval on a fixed manifest: z_hat against its own realized target among ``pool`` candidates."""
+                    batch_size: int = 256, progress: bool = False) -> dict:
+    """Sec. 4.9 retrieval on a fixed manifest: z_hat against its own realized target among ``pool`` candidates
+    (``progress``: a bar of its batches on stderr)."""
     model = policy.model
     if not model.cfg.has_future_token:
         raise ValueError(f"arm {model.cfg.arm!r} predicts no future latent: retrieval needs a future head")
     windows = WindowDataset.from_demos(demos)
     idx = manifest(len(windows), samples, seed)
     z_hat, z_real = [], []
-    for obs, future in _batches(windows, idx, batch_size, policy.device):
+    for obs, future in _batches(windows, idx, batch_size, policy.device, "retrieval audit" if progress else ""):
         z_hat.append(model.predict(obs, want_future=True)[1].double().cpu().numpy())
         z_real.append(model.encode_future(future).double().cpu().numpy())
     z_hat, z_real = np.concatenate(z_hat), np.concatenate(z_real)
@@ -212,15 +218,17 @@ def gradient_interaction(model, batch, generator: torch.Generator | None = None)
     return out
 
 
-def gradient_audit(policy, demos, batches: int = 8, batch_size: int = 64, seed: int = 0) -> dict:
-    """``gradient_interaction`` averaged over ``batches`` seeded batches of a dataset (train-mode noise)."""
+def gradient_audit(policy, demos, batches: int = 8, batch_size: int = 64, seed: int = 0,
+                   progress: bool = False) -> dict:
+    """``gradient_interaction`` averaged over ``batches`` seeded batches of a dataset (train-mode noise;
+    ``progress``: a bar of the batches on stderr)."""
     model = policy.model
     windows = WindowDataset.from_demos(demos)
     rng = np.random.default_rng(seed)
     rows = []
     model.train()
     try:
-        for b in range(batches):
+        for b in tqdm(range(batches), desc="gradient audit", unit="batch", disable=not progress):
             idx = np.sort(rng.choice(len(windows), size=min(batch_size, len(windows)), replace=False))
             batch = windows[idx]
             batch = {k: ({kk: vv.to(policy.device) for kk, vv in v.items()} if isinstance(v, dict)

@@ -91,15 +91,17 @@ def _sync(device) -> None:
         torch.cuda.synchronize(device)
 
 
-def time_calls(calls: dict, warmup: int = 30, iters: int = 300, device=None) -> dict[str, dict]:
+def time_calls(calls: dict, warmup: int = 30, iters: int = 300, device=None, progress: bool = False
+               ) -> dict[str, dict]:
     """Time each zero-argument callable, interleaved: every round calls each once (Table 5 protocol).
 
-    Returns {label: {mean_ms, p95_ms, median_ms, max_hz}}; runs under ``torch.inference_mode``.
+    Returns {label: {mean_ms, p95_ms, median_ms, max_hz}}; runs under ``torch.inference_mode``. ``progress``: a
+    bar of the rounds on stderr.
     """
     dev = torch.device(device) if device is not None else torch.device("cpu")
     times = {label: [] for label in calls}
     with torch.inference_mode():
-        for i in range(warmup + iters):
+        for i in tqdm(range(warmup + iters), desc="bench latency", unit="round", disable=not progress):
             for label, call in calls.items():
                 _sync(dev)
                 t0 = time.perf_counter()
@@ -157,13 +159,14 @@ def _bench_detectors(model, spec, dev, seed: int, want: bool):
 
 def bench_latency(task: str = "ToolHang", arms=("mip", "jepa", "diffusion"), warmup: int = 30, iters: int = 300,
                   dp_steps=(100, 16), device: str = "auto", seed: int = 0, scores: bool = False,
-                  preset: str | None = None) -> dict:
+                  preset: str | None = None, progress: bool = False) -> dict:
     """Time one decision (``model.predict`` at batch 1) per arm; the diffusion arm once per sampler length.
     ``scores``: also each arm with an embedding (jepa, mip, ...) as the acting runtime decides (``<label>
     runtime``: the pass that returns c_t, its outputs to numpy) and the same with every failure score it adds
     (``<label> runtime+scores``: STAC, RND, PCA-kmeans, Mahalanobis, whitened NMSE), timed in the same interleaved
     rounds; ``<label>+scores_over_<label>`` is the ratio of the two. ``preset``: the model shapes of that preset of
-    configs/<task>.json (e.g. PushT's ``cpu``, the main job's) instead of the paper's."""
+    configs/<task>.json (e.g. PushT's ``cpu``, the main job's) instead of the paper's. ``progress``: a bar of the
+    timed rounds on stderr."""
     if warmup < 0 or iters < 1:
         raise ValueError(f"need warmup >= 0 and iters >= 1, got {warmup}, {iters}")
     spec = get_task_spec(task)
@@ -208,7 +211,7 @@ def bench_latency(task: str = "ToolHang", arms=("mip", "jepa", "diffusion"), war
             calls[f"{label} runtime+scores"] = _runtime_call(model, obs, want, detectors, spec.n_action_steps)
             rows[f"{label} runtime"] = {**rows[label], "scores": False}
             rows[f"{label} runtime+scores"] = {**rows[label], "scores": True}
-    for label, row in time_calls(calls, warmup, iters, dev).items():
+    for label, row in time_calls(calls, warmup, iters, dev, progress=progress).items():
         rows[label].update(row)
     ratios = {}
     if "jepa" in rows and "mip" in rows:
@@ -251,10 +254,11 @@ def _peak_rss_mib() -> float:
 
 
 def bench_train(task: str = "ToolHang", preset: str = "paper", arm: str = "jepa", steps: int = 3, warmup: int = 1,
-                device: str = "auto", batch_size: int | None = None, seed: int = 0) -> dict:
+                device: str = "auto", batch_size: int | None = None, seed: int = 0, progress: bool = False) -> dict:
     """Training samples/s and peak memory on synthetic batches of the task's shapes under a preset's config.
 
-    Peak memory is ``torch.cuda.max_memory_allocated`` on CUDA and the process's peak RSS on CPU.
+    Peak memory is ``torch.cuda.max_memory_allocated`` on CUDA and the process's peak RSS on CPU. ``progress``: a
+    bar of the steps on stderr.
     """
     if steps < 1 or warmup < 0:
         raise ValueError(f"need steps >= 1 and warmup >= 0, got {steps}, {warmup}")
@@ -281,7 +285,7 @@ def bench_train(task: str = "ToolHang", preset: str = "paper", arm: str = "jepa"
     if dev.type == "cuda":
         torch.cuda.reset_peak_memory_stats(dev)
     times = []
-    for i in range(warmup + steps):
+    for i in tqdm(range(warmup + steps), desc="bench train", unit="step", disable=not progress):
         _sync(dev)
         t0 = time.perf_counter()
         optimizer.zero_grad(set_to_none=True)

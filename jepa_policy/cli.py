@@ -72,9 +72,7 @@ def cmd_train(args) -> int:
 
 
 def cmd_eval(args) -> int:
-    from jepa_policy.evaluate import evaluate
     from jepa_policy.policy import Policy
-
     from jepa_policy.train import resolve_device
 
     if args.faults_only and not (args.faults or "").strip():
@@ -89,10 +87,11 @@ def cmd_eval(args) -> int:
     policy = Policy.from_checkpoint(args.checkpoint, device=resolve_device(args.device), ema=not args.no_ema)
     if args.faults:
         return _eval_regimes(args, policy, calibration)
-    report = evaluate(policy, episodes=args.episodes, seed=args.seed, num_envs=args.num_envs,
-                      max_steps=args.max_steps, video_dir=args.video, out=args.out, workers=args.workers,
-                      save_rollouts=args.save_rollouts, residual_calibration=calibration,
-                      tags=_record_tags(args, policy))
+    with _episode_bar(args.episodes, "eval", args.no_progress) as bar:
+        report = _evaluate_on_bar(bar, policy, None, episodes=args.episodes, seed=args.seed,
+                                  num_envs=args.num_envs, max_steps=args.max_steps, video_dir=args.video,
+                                  out=args.out, workers=args.workers, save_rollouts=args.save_rollouts,
+                                  residual_calibration=calibration, tags=_record_tags(args, policy))
     summary = {k: v for k, v in report.items() if k != "records"}
     from jepa_policy.published import PUBLISHED_TASKS, published_metrics
 
@@ -100,6 +99,26 @@ def cmd_eval(args) -> int:
         summary["published_metrics"] = published_metrics(report["records"])
     print(json.dumps(summary))
     return 0
+
+
+def _episode_bar(total: int | None, name: str, off: bool):
+    """A tqdm bar of finished episodes on stderr (``off``: --no-progress)."""
+    from tqdm import tqdm
+
+    return tqdm(total=total, desc=name, unit="episode", disable=off)
+
+
+def _evaluate_on_bar(bar, policy, fault: dict | None, **kwargs) -> dict:
+    """``evaluate`` on a pool of its own whose rounds move ``bar``."""
+    from jepa_policy.evaluate import evaluate, make_pool
+    from jepa_policy.progress import EpisodeProgress
+
+    with make_pool(policy, min(kwargs["num_envs"], kwargs["episodes"]), workers=kwargs.pop("workers"),
+                   max_steps=kwargs["max_steps"], fault=fault) as pool:
+        seen = EpisodeProgress(pool, bar)
+        report = evaluate(policy, pool=seen, fault=fault, **kwargs)
+        seen.finish()
+    return report
 
 
 def _fault_spec(text: str) -> dict:
@@ -137,7 +156,6 @@ def _eval_regimes(args, policy, calibration) -> int:
     import time
 
     from jepa_envs.tasks.faults import FAULTS
-    from jepa_policy.evaluate import evaluate
 
     if args.video or args.save_rollouts:
         raise ValueError("--faults writes records only; drop --video / --save-rollouts (or run one fault at a time)")
@@ -157,17 +175,19 @@ def _eval_regimes(args, policy, calibration) -> int:
             env_id, env_kwargs = pool_env(policy, fault)
             gym.make(env_id, **env_kwargs).close()
     records, summary = [], {"checkpoint": str(args.checkpoint), "regimes": {}}
-    for fault, label in zip(regimes, labels):
-        t0 = time.perf_counter()
-        episodes = args.episodes if fault is None else min(args.fault_episodes, args.episodes)
-        report = evaluate(policy, episodes=episodes, seed=args.seed, num_envs=args.num_envs,
-                          max_steps=args.max_steps, workers=args.workers, residual_calibration=calibration,
-                          fault=fault, tags={"regime": label, **_record_tags(args, policy)})
-        records += report["records"]
-        summary["regimes"][label] = {"episodes": episodes, "success_rate": report["success_rate"],
-                                     "seconds": round(time.perf_counter() - t0, 1)}
-        print(f"[eval] {label}: {episodes} episodes, success {report['success_rate']:.3f}, "
-              f"{time.perf_counter() - t0:.0f} s", file=sys.stderr, flush=True)
+    counts = [args.episodes if fault is None else min(args.fault_episodes, args.episodes) for fault in regimes]
+    with _episode_bar(sum(counts), "eval", args.no_progress) as bar:
+        for fault, label, episodes in zip(regimes, labels, counts):
+            t0 = time.perf_counter()
+            report = _evaluate_on_bar(bar, policy, fault, episodes=episodes, seed=args.seed, num_envs=args.num_envs,
+                                      max_steps=args.max_steps, workers=args.workers,
+                                      residual_calibration=calibration,
+                                      tags={"regime": label, **_record_tags(args, policy)})
+            records += report["records"]
+            summary["regimes"][label] = {"episodes": episodes, "success_rate": report["success_rate"],
+                                         "seconds": round(time.perf_counter() - t0, 1)}
+            bar.write(f"[eval] {label}: {episodes} episodes, success {report['success_rate']:.3f}, "
+                      f"{time.perf_counter() - t0:.0f} s", file=sys.stderr)
     if args.out:
         Path(args.out).parent.mkdir(parents=True, exist_ok=True)
         Path(args.out).write_text("".join(json.dumps(r) + "\n" for r in records))
@@ -186,7 +206,8 @@ def cmd_fit_detectors(args) -> int:
         raise FileNotFoundError(f"--dataset {args.dataset} does not exist; pass the demonstrations the checkpoint "
                                 "was trained on")
     demos = load_dataset(args.dataset, task=policy.spec.name, image_size=policy.spec.image_size)
-    path = fit_detectors(policy, args.checkpoint, demos, samples=args.samples, seed=args.seed, out=args.out)
+    path = fit_detectors(policy, args.checkpoint, demos, samples=args.samples, seed=args.seed, out=args.out,
+                         progress=not args.no_progress)
     print(json.dumps({"detectors": str(path), "checkpoint": str(args.checkpoint), "samples": args.samples}))
     return 0
 
@@ -216,7 +237,7 @@ def cmd_bench_latency(args) -> int:
 
     result = bench_latency(args.task, arms=args.arms.split(","), warmup=args.warmup, iters=args.iters,
                            dp_steps=tuple(int(s) for s in args.dp_steps.split(",")), device=args.device,
-                           seed=args.seed, scores=args.scores, preset=args.preset)
+                           seed=args.seed, scores=args.scores, preset=args.preset, progress=not args.no_progress)
     print(json.dumps(result, indent=2) if args.json else format_latency(result))
     return 0
 
@@ -245,7 +266,7 @@ def cmd_bench_train(args) -> int:
     from jepa_policy.bench import bench_train, format_train
 
     result = bench_train(args.task, preset=args.preset, arm=args.arm, steps=args.steps, warmup=args.warmup,
-                         device=args.device, batch_size=args.batch_size)
+                         device=args.device, batch_size=args.batch_size, progress=not args.no_progress)
     print(json.dumps(result, indent=2) if args.json else format_train(result))
     return 0
 
@@ -263,7 +284,7 @@ def cmd_protocols(args) -> int:
                                    ladder=tuple(int(x) for x in args.ladder.split(",")), num_envs=args.num_envs,
                                    max_steps=args.max_steps, device=resolve_device(args.device),
                                    workers=args.workers, report_seed=args.report_seed,
-                                   report_episodes=args.report_episodes)
+                                   report_episodes=args.report_episodes, progress=not args.no_progress)
         print(json.dumps(result, indent=2))
         return 0
     if path.is_dir():
@@ -294,13 +315,14 @@ def cmd_audit(args) -> int:
     if unknown:
         raise ValueError(f"unknown audit(s) {unknown}; choose from collapse, retrieval, gradients")
     report = {"checkpoint": str(args.checkpoint), "arm": policy.model.cfg.arm}
+    progress = not args.no_progress
     if "collapse" in kinds:
-        report["collapse"] = audit_checkpoint(policy, demos, samples=args.samples, seed=args.seed)
+        report["collapse"] = audit_checkpoint(policy, demos, samples=args.samples, seed=args.seed, progress=progress)
     if "retrieval" in kinds:
         report["retrieval"] = retrieval_audit(policy, demos, samples=args.samples, pool=args.pool, seed=args.seed,
-                                              permutations=args.permutations)
+                                              permutations=args.permutations, progress=progress)
     if "gradients" in kinds:
-        report["gradients"] = gradient_audit(policy, demos, batches=args.batches, seed=args.seed)
+        report["gradients"] = gradient_audit(policy, demos, batches=args.batches, seed=args.seed, progress=progress)
     print(json.dumps(report, indent=2))
     return 0
 
@@ -327,7 +349,8 @@ def cmd_robot(args) -> int:
                                            monitor_key=read_secret("--monitor-key", args.monitor_key,
                                                                    args.monitor_key_file, MONITOR_KEY_ENV),
                                            task_id=args.task_id, robot=args.robot,
-                                           monitor_scores=_score_names(args.monitor_scores))
+                                           monitor_scores=_score_names(args.monitor_scores),
+                                           progress=not args.no_progress)
     except (BridgeError, TimeoutError) as exc:   # busy, lost control, no bridge: the message names the fix
         print(f"error: {exc}", file=sys.stderr)
         return 1
@@ -396,6 +419,7 @@ def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
                         "to a study: the faulted episodes use the same seeds either way)")
     p.add_argument("--device", default="auto", help="auto (CUDA when present) | cpu | cuda | cuda:N")
     p.add_argument("--no-ema", action="store_true", help="act with the raw instead of the EMA weights")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar on stderr (for logs)")
     p.set_defaults(func=cmd_eval)
 
     p = sub.add_parser("fit-detectors", help="fit the embedding failure detectors (RND, PCA-kmeans, Mahalanobis) of "
@@ -406,6 +430,7 @@ def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=0, help="seed of the sample, k-means and RND")
     p.add_argument("--out", help="where to write (default: <checkpoint stem>.detectors.npz beside it)")
     p.add_argument("--device", default="auto", help="auto | cpu | cuda | cuda:N")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar on stderr (for logs)")
     p.set_defaults(func=cmd_fit_detectors)
 
     p = sub.add_parser("describe", help="parameter counts of an arm, total and per part")
@@ -432,6 +457,7 @@ def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
     p.add_argument("--device", default="auto", help="auto | cpu | cuda | cuda:N")
     p.add_argument("--seed", type=int, default=0, help="seed of the random weights and inputs")
     p.add_argument("--json", action="store_true", help="print JSON instead of a table")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar on stderr (for logs)")
     p.set_defaults(func=cmd_bench_latency)
     p = bsub.add_parser("train", help="training samples/s and peak memory on synthetic batches")
     p.add_argument("--task", default="ToolHang", help="task whose model shapes to train")
@@ -442,6 +468,7 @@ def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
     p.add_argument("--batch-size", type=int, default=None, help="default: the preset's")
     p.add_argument("--device", default="auto", help="auto | cpu | cuda | cuda:N")
     p.add_argument("--json", action="store_true", help="print JSON instead of a table")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar on stderr (for logs)")
     p.set_defaults(func=cmd_bench_train)
 
     p = bsub.add_parser("serve", help="jepa-policy serve beside in-process decisions: round-trip overhead at batch "
@@ -485,6 +512,7 @@ def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
     p.add_argument("--batches", type=int, default=8, help="batches averaged by the gradient audit")
     p.add_argument("--seed", type=int, default=0, help="seed of the manifest, the pools and the batches")
     p.add_argument("--device", default="auto", help="auto | cpu | cuda | cuda:N")
+    p.add_argument("--no-progress", action="store_true", help="no progress bars on stderr (for logs)")
     p.set_defaults(func=cmd_audit)
 
     p = sub.add_parser("protocols", help="Table 6 reporting protocols of a run, or (--select) its leakage-free "
@@ -503,6 +531,7 @@ def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
                    help="env-only rollout processes (--select; default: one per available core; 0: in-process)")
     p.add_argument("--max-steps", type=int, default=None, help="episode step limit (--select; default: the task's)")
     p.add_argument("--device", default="auto", help="auto | cpu | cuda | cuda:N (--select)")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar on stderr (--select; for logs)")
     p.set_defaults(func=cmd_protocols)
 
     p = sub.add_parser("robot", help="run a checkpoint for N episodes on a robot bridge (jepa-robot-bridge)")
@@ -529,6 +558,7 @@ def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
     p.add_argument("--monitor-scores", default="all",
                    help="named scores to send: all (default: every finite one the policy computes), none, or a comma list, "
                         "e.g. stac,rnd (the task must register them: jepa-monitor tasks add TASK --signals ...)")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar on stderr (for logs)")
     p.set_defaults(func=cmd_robot)
 
     p = sub.add_parser("serve", help="serve a checkpoint over openpi's websocket protocol (openpi-client), with the "

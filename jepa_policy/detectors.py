@@ -40,6 +40,7 @@ import torch
 from sklearn.cluster import KMeans
 from sklearn.covariance import LedoitWolf
 from torch import nn
+from tqdm import tqdm
 
 from jepa_policy.dataset import WindowDataset
 
@@ -369,10 +370,10 @@ def fit_embedding_detectors(c: np.ndarray, future_errors: np.ndarray | None = No
 
 
 @torch.inference_mode()
-def training_embeddings(policy, demos, samples: int = 8192, seed: int = 0, batch_size: int = 256
-                        ) -> tuple[np.ndarray, np.ndarray | None]:
+def training_embeddings(policy, demos, samples: int = 8192, seed: int = 0, batch_size: int = 256,
+                        progress: bool = False) -> tuple[np.ndarray, np.ndarray | None]:
     """c_t of up to ``samples`` training windows (a seeded sample), and z_hat - E_rgb(o_{t+k}) of the same
-    windows for arms with a future head (else None)."""
+    windows for arms with a future head (else None); ``progress``: a bar of the batches on stderr."""
     model = policy.model
     if not hasattr(model, "representations"):
         raise ValueError(f"arm {model.cfg.arm!r} has no fused embedding c_t to fit detectors on (the JEPA family "
@@ -382,7 +383,7 @@ def training_embeddings(policy, demos, samples: int = 8192, seed: int = 0, batch
     rng = np.random.default_rng(seed)
     idx = np.sort(rng.choice(len(windows), size=min(samples, len(windows)), replace=False))
     cs, errors = [], []
-    for start in range(0, len(idx), batch_size):
+    for start in tqdm(range(0, len(idx), batch_size), desc="fit-detectors", unit="batch", disable=not progress):
         batch = windows[idx[start:start + batch_size]]
         obs = {k: v.to(policy.device) for k, v in batch["obs"].items()}
         views = model.representations(obs)
@@ -394,10 +395,11 @@ def training_embeddings(policy, demos, samples: int = 8192, seed: int = 0, batch
 
 
 def fit_detectors(policy, checkpoint: str | Path, demos, samples: int = 8192, seed: int = 0,
-                  out: str | Path | None = None) -> Path:
+                  out: str | Path | None = None, progress: bool = False) -> Path:
     """Fit the embedding detectors of ``policy`` (loaded from ``checkpoint``) on its training set ``demos`` and
-    write them beside the checkpoint (or to ``out``); returns the file."""
-    c, errors = training_embeddings(policy, demos, samples, seed)
+    write them beside the checkpoint (or to ``out``); returns the file. ``progress``: a bar of the embedding
+    batches on stderr."""
+    c, errors = training_embeddings(policy, demos, samples, seed, progress=progress)
     detectors = fit_embedding_detectors(c, errors, seed=seed, meta={
         "checkpoint_sha256": file_sha256(checkpoint), "checkpoint_step": policy.checkpoint_step,
         "arm": policy.model.cfg.arm, "task": policy.spec.name})

@@ -22,6 +22,7 @@ from pathlib import Path
 from typing import Callable, Protocol
 
 import numpy as np
+from tqdm import tqdm
 
 from jepa_envs.real_robot.executor import AsyncChunkExecutor
 from jepa_envs.real_robot.proxy import RealRobotEnv
@@ -101,14 +102,15 @@ class MonitorReporter:
 
 def run_episodes(env, policy: ActingPolicy, episodes: int, seed: int = 0, manifest: dict | None = None,
                  before_episode: Callable[[int], None] | None = None, warmup: bool = True,
-                 monitor: MonitorReporter | None = None) -> dict:
+                 monitor: MonitorReporter | None = None, progress: bool = False) -> dict:
     """Run ``episodes`` seeded episodes (synchronous loop); returns per-episode results and the success rate.
-    ``monitor`` (a ``Policy`` then): every decision, target and outcome goes to the monitor service."""
+    ``monitor`` (a ``Policy`` then): every decision, target and outcome goes to the monitor service.
+    ``progress``: a bar of the episodes on stderr."""
     if episodes < 1:
         raise ValueError("episodes must be >= 1")
     warmup_s = warm_up(policy, env) if warmup else 0.0
     results = []
-    for index in range(episodes):
+    for index in tqdm(range(episodes), desc="robot", unit="episode", disable=not progress):
         if before_episode is not None:
             before_episode(index)   # e.g. wait until the operator has set the scene up
         policy.reset()
@@ -140,15 +142,16 @@ def run_episodes(env, policy: ActingPolicy, episodes: int, seed: int = 0, manife
 
 def run_episodes_async(env, policy: Policy, episodes: int, seed: int = 0, manifest: dict | None = None,
                        replan_steps: int | None = None,
-                       before_episode: Callable[[int], None] | None = None) -> dict:
-    """Run ``episodes`` seeded episodes with the asynchronous executor (real-time chunking)."""
+                       before_episode: Callable[[int], None] | None = None, progress: bool = False) -> dict:
+    """Run ``episodes`` seeded episodes with the asynchronous executor (real-time chunking; ``progress``: a bar
+    of the episodes on stderr)."""
     if episodes < 1:
         raise ValueError("episodes must be >= 1")
     warmup_s = warm_up(policy, env)
     executor = AsyncChunkExecutor(env, lambda frames: policy.decide_from(frames).actions,
                                   history=policy.obs_steps, replan_steps=replan_steps)
     results = []
-    for index in range(episodes):
+    for index in tqdm(range(episodes), desc="robot", unit="episode", disable=not progress):
         if before_episode is not None:
             before_episode(index)
         record = executor.run_episode(seed + index, {**(manifest or {}), "episode_index": index})
@@ -182,12 +185,14 @@ def run_checkpoint_on_bridge(checkpoint: str | Path, address: str, episodes: int
                              curve_server_key: str | None = None, curve_client_key: str | None = None,
                              monitor_url: str | None = None, monitor_key: str | None = None,
                              task_id: str | None = None, robot: str | None = None,
-                             monitor_scores: tuple[str, ...] | None = None, monitor_flush_s: float = 30.0) -> dict:
+                             monitor_scores: tuple[str, ...] | None = None, monitor_flush_s: float = 30.0,
+                             progress: bool = False) -> dict:
     """Load a ``jepa-policy train`` checkpoint, connect to the bridge serving its task and run the episodes.
 
     ``wait``: ask the operator on stdin to set the scene up before each episode (only on a terminal).
     ``monitor_url`` / ``monitor_key`` (a robot key): report every decision with its scores to the monitor under
     ``task_id`` (default: the checkpoint's task); ``monitor_scores``: which scores (default every finite one).
+    ``progress``: a bar of the episodes on stderr.
     Raises SystemExit with the fix when the checkpoint is missing or the bridge serves another image size.
     """
     checkpoint = Path(checkpoint)
@@ -209,14 +214,16 @@ def run_checkpoint_on_bridge(checkpoint: str | Path, address: str, episodes: int
         before = None if not wait or not sys.stdin.isatty() else (
             lambda i: input(f"Set up the scene for episode {i + 1}/{episodes}, then press Enter "))
         if asynchronous:
-            return run_episodes_async(env, policy, episodes, seed, manifest, replan_steps, before_episode=before)
+            return run_episodes_async(env, policy, episodes, seed, manifest, replan_steps, before_episode=before,
+                                      progress=progress)
         if not monitor_url:
-            return run_episodes(env, policy, episodes, seed, manifest, before_episode=before)
+            return run_episodes(env, policy, episodes, seed, manifest, before_episode=before, progress=progress)
         client = MonitorClient(monitor_url, monitor_key, robot=robot)
         try:
             reporter = MonitorReporter(client, task_id or policy.spec.name, f"{checkpoint.name}@{policy.checkpoint_step}",
                                        monitor_scores)
-            summary = run_episodes(env, policy, episodes, seed, manifest, before_episode=before, monitor=reporter)
+            summary = run_episodes(env, policy, episodes, seed, manifest, before_episode=before, monitor=reporter,
+                                   progress=progress)
         finally:
             delivered = client.close(timeout=monitor_flush_s)
         stats = client.stats

@@ -20,9 +20,11 @@ from typing import Callable
 
 import numpy as np
 from scipy.stats import binomtest
+from tqdm import tqdm
 
 from jepa_policy.evaluate import evaluate, make_pool, reporting_protocols
 from jepa_policy.policy import Policy
+from jepa_policy.progress import EpisodeProgress
 
 FRESH_SEED = 1_000_000   # far from the training-time evaluation seeds (100,000 + episodes)
 REPORT_SEED = 2_000_000  # the untouched block the pick's success is reported on
@@ -99,9 +101,10 @@ def confirm_and_report(play: Callable[[int, int, int], list[bool]], candidates: 
 def select_checkpoint(run_dir: str | Path, fresh_seed: int = FRESH_SEED, ladder: tuple[int, ...] = LADDER,
                       num_envs: int = 4, max_steps: int | None = None, device: str = "cpu", seed: int = 0,
                       workers: int | None = 0, report_seed: int = REPORT_SEED,
-                      report_episodes: int | None = None) -> dict:
+                      report_episodes: int | None = None, progress: bool = False) -> dict:
     """Apply the rule of the module docstring to a training run folder; returns the pick and the evidence. The
-    pick's ``fresh_success_rate`` is measured on the report block (``report_seed``), untouched by the choice."""
+    pick's ``fresh_success_rate`` is measured on the report block (``report_seed``), untouched by the choice.
+    ``progress``: a bar of the episodes played on stderr (their number depends on when the ladder decides)."""
     run_dir = Path(run_dir)
     curve_path = run_dir / "eval_curve.json"
     if not curve_path.is_file():
@@ -126,9 +129,13 @@ def select_checkpoint(run_dir: str | Path, fresh_seed: int = FRESH_SEED, ladder:
     candidates = [p["step"] for p in ranked[:2]]
     policies = {s: Policy.from_checkpoint(snapshots[s], device=device) for s in candidates}
     # one persistent rollout pool for both candidates, every rung and the report (``workers`` processes; 0: here)
-    with make_pool(policies[candidates[0]], min(num_envs, ladder[0]), workers=workers, max_steps=max_steps) as pool:
+    with make_pool(policies[candidates[0]], min(num_envs, ladder[0]), workers=workers, max_steps=max_steps) as pool, \
+            tqdm(desc="selection", unit="episode", disable=not progress) as bar:
+        seen = EpisodeProgress(pool, bar)
+
         def play(step: int, first_seed: int, episodes: int) -> list[bool]:
-            report = evaluate(policies[step], episodes=episodes, seed=first_seed, pool=pool)
+            report = evaluate(policies[step], episodes=episodes, seed=first_seed, pool=seen)
+            seen.finish()
             return [bool(r["success"]) for r in report["records"]]
 
         result = confirm_and_report(play, candidates, fresh_seed, ladder, report_seed, report_episodes, seed)

@@ -196,7 +196,8 @@ def test_fit_detectors_command_and_the_runtime_scores(checkpoint, pusht_demo_fil
     assert policy_main(["fit-detectors", "--checkpoint", str(checkpoint), "--dataset", str(pusht_demo_file),
                         "--samples", "200", "--device", "cpu"]) == 0
     path = detector_path(checkpoint)
-    assert json.loads(capsys.readouterr().out)["detectors"] == str(path)
+    printed, err = capsys.readouterr()
+    assert json.loads(printed)["detectors"] == str(path) and "fit-detectors: 100%" in err
     policy = Policy.from_checkpoint(checkpoint)          # the file beside the checkpoint is loaded
     assert policy.detectors is not None and policy.detectors.meta["samples"] == 200
     rng = np.random.default_rng(0)
@@ -232,7 +233,9 @@ def test_fit_detectors_command_and_the_runtime_scores(checkpoint, pusht_demo_fil
 
 def test_detectors_of_another_checkpoint_are_refused(checkpoint, pusht_demo_file, tmp_path, capsys):
     assert policy_main(["fit-detectors", "--checkpoint", str(checkpoint), "--dataset", str(pusht_demo_file),
-                        "--samples", "200", "--device", "cpu", "--out", str(tmp_path / "mine.npz")]) == 0
+                        "--samples", "200", "--device", "cpu", "--out", str(tmp_path / "mine.npz"),
+                        "--no-progress"]) == 0
+    assert capsys.readouterr().err == ""
     copy = tmp_path / "other.pt"
     copy.write_bytes(Path(checkpoint).read_bytes() + b"\0")           # another file (its digest differs)
     detector_path(copy).write_bytes((tmp_path / "mine.npz").read_bytes())

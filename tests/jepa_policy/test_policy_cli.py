@@ -17,7 +17,9 @@ def test_describe_json_prints_paper_counts(capsys):
 def test_bench_latency_counts_passes(capsys):
     assert main(["bench", "latency", "--task", "PushT", "--arms", "mip,jepa,diffusion", "--warmup", "1",
                  "--iters", "2", "--dp-steps", "5,2", "--device", "cpu", "--json"]) == 0
-    result = json.loads(capsys.readouterr().out)
+    printed, err = capsys.readouterr()
+    result = json.loads(printed)
+    assert "bench latency: 100%" in err and "3/3" in err      # 1 warm-up + 2 timed rounds
     arms = result["arms"]
     assert set(arms) == {"mip", "jepa", "jepa+monitor", "diffusion-5", "diffusion-2"}
     for label in ("mip", "jepa", "jepa+monitor"):
@@ -32,8 +34,10 @@ def test_bench_latency_counts_passes(capsys):
 
 def test_bench_latency_times_the_failure_scores_beside_the_same_arm(capsys):
     assert main(["bench", "latency", "--task", "PushT", "--preset", "quick", "--arms", "mip,jepa", "--warmup", "1",
-                 "--iters", "2", "--device", "cpu", "--scores", "--json"]) == 0
-    result = json.loads(capsys.readouterr().out)
+                 "--iters", "2", "--device", "cpu", "--scores", "--json", "--no-progress"]) == 0
+    printed, err = capsys.readouterr()
+    result = json.loads(printed)
+    assert "bench latency" not in err
     arms = result["arms"]
     assert result["preset"] == "quick" and arms["jepa"]["params_m"] < 1     # the quick preset's shapes
     labels = ("mip", "jepa", "jepa+monitor")
@@ -47,7 +51,9 @@ def test_bench_latency_times_the_failure_scores_beside_the_same_arm(capsys):
 def test_bench_train_reports_throughput_and_memory(capsys):
     assert main(["bench", "train", "--task", "PushT", "--preset", "quick", "--steps", "1", "--warmup", "0",
                  "--device", "cpu", "--json"]) == 0
-    result = json.loads(capsys.readouterr().out)
+    printed, err = capsys.readouterr()
+    result = json.loads(printed)
+    assert "bench train: 100%" in err
     assert result["batch_size"] == 8 and result["image_size"] == 32
     assert result["samples_per_s"] > 0 and result["peak_rss_mib"] > 0
 
@@ -82,7 +88,9 @@ def test_train_eval_protocols_from_the_command_line(pusht_demo_file, tmp_path, c
     ckpt = out / "checkpoints" / "latest.pt"
     assert main(["eval", "--checkpoint", str(ckpt), "--episodes", "2", "--seed", "3", "--num-envs", "2",
                  "--max-steps", "10", "--workers", "2", "--out", str(tmp_path / "eval.jsonl")]) == 0
-    report = json.loads(capsys.readouterr().out)
+    printed, err = capsys.readouterr()
+    report = json.loads(printed)
+    assert "eval: 100%" in err and "2/2" in err     # README's 40 episodes ran 300 s in silence before the bar
     assert report["episodes"] == 2 and 0.0 <= report["success_rate"] <= 1.0
     assert report["workers"] == 2 and report["reruns"] == []
     assert report["renderer"] == "none"   # PushT rasterises without OpenGL; MuJoCo tasks name their backend
@@ -92,15 +100,19 @@ def test_train_eval_protocols_from_the_command_line(pusht_demo_file, tmp_path, c
     # faults only, one of them twice under labels: the records are tagged with the labels, no natural block
     assert main(["eval", "--checkpoint", str(ckpt), "--episodes", "2", "--seed", "3", "--max-steps", "10",
                  "--workers", "0", "--faults", "sensor_noise;sensor_noise:std=9,label=noisier", "--faults-only",
-                 "--out", str(tmp_path / "faults.jsonl")]) == 0
-    assert list(json.loads(capsys.readouterr().out)["regimes"]) == ["sensor_noise", "noisier"]
+                 "--out", str(tmp_path / "faults.jsonl"), "--no-progress"]) == 0
+    printed, err = capsys.readouterr()
+    assert list(json.loads(printed)["regimes"]) == ["sensor_noise", "noisier"]
+    assert "eval:" not in err and "[eval] noisier: 2 episodes" in err     # the regime lines stay, the bar goes
     rows = [json.loads(line) for line in (tmp_path / "faults.jsonl").read_text().splitlines()]
     assert [r["regime"] for r in rows] == ["sensor_noise"] * 2 + ["noisier"] * 2 and [r["seed"] for r in rows] == [3, 4] * 2
     assert main(["eval", "--checkpoint", str(ckpt), "--faults", "sensor_noise;sensor_noise:std=9"]) == 2
     assert "label=" in capsys.readouterr().err
     assert main(["audit", "--checkpoint", str(ckpt), "--dataset", str(pusht_demo_file), "--samples", "64",
                  "--pool", "16", "--permutations", "50", "--batches", "2"]) == 0
-    audit = json.loads(capsys.readouterr().out)
+    printed, err = capsys.readouterr()
+    audit = json.loads(printed)
+    assert all(f"{name} audit: 100%" in err for name in ("collapse", "retrieval", "gradient")), err
     views = audit["collapse"]["views"]
     assert audit["collapse"]["samples"] == 64 and list(views) == ["c_t", "e_rgb", "z_hat"]
     assert views["c_t"]["dim"] == 32 and views["e_rgb"]["dim"] == views["z_hat"]["dim"] == 8 * 8   # width 32

@@ -73,14 +73,17 @@ def test_report_block_must_be_untouched():
     assert seen[-1][1:] == (100, 5) and played.isdisjoint(range(100, 105))
 
 
-def test_selection_confirms_on_fresh_seeds(pusht_demo_file, tmp_path):
+def test_selection_confirms_on_fresh_seeds(pusht_demo_file, tmp_path, capsys):
     demos = load_dataset(pusht_demo_file, task="PushT", image_size=32)
     cfg = load_config("PushT", "quick", out_dir=str(tmp_path / "run"), steps=6, warmup_steps=0, batch_size=4,
                       eval_every=2, eval_episodes=2, eval_max_steps=30, model={"width": 32, "layers": 1, "heads": 2})
     train(cfg, demos)
     run = tmp_path / "run"
     assert sorted(eval_snapshots(run)) == [2, 4, 6]
-    out = select_checkpoint(run, ladder=(2, 4), num_envs=2, max_steps=30)
+    capsys.readouterr()
+    out = select_checkpoint(run, ladder=(2, 4), num_envs=2, max_steps=30, progress=True)
+    played = 2 * out["confirmation_episodes"] + out["pick"]["fresh_episodes"]   # both candidates, then the report
+    assert f"selection: {played}episode" in capsys.readouterr().err.replace("\r", "\n").splitlines()[-1]
     curve = json.loads((run / "eval_curve.json").read_text())
     top = sorted(curve, key=lambda p: (-p["success_rate"], -p["step"]))[:2]
     assert [c["step"] for c in out["candidates"]] == [p["step"] for p in top]   # chosen on the selection seeds

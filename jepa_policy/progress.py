@@ -1,0 +1,30 @@
+"""Rollouts on a progress bar: what ``jepa-policy eval`` and ``protocols --select`` show on stderr while they run."""
+from __future__ import annotations
+
+
+class EpisodeProgress:
+    """An ``EnvPool`` whose resets move a tqdm bar of finished episodes; everything else is the pool's own.
+
+    ``evaluate`` plays rounds of lockstep episodes and resets the pool at the start of each, so a reset means the
+    episodes of the round before it have ended. A round rerun after a worker failed resets the same seeds again
+    and is counted once. Call ``finish`` when ``evaluate`` returns: its last round ended too.
+    """
+
+    def __init__(self, pool, bar):
+        self._pool, self._bar = pool, bar
+        self._seeds: tuple = ()
+        self._running = 0
+
+    def reset(self, seeds, active=None):
+        if tuple(seeds) != self._seeds:        # a new round, not a rerun of the last one
+            self._bar.update(self._running)
+        self._seeds = tuple(seeds)
+        self._running = len(seeds) if active is None else int(sum(bool(a) for a in active))
+        return self._pool.reset(seeds, active=active)
+
+    def finish(self) -> None:
+        self._bar.update(self._running)
+        self._seeds, self._running = (), 0
+
+    def __getattr__(self, name):
+        return getattr(self._pool, name)
