@@ -22,6 +22,7 @@ import jepa_envs  # noqa: F401  (registers the JEPA/* ids)
 from jepa_envs.datasets.hdf5 import DemoWriter
 from jepa_envs.rollouts.pool import EnvPool, WorkerFailure
 from jepa_envs.tasks.faults import FAULTED_ENV, FAULTS
+from jepa_envs.tasks.outcomes import failure_kind_name
 from jepa_policy.detectors import whitened_error
 from monitor_service.scoring import nmse_rows
 
@@ -318,6 +319,8 @@ def _run_round(envs, policy, ids, seed, video_dir, on_decision, keep_latents, st
     policy.reset()
     envs.set_render_images(True)
     obs, reset_info = envs.reset(seeds, active=list(live))   # spares keep the batch's shape and are never stepped
+    # the kind of failure each episode would be if it ended now, for tasks that name them (Lift, Can: outcomes.py)
+    failure_kind = np.asarray(reset_info["failure_kind"], int) if "failure_kind" in reset_info else None
     future_scale = getattr(getattr(policy, "detectors", None), "future_scale", None)
     while live.any():
         if want_video:
@@ -351,6 +354,8 @@ def _run_round(envs, policy, ids, seed, video_dir, on_decision, keep_latents, st
                 kept[j]["rewards"].append(float(reward[j]))
         if "is_success" in infos:
             success |= live & np.asarray(infos["is_success"], bool)
+        if failure_kind is not None and "failure_kind" in infos:
+            failure_kind = np.where(live, np.asarray(infos["failure_kind"], int), failure_kind)
         due = [p for p in pending if p[0].target_step == t_new]
         pending = [p for p in pending if p[0].target_step != t_new]
         if due:
@@ -382,6 +387,8 @@ def _run_round(envs, policy, ids, seed, video_dir, on_decision, keep_latents, st
                         "length": int(length[j]), "max_reward": float(max_reward[j]), "decisions": sorted(decisions[j], key=lambda d: d["step"])})
         if fault is not None:
             records[-1].update(fault=fault, fault_onset=int(reset_info["fault_onset"][j]))
+        if failure_kind is not None:
+            records[-1]["failure_kind"] = None if success[j] else failure_kind_name(failure_kind[j])
         if keep:
             ep = kept[j]
             steps.append({"obs": {k: np.stack([o[k] for o in ep["obs"]]) for k in ep["obs"][0]},

@@ -145,7 +145,8 @@ class RobomimicEnv(RobosuiteTaskEnv):
     SUITES = ("robomimic",)
 
     def __init__(self, task: str = "Square", image_size: int | None = None, render_mode: str | None = None,
-                 action_mode: str = "abs", env_args: dict | None = None, hard_reset: bool = False):
+                 action_mode: str = "abs", env_args: dict | None = None, hard_reset: bool = False,
+                 reflections: bool | None = None):
         spec = get_task_spec(task)
         if spec.suite not in self.SUITES:
             raise ValueError(f"{type(self).__name__} serves {self.SUITES} tasks; {spec.name} is a {spec.suite} task")
@@ -159,7 +160,11 @@ class RobomimicEnv(RobosuiteTaskEnv):
         backend = make_backend_from_env_args(
             self.env_args, control_delta=check_action_mode(action_mode) == "delta",
             cameras=spec.cameras, image_size=spec.image_size, hard_reset=hard_reset)
-        super().__init__(spec, backend, render_mode=render_mode, action_mode=action_mode)
+        # ``reflections``: given, or the recording's own setting (``env_args["render"]``, ours: robomimic ignores
+        # it), else robomimic's frames (on)
+        if reflections is None:
+            reflections = bool(self.env_args.get("render", {}).get("reflections", True))
+        super().__init__(spec, backend, render_mode=render_mode, action_mode=action_mode, reflections=reflections)
 
     @classmethod
     def default_env_args(cls, spec: TaskSpec) -> dict:

@@ -23,6 +23,7 @@ from gymnasium import spaces
 
 from jepa_envs.tasks import abs_actions, rotations
 from jepa_envs.tasks.base import JEPAEnv
+from jepa_envs.tasks.outcomes import OutcomeTracker, pick_object
 from jepa_envs.tasks.spec import TaskSpec
 
 ACTION_MODES = ("abs", "delta")
@@ -139,16 +140,23 @@ class RobosuiteTaskEnv(JEPAEnv):
         render_mode: str | None = None,
         action_mode: str = "abs",
         success_fn: Callable[[], bool] | None = None,
+        reflections: bool = True,
     ):
         if render_mode not in (None, "rgb_array"):
             raise ValueError(f"render_mode must be None or 'rgb_array', got {render_mode!r}")
         super().__init__(spec, render_mode=render_mode)
         self.backend = backend
+        # MuJoCo's reflection pass (the table's mirror-like finish) renders the scene a second time; software
+        # renderers spend most of a frame on it. Off: 4.5x faster frames that differ by 0.2-0.5 of 255 per pixel
+        # on average (docs/envs_simulation.md, "Rendering speed"); on: robomimic's frames.
+        self.reflections = bool(reflections)
         self.action_mode = check_action_mode(action_mode)
         self.num_arms = spec.num_arms
         # our camera name -> the backend's observation key of that camera
         self._camera_keys = {c: f"{c}_image" for c in spec.cameras}
         self._success_fn = success_fn or backend._check_success
+        # the pick tasks (Lift, Can) name each failure from the simulator state: info["failure_kind"] (outcomes.py)
+        self._outcome = OutcomeTracker(backend) if pick_object(backend) is not None else None
         self.action_space = self._make_action_space()
         self._resumed_cameras: set[str] = set()
         # Observations are read at the END of each control step (``step``: a forced update), as robomimic's env
@@ -315,6 +323,7 @@ class RobosuiteTaskEnv(JEPAEnv):
         ctx = getattr(self.backend.sim, "_render_context_offscreen", None)
         if ctx is not None:
             ctx.gl_ctx.make_current()
+            ctx.scn.flags[mujoco.mjtRndFlag.mjRND_REFLECTION] = int(self.reflections)
 
     def reset(self, *, seed: int | None = None, options: dict | None = None):
         super().reset(seed=seed)
@@ -323,7 +332,11 @@ class RobosuiteTaskEnv(JEPAEnv):
         self._clear_gripper_commands()
         with global_numpy_seed(episode_seed):
             raw = self._backend_reset(options)
-        return self._observation(raw), {"is_success": bool(self._success_fn())}
+        info = {"is_success": bool(self._success_fn())}
+        if self._outcome is not None:
+            self._outcome.reset()
+            info["failure_kind"] = self._outcome.update(info["is_success"])
+        return self._observation(raw), info
 
     def step(self, action):
         if self.render_images:
@@ -334,8 +347,11 @@ class RobosuiteTaskEnv(JEPAEnv):
         self.backend.sim.forward()
         raw = self.backend._get_observations(force_update=True)
         success = bool(self._success_fn())
+        info = {"is_success": success}
+        if self._outcome is not None:
+            info["failure_kind"] = self._outcome.update(success)
         # robosuite runs with ignore_done; the episode ends on success, the time limit is the TimeLimit wrapper's.
-        return self._observation(raw), float(reward), success, False, {"is_success": success}
+        return self._observation(raw), float(reward), success, False, info
 
     def render(self):
         """All cameras side by side at the task's image size (rendered now, even while images are off)."""
