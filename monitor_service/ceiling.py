@@ -29,6 +29,7 @@ from collections import defaultdict
 
 import numpy as np
 from scipy.stats import rankdata
+from tqdm import tqdm
 
 from monitor_service import compare as cmp
 
@@ -157,9 +158,10 @@ def _draws(episodes: list[cmp.Episode], prefix: int,
 
 
 def ceiling(episodes: list[cmp.Episode], prefix: int = cmp.PREFIX, n_bootstrap: int = 2000, seed: int = 0,
-            signals=None, folds: int = 5) -> dict:
+            signals=None, folds: int = 5, progress: bool = False) -> dict:
     """Per group (checkpoint): the outcome-predictability ceiling of the first ``prefix`` decisions and each
-    signal's AUROC on the same draws (module docstring)."""
+    signal's AUROC on the same draws (module docstring). ``progress``: a bar of the AUROC rows (each with its
+    bootstrap) on stderr."""
     notes: list[str] = []
     result = {"prefix": prefix, "groups": {}, "notes": notes}
     kept = _draws(episodes, prefix, notes)
@@ -169,6 +171,7 @@ def ceiling(episodes: list[cmp.Episode], prefix: int = cmp.PREFIX, n_bootstrap: 
         if unknown:
             raise ValueError(f"--signals: no record carries {', '.join(map(repr, unknown))}; the records carry "
                              f"{', '.join(sorted(known))} (and {cmp.STACK})")
+    bar = tqdm(desc="ceiling", unit="row", disable=not progress)
     for group, seeds in kept.items():
         rows = [(s, d) for s, draws in seeds.items() for d in draws]
         clusters = np.array([s for s, _ in rows])
@@ -182,9 +185,11 @@ def ceiling(episodes: list[cmp.Episode], prefix: int = cmp.PREFIX, n_bootstrap: 
         loo = np.array([(fails[s] - yi) / (count[s] - 1) for (s, _), yi in zip(rows, y)])
         mixed = sum(0 < fails[s] < count[s] for s in seeds)
 
-        def row(scores, name_seed):
-            return {"auroc": cross_cluster_auroc(scores, y, clusters),
-                    "ci": _cluster_bootstrap(scores, y, clusters, n_bootstrap, seed + name_seed)}
+        def row(scores, name_seed, keep=None):
+            keep = np.ones(len(rows), bool) if keep is None else keep
+            bar.update()
+            return {"auroc": cross_cluster_auroc(scores[keep], y[keep], clusters[keep]),
+                    "ci": _cluster_bootstrap(scores[keep], y[keep], clusters[keep], n_bootstrap, seed + name_seed)}
 
         out = {"seeds": len(seeds), "draws": sum(count.values()), "draws_per_seed": [min(count.values()),
                                                                                      max(count.values())],
@@ -206,9 +211,7 @@ def ceiling(episodes: list[cmp.Episode], prefix: int = cmp.PREFIX, n_bootstrap: 
             if not keep.any():
                 continue
             scores = np.array([per_seed[s] if per_seed[s] is not None else np.nan for s, _ in rows])
-            out["signals"][name] = {"auroc": cross_cluster_auroc(scores[keep], y[keep], clusters[keep]),
-                                    "ci": _cluster_bootstrap(scores[keep], y[keep], clusters[keep], n_bootstrap,
-                                                             seed + 10 + i)}
+            out["signals"][name] = row(scores, 10 + i, keep)
         natural = [d for draws in seeds.values() for d in draws if d.regime == NATURAL]
         wanted = signals is None or cmp.STACK in signals
         members = cmp.stack_members(every)
@@ -224,11 +227,9 @@ def ceiling(episodes: list[cmp.Episode], prefix: int = cmp.PREFIX, n_bootstrap: 
             keep = np.array([s in per_seed for s, _ in rows])
             if keep.any():
                 scores = np.array([per_seed.get(s, np.nan) for s, _ in rows])
-                out["signals"][cmp.STACK] = {
-                    "auroc": cross_cluster_auroc(scores[keep], y[keep], clusters[keep]),
-                    "ci": _cluster_bootstrap(scores[keep], y[keep], clusters[keep], n_bootstrap, seed + 3),
-                    "members": members}
+                out["signals"][cmp.STACK] = {**row(scores, 3, keep), "members": members}
         result["groups"][group] = out
+    bar.close()
     return result
 
 

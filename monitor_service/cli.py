@@ -217,7 +217,7 @@ def cmd_study(args) -> int:
         if args.records or args.synthetic:
             raise ValueError("--length-check runs on its own synthetic episodes; drop the records file / --synthetic")
         check = length_check(args.draws, args.fresh, args.successes, params=params, seed=args.seed,
-                             alphas=(args.alpha,) if args.alpha else (0.05, 0.2))
+                             alphas=(args.alpha,) if args.alpha else (0.05, 0.2), progress=not args.no_progress)
         print(json.dumps(check, indent=2) if args.json else length_table(check))
         return 0
     if args.synthetic:
@@ -341,6 +341,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--folds", type=int, default=5, help="cross-fitting folds within each checkpoint")
     s.add_argument("--seed", type=int, default=0, help="seed of the folds and the band split")
     s.add_argument("--json", action="store_true", help="print every figure as JSON")
+    s.add_argument("--no-progress", action="store_true", help="no progress bar on stderr (--length-check; for logs)")
     s.set_defaults(func=cmd_study)
 
     compare_cli.add_parser(sub)

@@ -41,6 +41,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+from tqdm import tqdm
 
 from monitor_service import detectors, rules, scoring, stats
 from monitor_service.encoding import jsonl_rows
@@ -386,8 +387,9 @@ def detection_figures(episodes: list[Episode], judged: dict[int, dict], regime: 
 
 def compare(episodes: list[Episode], alpha: float = 0.1, folds: int = 5, prefix: int = PREFIX, seed: int = 0,
             n_bootstrap: int = 2000, rule_names=("default", "fast"), views=("prefix", "whole"),
-            signals: list[str] | None = None, aggregate: str = "mean") -> dict:
-    """Every signal and detector on the same episodes and folds, per checkpoint (group), view and regime."""
+            signals: list[str] | None = None, aggregate: str = "mean", progress: bool = False) -> dict:
+    """Every signal and detector on the same episodes and folds, per checkpoint (group), view and regime
+    (``progress``: a bar of the groups' views on stderr)."""
     if not 0 < alpha < 1:
         raise ValueError(f"alpha must lie in (0, 1), got {alpha}")
     if aggregate not in AGGREGATES:
@@ -401,7 +403,9 @@ def compare(episodes: list[Episode], alpha: float = 0.1, folds: int = 5, prefix:
                                  "ranking_score": f"{aggregate} of the signal over the view's decisions",
                                  "negatives": "natural successes"},
                     "groups": {}}
-    for group in sorted({e.group for e in episodes}):
+    groups = sorted({e.group for e in episodes})
+    bar = tqdm(total=len(groups) * len(views), desc="compare", unit="view", disable=not progress)
+    for group in groups:
         members = [e for e in episodes if e.group == group]
         present = sorted({s for e in members for s in e.values})
         chosen = [s for s in (signals or present) if s in present]
@@ -427,7 +431,9 @@ def compare(episodes: list[Episode], alpha: float = 0.1, folds: int = 5, prefix:
                     rows[name] = {regime: detection_figures(eps, judged, regime) for regime in regimes}
                 v["detection"][rule_name] = {"detectors": rows, "refused": d["refused"]}
             g["views"][view] = v
+            bar.update()
         result["groups"][group] = g
+    bar.close()
     return result
 
 

@@ -37,6 +37,7 @@ def add_parser(sub) -> argparse.ArgumentParser:
     s.add_argument("--out", action="append", default=[], metavar="FILE.json|FILE.md",
                    help="write every figure as JSON (.json, with the natural-failure ROC curves: python3 -m "
                         "jepa_policy.compare_figures draws them) or the tables as Markdown (.md); repeatable")
+    s.add_argument("--no-progress", action="store_true", help="no progress bar on stderr (for logs)")
     s.set_defaults(func=run)
     return s
 
@@ -58,7 +59,7 @@ def run(args) -> int:
     result = compare(episodes, alpha=args.alpha, folds=args.folds, prefix=args.prefix, seed=args.seed,
                      n_bootstrap=args.bootstrap, rule_names=tuple(r.strip() for r in args.rules.split(",")),
                      views=views, signals=[s.strip() for s in args.signals.split(",")] if args.signals else None,
-                     aggregate=args.aggregate)
+                     aggregate=args.aggregate, progress=not args.no_progress)
     result["seconds"] = round(time.perf_counter() - t0, 1)
     for path in args.out:
         Path(path).write_text(markdown(result) if path.endswith(".md") else json.dumps(result, indent=1))
@@ -96,6 +97,7 @@ def add_ceiling_parser(sub) -> argparse.ArgumentParser:
     s.add_argument("--seed", type=int, default=0, help="seed of the bootstrap and the stack's folds")
     s.add_argument("--json", action="store_true", help="print every figure as JSON instead of the summary")
     s.add_argument("--out", metavar="FILE.json", help="write every figure as JSON")
+    s.add_argument("--no-progress", action="store_true", help="no progress bar on stderr (for logs)")
     s.set_defaults(func=run_ceiling)
     return s
 
@@ -114,7 +116,8 @@ def run_ceiling(args) -> int:
     _check_out([args.out] if args.out else [], (".json",))
     episodes = load_records(args.records, where)
     result = ceiling(episodes, prefix=args.prefix, n_bootstrap=args.bootstrap, seed=args.seed,
-                     signals=[s.strip() for s in args.signals.split(",")] if args.signals else None)
+                     signals=[s.strip() for s in args.signals.split(",")] if args.signals else None,
+                     progress=not args.no_progress)
     result["seconds"] = round(time.perf_counter() - t0, 1)
     if args.out:
         Path(args.out).write_text(json.dumps(result, indent=1))

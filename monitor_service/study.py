@@ -19,6 +19,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
+from tqdm import tqdm
 
 from monitor_service import rules, scoring, stats
 from monitor_service.calibration import LabelledEpisode
@@ -162,21 +163,26 @@ def synthetic_study(decisions: int, successes: int, failures: int, params: rules
 
 def length_check(draws: int = 200, fresh: int = 200, successes: int = 100, lengths: tuple[int, int] = (5, 150),
                  alphas: tuple[float, ...] = (0.05, 0.2), params: rules.RuleParams = rules.RuleParams(),
-                 seed: int = 0) -> dict:
+                 seed: int = 0, progress: bool = False) -> dict:
     """False-alert rate of fresh successes per length bin, averaged over ``draws`` calibrations on ``successes``
     fresh successes each (``synthetic.mixed_length_episodes``: NMSE independent of the decision index). The check
-    of docs/monitor.md's per-length promise; kinds running and band."""
+    of docs/monitor.md's per-length promise; kinds running and band. ``progress``: a bar of the calibrations on
+    stderr."""
     out = {}
+    bar = tqdm(total=len(rules.RULE_KINDS) * len(alphas) * draws, desc="length check", unit="calibration",
+               disable=not progress)
     for kind in rules.RULE_KINDS:
         p = rules.RuleParams(kind, params.window, params.debounce, params.clear_ratio, params.shape)
         for alpha in alphas:
             judged = []
             for d in range(draws):
+                bar.update()
                 cal = mixed_length_episodes(successes, 0, lengths, seed=seed + 2 * d)
                 rule = rules.calibrate_rule(cal, p, alpha, seed=d)
                 judged += [{**rule.judge(e), "length": e.steps.size}
                            for e in mixed_length_episodes(fresh, 0, lengths, seed=seed + 2 * d + 1)]
             out[f"{kind}, alpha {alpha:g}"] = rules.by_length(judged)
+    bar.close()
     return {"draws": draws, "fresh_per_draw": fresh, "calibration_successes": successes, "lengths": list(lengths),
             "shape": params.shape, "rules": out}
 

@@ -182,15 +182,18 @@ def test_the_command_writes_json_and_markdown_and_refuses_bad_input_in_one_line(
     assert monitor_main(["compare", str(path), "--where", "arm=jepa", "--rules", "fast", "--bootstrap", "200",
                          "--signals", "stac,nmse",
                          "--out", str(out_json), "--out", str(out_md)]) == 0
-    printed = capsys.readouterr().out
+    printed, err = capsys.readouterr()
     assert "natural 90 (30 failed), block_displaced 10 (10 failed)" in printed
+    assert "compare: 100%" in err and "2/2" in err       # one checkpoint's two views, on a bar
     result = json.loads(out_json.read_text())
     assert result["groups"]["jepa:jepa.pt"]["views"]["whole"]["ranking"]["natural"]["stac"]["auroc"] == 1.0
     md = out_md.read_text()
     assert "| stac | 1.000 [1.00, 1.00] | 1.000 [1.00, 1.00] |" in md and "## Detection, block_displaced" in md
     assert monitor_main(["compare", str(path), "--where", "arm=jepa", "--rules", "fast", "--bootstrap", "200",
-                         "--signals", "stac,nmse", "--json"]) == 0
-    assert json.loads(capsys.readouterr().out)["groups"] == result["groups"]   # --json: the same figures, printed
+                         "--signals", "stac,nmse", "--json", "--no-progress"]) == 0
+    printed, err = capsys.readouterr()
+    assert json.loads(printed)["groups"] == result["groups"]   # --json: the same figures, printed
+    assert "compare:" not in err
 
     bad = tmp_path / "bad.jsonl"
     bad.write_text(json.dumps(rows[0]) + "\n{not json\n")

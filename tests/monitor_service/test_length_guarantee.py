@@ -135,3 +135,20 @@ def test_live_alerts_over_http_equal_the_offline_rule_at_every_length(tmp_path):
         assert checked["alerted"] >= 10 and checked["beyond"] >= 1, checked
         detail = http.get(f"/v1/episodes/{live[0].episode}", headers=operator).json()
         assert detail["calibrated_decisions"] == rule_of["PushT"].calibrated_decisions
+
+
+def test_the_length_check_command_prints_its_figures_and_a_bar_on_stderr(capsys):
+    """`jepa-monitor study --length-check` ran 119 s without a word; its calibrations are on a bar now."""
+    import json
+
+    from monitor_service.cli import main
+
+    argv = ["study", "--length-check", "--draws", "3", "--fresh", "20", "--successes", "20", "--alpha", "0.2"]
+    assert main([*argv, "--json"]) == 0
+    out, err = capsys.readouterr()
+    check = json.loads(out)
+    assert check["draws"] == 3 and set(check["rules"]) == {"running, alpha 0.2", "band, alpha 0.2"}
+    assert "length check: 100%" in err and "6/6" in err          # 2 rule kinds x 1 alpha x 3 calibrations
+    assert main([*argv, "--no-progress"]) == 0
+    out, err = capsys.readouterr()
+    assert "false alerts of fresh successes; 3 calibrations" in out and err == ""

@@ -120,7 +120,8 @@ def test_the_command_reads_record_files_and_writes_its_figures(tmp_path, capsys)
     draws.write_text("".join(json.dumps(r) + "\n" for r in rows if r["regime"] != "natural"))
     out = tmp_path / "ceiling.json"
     assert main(["ceiling", str(natural), str(draws), "--bootstrap", "100", "--out", str(out)]) == 0
-    text = capsys.readouterr().out
+    text, err = capsys.readouterr()
+    assert "ceiling: " in err and "row" in err        # its bootstrapped rows on a bar
     assert "80 seeds reaching 10 decisions, 320 draws" in text and "leave-one-out" in text and "stack" in text
     saved = json.loads(out.read_text())["groups"]["jepa:ck"]
     assert saved["ceiling"]["leave_one_out"]["auroc"] < saved["ceiling"]["plug_in"]["auroc"]
