@@ -12,6 +12,7 @@ import statistics
 import sys
 import time
 from dataclasses import asdict, dataclass
+from importlib.metadata import PackageNotFoundError, version
 from typing import Callable
 
 from jepa_envs.tasks import install_mimicgen
@@ -303,8 +304,17 @@ def render_dataset_cmd(args: argparse.Namespace) -> int:
     return 0
 
 
+def _version() -> str:
+    """This install's version, for --version."""
+    try:
+        return version("jepa-policy-toolkit")
+    except PackageNotFoundError:
+        return "unknown (not installed: pip install -e . in the checkout)"
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="jepa-envs", description=__doc__.splitlines()[0])
+    parser.add_argument("--version", action="version", version=f"%(prog)s {_version()}")
     sub = parser.add_subparsers(dest="command", required=True)
     for cmd in SUBCOMMANDS.values():
         p = sub.add_parser(cmd.name, help=cmd.help)

@@ -7,6 +7,7 @@ import dataclasses
 import json
 import sys
 import re
+from importlib.metadata import PackageNotFoundError, version
 from pathlib import Path
 
 from jepa_envs.errors import USER_ERRORS, user_error
@@ -378,10 +379,19 @@ def cmd_serve(args) -> int:
     return 0
 
 
+def _version() -> str:
+    """This install's version, for --version."""
+    try:
+        return version("jepa-policy-toolkit")
+    except PackageNotFoundError:
+        return "unknown (not installed: pip install -e . in the checkout)"
+
+
 def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
     """The whole command line; given ``argv``, train's flags only when it runs train: they are generated from
     ``TrainConfig``, whose module imports torch, which ``jepa-policy --help`` and every other command need not."""
     parser = argparse.ArgumentParser(prog="jepa-policy", description=__doc__)
+    parser.add_argument("--version", action="version", version=f"%(prog)s {_version()}")
     sub = parser.add_subparsers(dest="command", required=True)
 
     p = sub.add_parser("train", help="train a policy (torchrun for several GPUs / nodes)")

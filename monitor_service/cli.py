@@ -6,6 +6,7 @@ import json
 import os
 import sys
 import tempfile
+from importlib.metadata import PackageNotFoundError, version
 from pathlib import Path
 
 from monitor_service import compare_cli
@@ -263,8 +264,17 @@ def cmd_bench(args) -> int:
     return 0
 
 
+def _version() -> str:
+    """This install's version, for --version."""
+    try:
+        return version("jepa-policy-toolkit")
+    except PackageNotFoundError:
+        return "unknown (not installed: pip install -e . in the checkout)"
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="jepa-monitor", description=__doc__)
+    p.add_argument("--version", action="version", version=f"%(prog)s {_version()}")
     p.add_argument("--database-url", help="overrides JEPA_MONITOR_DATABASE_URL")
     sub = p.add_subparsers(dest="command", required=True)
 
