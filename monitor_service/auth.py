@@ -129,8 +129,9 @@ def require(role: str, exact: bool = False):
 
 
 def revoke(session: Session, key_id: int) -> ApiKey:
+    """Revoke key ``key_id`` (again is fine); LookupError when there is none (the caller names how to list them)."""
     row = session.get(ApiKey, key_id)
     if row is None:
-        raise LookupError(f"API key id {key_id} does not exist; list keys with GET /v1/keys")
+        raise LookupError(f"API key id {key_id} does not exist")
     row.revoked_at = row.revoked_at or utcnow()
     return row

@@ -102,7 +102,10 @@ def cmd_keys(args) -> int:
             for k in session.scalars(select(ApiKey).order_by(ApiKey.id)):
                 print(f"{k.id}\t{k.name}\t{k.role}\t{k.robot or '-'}\t{'revoked' if k.revoked_at else 'active'}")
         else:
-            revoke(session, args.id)
+            try:
+                revoke(session, args.id)
+            except LookupError as exc:
+                raise LookupError(f"{exc}; list them with `jepa-monitor keys list`") from None
             session.commit()
             print(f"revoked key {args.id}")
     return 0

@@ -40,7 +40,7 @@ def revoke_key(request: Request, key_id: ObjectId, session: Session = Depends(ge
     try:
         row = revoke(session, key_id)
     except LookupError as exc:
-        raise HTTPException(404, str(exc)) from None
+        raise HTTPException(404, f"{exc}; list keys with GET /v1/keys") from None
     session.commit()
     request.app.state.key_cache.clear()   # refused from this process's next request on
     return KeyOut(**key_out(row))

@@ -138,6 +138,8 @@ def test_auth_roles_and_refusals(client, robot, operator, admin):
     token = arm2["X-API-Key"]
     assert client.post("/v1/outcomes", json={"episode": "a", "success": True}, headers={"Authorization": f"Bearer {token}"}).status_code == 200
     assert client.delete(f"/v1/keys/{arm2_id}", headers=admin).status_code == 200
+    r = client.delete("/v1/keys/999", headers=admin)
+    assert r.status_code == 404 and r.json()["detail"] == "API key id 999 does not exist; list keys with GET /v1/keys"
     assert client.post("/v1/targets", json={"episode": "a", "step": 1, "z": [1.0] * DIM}, headers=arm2).status_code == 401
     r = client.post("/v1/keys", json={"name": "r", "role": "robot"}, headers=admin)
     assert r.status_code == 422 and "body.robot.robot: Field required" in r.json()["detail"]

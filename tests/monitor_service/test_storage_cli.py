@@ -72,6 +72,9 @@ def test_cli_offline_calibrate_report_keys_tasks(tmp_path, capsys):
     assert main(url + ["keys", "revoke", "1"]) == 0
     assert main(url + ["keys", "list"]) == 0
     assert "revoked" in capsys.readouterr().out
+    assert main(url + ["keys", "revoke", "999"]) == 2     # the fix on the command line, not an HTTP route
+    assert capsys.readouterr().err.strip() == ("jepa-monitor: error: API key id 999 does not exist; list them "
+                                               "with `jepa-monitor keys list`")
 
 
 def test_admin_key_bootstrap_refuses_a_revoked_secret(tmp_path):
