@@ -438,3 +438,13 @@ def test_the_readme_bridge_and_robot_pair_runs_as_written(reader_folder, tmp_pat
         process.terminate()
         _, err = process.communicate(timeout=30)
     assert "Traceback" not in err, err[-2000:]
+
+
+def test_the_openpi_snippet_says_how_to_install_the_client_make_interop_checks():
+    """docs/serving.md's robot loop imports openpi_client, which this project does not install: the page shows the
+    install, pinned to the release `make interop` runs the loop with."""
+    checked = re.search(r'"openpi-client==([\d.]+)"', (ROOT / "scripts" / "interop.sh").read_text()).group(1)
+    text = (ROOT / "docs" / "serving.md").read_text()
+    install = [line for _, line, _ in code_lines(text) if "pip install" in line and "openpi-client" in line]
+    assert install and all(f"openpi-client=={checked}" in line for line in install), install
+    assert text.index("openpi-client==") < text.index("from openpi_client import")   # before the loop needs it
