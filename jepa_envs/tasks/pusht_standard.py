@@ -375,7 +375,9 @@ class PushTStandardEnv(JEPAEnv):
             raise ValueError(f"unknown obs_type {obs_type!r}; use one of {list(OBS_TYPES)}")
         if render_mode not in (None, "rgb_array"):
             raise ValueError(f"render_mode must be None or 'rgb_array' (frames from env.render()), got {render_mode!r}")
-        width, height = int(observation_width or spec.image_size), int(observation_height or spec.image_size)
+        # None is the task's size; 0 is a size like any other, and refused below
+        width = spec.image_size if observation_width is None else int(observation_width)
+        height = spec.image_size if observation_height is None else int(observation_height)
         for name, value in (("observation_width", width), ("observation_height", height),
                             ("visualization_width", visualization_width), ("visualization_height", visualization_height)):
             if int(value) < 8:
@@ -435,10 +437,13 @@ class PushTStandardEnv(JEPAEnv):
         return self._threshold
 
     # -- gym API ---------------------------------------------------------------------------------------------
-    def reset(self, *, seed: int | None = None, options: dict | None = None):
-        super().reset(seed=seed)
+    def _check_open(self) -> None:
         if self.backend.space is None:
             raise RuntimeError("PushTStandardEnv was closed; make a new env")
+
+    def reset(self, *, seed: int | None = None, options: dict | None = None):
+        super().reset(seed=seed)
+        self._check_open()
         options = dict(options or {})
         unknown = set(options) - {"reset_to_state", "state"}
         if unknown:
@@ -469,6 +474,7 @@ class PushTStandardEnv(JEPAEnv):
         return state
 
     def step(self, action):
+        self._check_open()
         target = np.asarray(action, dtype=np.float64).reshape(-1)
         if target.size != 2 or not np.isfinite(target).all():
             raise ValueError(f"PushT action must be 2 finite numbers (absolute agent target), got {action!r}")
@@ -529,6 +535,7 @@ class PushTStandardEnv(JEPAEnv):
         marked, when ``render_mode="rgb_array"``; None otherwise."""
         if self.render_mode != "rgb_array":
             return None
+        self._check_open()
         frame = self.backend.draw().resize(self.visualization_width, self.visualization_height)
         if self._last_action is not None:
             _marker(frame, self._last_action)

@@ -236,10 +236,22 @@ def test_variants_are_one_keyword_apart_and_unknown_ones_are_named():
     ({"observation_width": 96, "observation_height": 64}, "must be equal"),
     ({"obs_type": "pixels", "image_size": 48}, "image_size sets obs_type='jepa'"),
     ({"visualization_width": 0}, "visualization_width must be >= 8"),
+    ({"observation_width": 0, "observation_height": 0}, "observation_width must be >= 8 pixels, got 0"),  # was 96
+    ({"obs_type": "pixels", "observation_width": 0}, "observation_width must be >= 8 pixels, got 0"),
 ])
 def test_bad_options_are_refused_naming_the_problem(kwargs, message):
     with pytest.raises((ValueError, TypeError), match=message):
         _make(**kwargs)
+
+
+def test_a_closed_env_says_so_at_step_reset_and_render():
+    """step after close raised AttributeError from deep inside the simulator."""
+    env = _make(render_mode="rgb_array")
+    env.reset(seed=0)
+    env.close()
+    for call in (lambda: env.step([256.0, 256.0]), lambda: env.reset(seed=1), env.render):
+        with pytest.raises(RuntimeError, match="PushTStandardEnv was closed; make a new env"):
+            call()
 
 
 def test_bad_actions_are_refused():
