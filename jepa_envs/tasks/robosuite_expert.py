@@ -21,12 +21,14 @@ recording goes on once success holds.
 """
 from __future__ import annotations
 
+import collections
 import contextlib
-import itertools
 import math
 import multiprocessing
+import os
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
+from typing import Callable, Iterator
 
 import gymnasium as gym
 import numpy as np
@@ -380,12 +382,31 @@ class EpisodeRecorder:
 _WORKER: dict[str, EpisodeRecorder] = {}
 
 
-def _start_worker(task: str, image_size: int | None, images: bool) -> None:
+def _start_worker(task: str, image_size: int | None, images: bool, render_threads: int) -> None:
+    # Mesa's llvmpipe starts one render thread per core in every process; the workers share the cores, so each
+    # gets its share unless the user chose (as the rollout pool does; its frames are the same for any count)
+    os.environ.setdefault("LP_NUM_THREADS", str(render_threads))
     _WORKER["recorder"] = EpisodeRecorder(task, image_size, images)
 
 
 def _record_in_worker(seed: int, attempt: int) -> dict:
     return _WORKER["recorder"](seed, attempt)
+
+
+def _in_order(pool: ProcessPoolExecutor, seed: int, max_attempts: int, depth: int,
+              missing: Callable[[], int]) -> Iterator[dict]:
+    """Attempts 0, 1, ... recorded by ``pool``, yielded in order. At most ``depth`` are in flight and never more
+    than ``missing()`` episodes, so while the expert succeeds no attempt is recorded only to be thrown away (an
+    episode takes seconds to tens of seconds, and a pool's shutdown waits for the ones running)."""
+    pending: collections.deque = collections.deque()
+    attempt = 0
+    while True:
+        while attempt < max_attempts and len(pending) < min(depth, missing()):
+            pending.append(pool.submit(_record_in_worker, seed, attempt))
+            attempt += 1
+        if not pending:
+            return
+        yield pending.popleft().result()
 
 
 def demo_env_args(spec: TaskSpec, image_size: int) -> dict:
@@ -427,9 +448,9 @@ def generate_demos(task: str, num_episodes: int, seed: int = 0, image_size: int 
         else:
             pool = stack.enter_context(ProcessPoolExecutor(
                 workers, mp_context=multiprocessing.get_context("spawn"), initializer=_start_worker,
-                initargs=(task, size, images)))
+                initargs=(task, size, images, max(1, (os.cpu_count() or 1) // workers))))
             stack.callback(pool.shutdown, cancel_futures=True)
-            results = pool.map(_record_in_worker, itertools.repeat(seed), range(max_attempts))
+            results = _in_order(pool, seed, max_attempts, 2 * workers, lambda: num_episodes - len(episodes))
         bar = stack.enter_context(tqdm(total=num_episodes, desc=f"{task} demos", unit="demo", disable=not progress))
         for ep in results:
             attempts += 1
