@@ -56,8 +56,14 @@ def _train_config(args):
             # a run's train_config.json keeps the stop_at it was launched with; a resume goes on to the end
             data["stop_at"] = 0
         return TrainConfig.from_dict({**data, **overrides})
-    task = overrides.pop("task", "PushT")
-    return load_config(task, args.preset, **overrides)
+    task = overrides.pop("task", None)
+    if task is None and overrides.get("dataset"):   # a dataset that names its task needs no --task
+        from jepa_envs.datasets.lerobot import recorded_task
+
+        task = recorded_task(overrides["dataset"])
+        if task is not None:
+            print(f"jepa-policy train: task {task}, as the dataset records it (--task overrides it)", file=sys.stderr)
+    return load_config(task or "PushT", args.preset, **overrides)
 
 
 def cmd_train(args) -> int:

@@ -142,8 +142,9 @@ PUSHT_STANDARD = register_task(TaskSpec(
     control_hz=10.0, horizon=16, future_k=4, max_episode_steps=300, image_size=96, num_demos=206,
     notes="gym-pusht 0.1.8's Push-T (Diffusion Policy; LeRobot's lerobot/pusht, 206 demos): T of scale 30, "
           "success at coverage > 0.95; also gym.make('JEPA/PushT-v0', variant='standard')",
-    # LeRobot's lerobot/pusht names its single camera observation.image (no .images.<name>)
-    extra={"lerobot_image_keys": {"observation.image": "top_image"}},
+    # LeRobot's lerobot/pusht names its single camera observation.image (no .images.<name>), and its task so
+    extra={"lerobot_image_keys": {"observation.image": "top_image"},
+           "lerobot_task": "Push the T-shaped block onto the T-shaped target."},
 ))
 register_task(_robomimic("Lift", "Lift", ("agentview", "robot0_eye_in_hand"), 1, 400))
 register_task(_robomimic("Can", "PickPlaceCan", ("agentview", "robot0_eye_in_hand"), 1, 400))

@@ -36,9 +36,10 @@ from __future__ import annotations
 
 from jepa_envs.datasets.lerobot.bench import bench_lerobot
 from jepa_envs.datasets.lerobot.format import CODEBASE_VERSION, CODECS, KeyMap, LeRobotError
-from jepa_envs.datasets.lerobot.importer import import_lerobot, resolve_dataset
+from jepa_envs.datasets.lerobot.importer import import_lerobot, recorded_task, resolve_dataset
 from jepa_envs.datasets.lerobot.reader import LeRobotDataset, is_lerobot_root, iter_episodes, open_lerobot
 from jepa_envs.datasets.lerobot.writer import export_lerobot
 
 __all__ = ["CODEBASE_VERSION", "CODECS", "KeyMap", "LeRobotDataset", "LeRobotError", "bench_lerobot",
-           "export_lerobot", "import_lerobot", "is_lerobot_root", "iter_episodes", "open_lerobot", "resolve_dataset"]
+           "export_lerobot", "import_lerobot", "is_lerobot_root", "iter_episodes", "open_lerobot", "recorded_task",
+           "resolve_dataset"]

@@ -2,18 +2,20 @@
 problem found at once, and which of its features the map leaves out."""
 from __future__ import annotations
 
-from jepa_envs.datasets.lerobot.format import DEFAULT_FEATURES, DONE, REWARD, SUCCESS, KeyMap, LeRobotError
+from jepa_envs.datasets.lerobot.format import (DEFAULT_FEATURES, DONE, REWARD, SUCCESS, KeyMap, LeRobotError,
+                                               map_option)
 from jepa_envs.datasets.lerobot.reader import LeRobotDataset
 from jepa_envs.tasks.pusht_variants import demonstration_mismatches
 from jepa_envs.tasks.spec import TaskSpec
 
 
 def check_features(ds: LeRobotDataset, spec: TaskSpec, km: KeyMap, fps: int | None,
-                   fps_fix: str | None = None) -> None:
+                   fps_fix: str | None = None, map_flag: str = "--map") -> None:
     """Raise one LeRobotError naming every way the dataset does not fit the task (each with its fix).
 
     ``fps`` is the rate the user accepted (it must be the dataset's own); ``fps_fix`` words the fix for a rate
-    other than the task's where ``--fps`` is not the caller's option (``{fps}`` in it: the dataset's rate)."""
+    other than the task's where ``--fps`` is not the caller's option (``{fps}`` in it: the dataset's rate);
+    ``map_flag``: the caller's option for a key map (``map_option``)."""
     problems = []
     if fps is not None and fps != ds.fps:
         problems.append(f"--fps {fps} is not the dataset's rate ({ds.fps} fps in info.json); pass --fps {ds.fps} "
@@ -28,7 +30,7 @@ def check_features(ds: LeRobotDataset, spec: TaskSpec, km: KeyMap, fps: int | No
     absent = [key for key in needed if key not in feats]
     for key in absent:
         problems.append(f"the dataset has no feature {key!r} ({needed[key]} of task {spec.name}); map one of its "
-                        f"features with --map {'FEATURE=' + (km.images.get(key) or _target(km, key))}")
+                        f"features with {map_option('FEATURE', km.images.get(key) or _target(km, key), map_flag)}")
     if absent:
         problems[-1] += f" (the dataset's features: {have})"
     for key, target in km.images.items():
@@ -40,12 +42,12 @@ def check_features(ds: LeRobotDataset, spec: TaskSpec, km: KeyMap, fps: int | No
     missing = set(spec.image_keys) - set(km.images.values())
     if missing:
         problems.append(f"task {spec.name} needs camera key(s) {sorted(missing)} and no feature maps to them; "
-                        f"pass --map observation.images.NAME={sorted(missing)[0]}")
+                        f"pass {map_option('observation.images.NAME', sorted(missing)[0], map_flag)}")
     state_dim = sum(dict(spec.lowdim)[k] for k in km.state[1])
     if km.state[0] in feats and list(feats[km.state[0]].get("shape", [])) != [state_dim]:
         problems.append(f"feature {km.state[0]!r} has shape {feats[km.state[0]].get('shape')}; task {spec.name}'s "
-                        f"{list(km.state[1])} need [{state_dim}]; map the right feature with --map "
-                        f"FEATURE={','.join(km.state[1])}")
+                        f"{list(km.state[1])} need [{state_dim}]; map the right feature with "
+                        f"{map_option('FEATURE', ','.join(km.state[1]), map_flag)}")
     if set(km.state[1]) != set(spec.lowdim_keys):
         problems.append(f"the state map gives {list(km.state[1])}; task {spec.name} needs all of "
                         f"{list(spec.lowdim_keys)}")

@@ -2,6 +2,7 @@
 video codecs, and the map from another dataset's feature names to a task spec's keys."""
 from __future__ import annotations
 
+import json
 from dataclasses import dataclass
 
 import numpy as np
@@ -65,15 +66,16 @@ class KeyMap:
         return cls(image_features(spec), (STATE, spec.lowdim_keys))
 
     @classmethod
-    def parse(cls, spec: TaskSpec, items: list[str] | tuple[str, ...] = ()) -> "KeyMap":
+    def parse(cls, spec: TaskSpec, items: list[str] | tuple[str, ...] = (), flag: str = "--map") -> "KeyMap":
         """The default map changed by ``lerobot_key=spec_key`` items: an image key, ``action``, ``states``, or
-        low-dim keys (comma separated, concatenated in the given order) for a state vector."""
+        low-dim keys (comma separated, concatenated in the given order) for a state vector. ``flag``: the option
+        the items came from, named in refusals (``map_option``)."""
         km = cls.default(spec)
         images = dict(km.images)
         for item in items:
             if "=" not in item:
-                raise LeRobotError(f"--map {item!r} is not LEROBOT_KEY=SPEC_KEY (e.g. "
-                                   f"observation.images.front={spec.image_keys[0]})")
+                raise LeRobotError(f"{flag} {item!r} is not LEROBOT_KEY=SPEC_KEY (e.g. "
+                                   f"{map_option('observation.images.front', spec.image_keys[0], flag)})")
             source, target = (part.strip() for part in item.split("=", 1))
             targets = tuple(t.strip() for t in target.split(",") if t.strip())
             if target in spec.image_keys:
@@ -86,8 +88,9 @@ class KeyMap:
             elif targets and all(t in spec.lowdim_keys for t in targets):
                 km.state = (source, targets)
             else:
-                raise LeRobotError(f"--map {item!r}: {target!r} is not a key of task {spec.name} (images "
-                                   f"{list(spec.image_keys)}, low-dim {list(spec.lowdim_keys)}, action, states)")
+                raise LeRobotError(f"{map_option(source, target, flag)}: {target!r} is not a key of task {spec.name} "
+                                   f"(images {list(spec.image_keys)}, low-dim {list(spec.lowdim_keys)}, action, "
+                                   "states)")
         km.images = images
         return km
 
@@ -98,8 +101,22 @@ def image_features(spec: TaskSpec) -> dict[str, str]:
     return dict(spec.extra.get("lerobot_image_keys") or {f"{IMAGES}{c}": f"{c}_image" for c in spec.cameras})
 
 
+def map_option(source: str, target: str, flag: str = "--map") -> str:
+    """How a user maps one feature to one of our keys with ``flag``: ``jepa-envs lerobot import``'s
+    ``--map F=K``, or ``jepa-policy train``'s ``--dataset-map`` (a JSON object)."""
+    if flag == "--dataset-map":
+        return f"--dataset-map '{json.dumps({source: target})}'"
+    return f"{flag} {source}={target}"
+
+
 def instruction_for(spec: TaskSpec) -> str:
-    """The default task string of an exported episode: the source task's words (LIBERO names carry them)."""
+    """The default task string of an exported episode: the one the task's public dataset uses
+    (``lerobot_task``: lerobot/pusht's for the standard PushT), else the source task's words (LIBERO names carry
+    them), else the task's name (a gym id such as gym_pusht/PushT-v0 is not words)."""
+    if spec.extra.get("lerobot_task"):
+        return spec.extra["lerobot_task"]
+    if "/" in spec.source_task:
+        return spec.name
     words = spec.source_task.split("_")
     while words and (words[0].isupper() or words[0].rstrip("0123456789").isupper()):   # LIBERO's SCENE prefix
         words = words[1:]
