@@ -124,7 +124,9 @@ class TrainConfig:
              f"steps ({self.steps}) is below warmup_steps ({self.warmup_steps}) of this preset; pass more --steps or "
              f"--warmup-steps N with N <= steps"),
             (self.log_every >= 1 and self.ckpt_every >= 1, "log_every and ckpt_every must be >= 1"),
-            (self.eval_every >= 0 and self.eval_episodes >= 1, "eval_every >= 0 and eval_episodes >= 1"),
+            (self.eval_every >= 0 and self.eval_episodes >= 0, "eval_every >= 0 and eval_episodes >= 0"),
+            (self.eval_episodes >= 1 or self.keep_eval_checkpoints,
+             "eval_episodes 0 (snapshots only) needs keep_eval_checkpoints"),
             (self.eval_max_steps >= 0, "eval_max_steps must be >= 0 (0 = the task's episode length)"),
             (self.eval_workers >= -1, "eval_workers must be >= -1 (-1 = one per core, 0 = in-process)"),
             (self.grad_every >= 0, "grad_every must be >= 0 (0 = no gradient-interaction log)"),
@@ -168,7 +170,7 @@ TRAIN_HELP = {
     "log_every": "steps between log rows (log.jsonl, TensorBoard)",
     "ckpt_every": "steps between checkpoints (latest.pt)",
     "eval_every": "steps between seeded evaluations (0 = none)",
-    "eval_episodes": "rollouts of each periodic evaluation",
+    "eval_episodes": "rollouts of each periodic evaluation (0: only the EMA snapshot, evaluated later)",
     "eval_seed": "seed of the first evaluation rollout (the same every time)",
     "eval_envs": "environments stepped together in an evaluation",
     "eval_workers": "env-only rollout processes of the evaluations, started once per run (-1 = one per available "
@@ -551,6 +553,11 @@ class PeriodicEvaluation:
 
     def run(self, step: int, learner: Learner, curve: list, log: RunLog, checkpoints: Path) -> None:
         cfg, ranks = self.cfg, self.ranks
+        if cfg.eval_episodes == 0:   # snapshots only: a learning curve measured after training, off the clock
+            if ranks.is_main:
+                save_eval_snapshot(checkpoints / f"eval_step{step}.pt", ema=learner.ema, step=step, cfg=cfg,
+                                   model_cfg=learner.model_cfg, spec=self.data.spec, env_args=self.data.env_args)
+            return
         policy = Policy(learner.ema.module, self.data.spec, device=ranks.device)
         policy.env_args = self.data.env_args
         if self.pool is None:

@@ -146,13 +146,17 @@ class RobosuiteRenderer:
         self.env_args = copy.deepcopy(env_args)
         self.env_args.setdefault("env_kwargs", {})
         self.delta = delta
+        # the recording's render settings (ours, beside robomimic's: the table's reflection off renders 4.5x faster)
+        self.render = dict(self.env_args.get("render", {}))
+        self.reflections = bool(self.render.get("reflections", True))
         self.env = self._make()
         self.reference: RobosuiteTaskEnv | None = None   # the live renders frames are checked against
 
     def _make(self):
         backend = make_backend_from_env_args(self.env_args, control_delta=self.delta, cameras=self.spec.cameras,
                                              image_size=self.spec.image_size)
-        return RobosuiteTaskEnv(self.spec, backend, action_mode="delta" if self.delta else "abs")
+        return RobosuiteTaskEnv(self.spec, backend, action_mode="delta" if self.delta else "abs",
+                                reflections=self.reflections)
 
     def output_env_args(self) -> dict:
         task_kwargs = {k: v for k, v in self.env_args["env_kwargs"].items()
@@ -162,6 +166,8 @@ class RobosuiteRenderer:
         ctrl = self.env_args["env_kwargs"].get("controller_configs")
         if isinstance(ctrl, dict):
             out["env_kwargs"]["controller_configs"] = {**ctrl, "control_delta": False}
+        if self.render:
+            out["render"] = self.render
         return out
 
     def _reset_to(self, states, model) -> str:

@@ -209,3 +209,21 @@ def test_gradient_interaction_is_logged_without_changing_the_run(demos, tmp_path
                                                                "future_head", "trunk"}
     a, b = load_checkpoint(logged["checkpoint"]), load_checkpoint(plain["checkpoint"])
     assert all(torch.equal(a["model"][k], b["model"][k]) for k in a["model"])
+
+
+def test_snapshots_without_evaluation_keep_the_ema_weights_for_a_later_curve(demos, tmp_path):
+    """eval_episodes 0: every eval_every steps the EMA weights are kept (eval_stepN.pt) and nothing is rolled out
+    during training; the last snapshot holds the final EMA weights."""
+    from jepa_policy.policy import Policy
+    cfg = load_config("PushT", "quick", out_dir=str(tmp_path), steps=6, warmup_steps=1, eval_every=3,
+                      eval_episodes=0)
+    run = train(cfg, demos)
+    assert run["curve"] == []
+    snapshots = sorted(p.name for p in (tmp_path / "checkpoints").glob("eval_step*.pt"))
+    assert snapshots == ["eval_step3.pt", "eval_step6.pt"]
+    last = Policy.from_checkpoint(tmp_path / "checkpoints" / "eval_step6.pt")
+    final = Policy.from_checkpoint(tmp_path / "checkpoints" / "latest.pt")
+    for a, b in zip(last.model.state_dict().values(), final.model.state_dict().values()):
+        assert torch.equal(a, b)
+    with pytest.raises(ValueError, match="needs keep_eval_checkpoints"):
+        load_config("PushT", "quick", eval_every=3, eval_episodes=0, keep_eval_checkpoints=False)
