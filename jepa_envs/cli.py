@@ -256,8 +256,8 @@ def lerobot(args: argparse.Namespace) -> int:
         print(f"LeRobot v3.0 export/import of {result['src']} ({result['codec']}), load {result['load_average']:.2f}; "
               f"HDF5 {result['hdf5_mib']:.1f} MiB, LeRobot folder {result['dataset_mib']:.1f} MiB")
         for name, row in result["phases"].items():
-            print(f"  {name:<10} {row['frames']:>7} frames {row['seconds']:>7.1f} s {row['frames_per_s']:>8.0f} frames/s "
-                  f"peak RSS {row['peak_rss_mib']:>6.0f} MiB")
+            print(f"  {name:<10} {row['frames']:>7} frames {row['seconds']:>7.1f} s "
+                  f"{row['frames_per_s']:>8.0f} frames/s peak RSS {row['peak_rss_mib']:>6.0f} MiB")
         return 0
     t0 = time.perf_counter()
     if args.action == "export":

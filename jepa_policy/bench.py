@@ -405,7 +405,8 @@ def format_rollouts(result: dict) -> str:
     w = result["workers"]
     rates = result["episodes_per_min"]
     return (f"{result['task']} rollouts ({result['episodes']} episodes of <= {result['max_steps']} steps, rounds of "
-            f"{result['num_envs']}, {result['image_size']} px, renderer {result['renderer']}, load {result['load_avg']:.1f} "
+            f"{result['num_envs']}, {result['image_size']} px, renderer {result['renderer']}, "
+            f"load {result['load_avg']:.1f} "
             f"on {result['cores']} cores): 1 worker {rates[1]:.1f} episodes/min, {w} workers {rates[w]:.1f} "
             f"episodes/min, speed-up {result['speedup']:.2f}x; in-process (no workers) {rates[0]:.1f} episodes/min; "
             f"pool start-up {result['startup_s'][w]:.1f} s, once; records identical: {result['identical_records']}")

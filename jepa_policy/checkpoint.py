@@ -185,8 +185,8 @@ def load_encoder_weights(model: BasePolicyModel, path: str | Path,
     wrong = sorted(k for k in set(own) & set(mapped) if tuple(own[k].shape) != tuple(mapped[k].shape))
     if missing or unexpected or wrong:
         raise ValueError(f"{path} does not fit this model's image backbone: {len(missing)} missing (e.g. "
-                         f"{missing[:3]}), {len(unexpected)} unexpected (e.g. {unexpected[:3]}), {len(wrong)} of another "
-                         f"shape (e.g. {wrong[:3]}); check cameras, encoder_width and encoder_key_map")
+                         f"{missing[:3]}), {len(unexpected)} unexpected (e.g. {unexpected[:3]}), {len(wrong)} of "
+                         f"another shape (e.g. {wrong[:3]}); check cameras, encoder_width and encoder_key_map")
     model.load_state_dict(mapped, strict=False)
     return len(mapped), hashlib.sha256(raw).hexdigest()
 

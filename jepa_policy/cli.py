@@ -172,8 +172,9 @@ def _eval_regimes(args, policy, calibration) -> int:
     regimes = ([] if args.faults_only else [None]) + [_fault_spec(x) for x in names]
     labels = ["natural" if f is None else str(f.pop("label", f["name"])) for f in regimes]
     if len(set(labels)) < len(labels):
-        raise ValueError(f"two regimes would share the records' label {sorted(x for x in labels if labels.count(x) > 1)}"
-                         "; name one with label=..., e.g. background_tint:tint=[-2,0,2],label=tint_faint")
+        shared = sorted(x for x in labels if labels.count(x) > 1)
+        raise ValueError(f"two regimes would share the records' label {shared}; name one with label=..., e.g. "
+                         "background_tint:tint=[-2,0,2],label=tint_faint")
     import gymnasium as gym
 
     from jepa_policy.evaluate import pool_env
@@ -572,8 +573,8 @@ def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
     p.add_argument("--task-id", help="the monitor's task name (default: the checkpoint's task)")
     p.add_argument("--robot", help="the monitor key's robot name")
     p.add_argument("--monitor-scores", default="all",
-                   help="named scores to send: all (default: every finite one the policy computes), none, or a comma list, "
-                        "e.g. stac,rnd (the task must register them: jepa-monitor tasks add TASK --signals ...)")
+                   help="named scores to send: all (default: every finite one the policy computes), none, or a comma "
+                        "list, e.g. stac,rnd (the task must register them: jepa-monitor tasks add TASK --signals ...)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar on stderr (for logs)")
     p.set_defaults(func=cmd_robot)
 

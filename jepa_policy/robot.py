@@ -220,8 +220,8 @@ def run_checkpoint_on_bridge(checkpoint: str | Path, address: str, episodes: int
             return run_episodes(env, policy, episodes, seed, manifest, before_episode=before, progress=progress)
         client = MonitorClient(monitor_url, monitor_key, robot=robot)
         try:
-            reporter = MonitorReporter(client, task_id or policy.spec.name, f"{checkpoint.name}@{policy.checkpoint_step}",
-                                       monitor_scores)
+            reporter = MonitorReporter(client, task_id or policy.spec.name,
+                                       f"{checkpoint.name}@{policy.checkpoint_step}", monitor_scores)
             summary = run_episodes(env, policy, episodes, seed, manifest, before_episode=before, monitor=reporter,
                                    progress=progress)
         finally:

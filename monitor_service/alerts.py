@@ -70,7 +70,8 @@ def _claim_due(make_session: sessionmaker, lease_s: float) -> list[tuple[int, st
     claimed = []
     with make_session() as session:
         due = session.scalars(
-            select(WebhookDelivery).where(WebhookDelivery.status == "pending", WebhookDelivery.next_attempt_at <= now).limit(50)
+            select(WebhookDelivery)
+            .where(WebhookDelivery.status == "pending", WebhookDelivery.next_attempt_at <= now).limit(50)
         ).all()
         for delivery in due:
             won = session.execute(
@@ -88,7 +89,8 @@ def _claim_due(make_session: sessionmaker, lease_s: float) -> list[tuple[int, st
     return claimed
 
 
-def _record_attempt(make_session: sessionmaker, delivery_id: int, error: str, max_attempts: int, backoff_s: float) -> None:
+def _record_attempt(make_session: sessionmaker, delivery_id: int, error: str, max_attempts: int,
+                    backoff_s: float) -> None:
     with make_session() as session:
         delivery = session.get(WebhookDelivery, delivery_id)
         delivery.attempts += 1

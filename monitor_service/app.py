@@ -160,7 +160,8 @@ def create_app(settings: MonitorSettings | None = None) -> FastAPI:
     @contextlib.asynccontextmanager
     async def lifespan(app: FastAPI):
         # Only a service with webhooks configured polls for deliveries.
-        task = asyncio.create_task(webhook_loop(make_session, settings, app.state.stop)) if settings.webhook_urls else None
+        task = (asyncio.create_task(webhook_loop(make_session, settings, app.state.stop)) if settings.webhook_urls
+                else None)
         try:
             yield
         finally:

@@ -36,7 +36,8 @@ def new_key() -> str:
     return "jm_" + secrets.token_urlsafe(32)
 
 
-def create_key(session: Session, name: str, role: str, robot: str | None = None, key: str | None = None) -> tuple[ApiKey, str]:
+def create_key(session: Session, name: str, role: str, robot: str | None = None,
+               key: str | None = None) -> tuple[ApiKey, str]:
     """Insert a key (random unless given) and return the row and the secret."""
     if role not in ROLE_RANK:
         raise ValueError(f"role {role!r} is unknown; use one of {sorted(ROLE_RANK)}")

@@ -72,7 +72,8 @@ class Bodies:
         if kind == "decision":
             return (f'{{"kind":"decision","task":"bench","episode":"{ep}","step":{step},"horizon":{HORIZON},'
                     f'"z_hat":{self.json_latents[j]}}}')
-        return f'{{"kind":"target","episode":"{ep}","step":{step + HORIZON},"z":{self.json_latents[(j + 1) % LATENTS]}}}'
+        z = self.json_latents[(j + 1) % LATENTS]
+        return f'{{"kind":"target","episode":"{ep}","step":{step + HORIZON},"z":{z}}}'
 
     def next(self) -> tuple[str, bytes, int]:
         """(path, body, decisions in it): one record per request, or a batch of decisions and their targets."""

@@ -111,8 +111,9 @@ def _draws(episodes: list[cmp.Episode], prefix: int,
         for seed, draws in sorted(seeds.items()):
             regimes = [d.regime for d in draws]
             if len(set(regimes)) < len(regimes):
-                raise ValueError(f"{group} seed {seed}: two records of regime {sorted(r for r in regimes if regimes.count(r) > 1)[0]!r}; "
-                                 "give each draw its own label, e.g. sensor_noise:onset=80,draw=2,label=draw2")
+                twice = sorted(r for r in regimes if regimes.count(r) > 1)[0]
+                raise ValueError(f"{group} seed {seed}: two records of regime {twice!r}; give each draw its own "
+                                 "label, e.g. sensor_noise:onset=80,draw=2,label=draw2")
             reach = {d.n_decisions >= prefix for d in draws}
             if len(reach) > 1:
                 raise ValueError(f"{group} seed {seed}: some draws reach {prefix} decisions and some do not, so their "

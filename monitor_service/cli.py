@@ -187,13 +187,15 @@ def cmd_report(args) -> int:
     with make_session() as session:
         rep = report(session)
         rows = [
-            {"task": r.task, "checkpoint": r.checkpoint, "auroc": r.auroc, "ci": [r.result["auroc_ci_low"], r.result["auroc_ci_high"]],
+            {"task": r.task, "checkpoint": r.checkpoint, "auroc": r.auroc,
+             "ci": [r.result["auroc_ci_low"], r.result["auroc_ci_high"]],
              "pr_auc": r.result["average_precision"], "p": r.result["permutation_p"], "threshold": r.threshold,
              "rule": r.rule, "n_success": r.result["n_success"], "n_failure": r.result["n_failure"]}
             for r in rep["tasks"]
         ]
     if args.json:
-        print(json.dumps({"tasks": rows, "uncalibrated_tasks": rep["uncalibrated_tasks"], "pooled": rep["pooled"]}, indent=2))
+        print(json.dumps({"tasks": rows, "uncalibrated_tasks": rep["uncalibrated_tasks"], "pooled": rep["pooled"]},
+                         indent=2))
         return 0
     print(f"{'task':<20}{'ckpt':<12}{'AUROC':>7}  {'95% CI':<15}{'PR-AUC':>7}{'perm p':>9}{'threshold':>11}  n(s/f)")
     for r in rows:

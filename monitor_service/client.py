@@ -80,8 +80,8 @@ class _Records:
 
         ``z_now``: the current latent E_rgb(o_step), optional; the service then also scores the persistence
         baseline (the paper's control, Sec. 4.10) and the ``nmse_ratio`` signal (NMSE over it). ``scores``:
-        named per-decision risk scores of signals registered for the task ({"stac": 0.12}; finite, non-negative); with scores, z_hat and horizon may be
-        None (a policy without a future head)."""
+        named per-decision risk scores of signals registered for the task ({"stac": 0.12}; finite, non-negative);
+        with scores, z_hat and horizon may be None (a policy without a future head)."""
         rec: dict[str, Any] = {"kind": "decision", "task": task, "episode": episode, "step": int(step),
                                "held_out": bool(held_out)}
         if z_hat is not None:

@@ -11,8 +11,9 @@ Signals. Target-time signals (known at t + k, when their target frame arrives): 
 ``nmse_persistence`` (the control that predicts nothing), ``nmse_white`` (an attempt at a sharper NMSE, per-dim
 whitened), ``nmse_ratio`` (NMSE over the persistence control's NMSE of the same decision: our error per unit of
 the scene's own change, an attempt at a per-step normalisation; ``scoring.nmse_ratio``, the service's own
-definition, so none where the scene did not change). Decision-time signals (known at t): every name in ``scores``, and ``random`` (uniform, seeded by
-the episode's seed and the step: the chance row). Every signal is judged on the same episodes and folds.
+definition, so none where the scene did not change). Decision-time signals (known at t): every name in
+``scores``, and ``random`` (uniform, seeded by the episode's seed and the step: the chance row). Every signal is
+judged on the same episodes and folds.
 
 Two views of each episode: ``whole`` (every decision) and ``prefix`` (the first ``prefix`` decisions of the
 episodes still running after them: every episode of this view has the same number of decisions, so a score
@@ -549,9 +550,10 @@ def summary_text(result: dict) -> str:
         lines.append(f"\n{group}: {counts}")
         for view, v in g["views"].items():
             nat = v["ranking"]["natural"]
-            lines.append(f"  {view} ({v['episodes']} episodes{', ' + str(v['decisions']) + ' decisions' if v['decisions'] else ''})"
-                         " natural-failure AUROC: " + ", ".join(f"{k} {_auc(r)}" for k, r in
-                                                                 sorted(nat.items(), key=lambda kv: -(kv[1]['auroc'] or 0))))
+            cut = f", {v['decisions']} decisions" if v["decisions"] else ""
+            ranked = sorted(nat.items(), key=lambda kv: -(kv[1]["auroc"] or 0))
+            lines.append(f"  {view} ({v['episodes']} episodes{cut}) natural-failure AUROC: "
+                         + ", ".join(f"{k} {_auc(r)}" for k, r in ranked))
             for rule in v["detection"]:
                 for row in best_rows({"groups": {group: g}}, view, rule):
                     d = row["best_detection"]

@@ -34,7 +34,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from monitor_service import rules
-from monitor_service.scoring import NMSE, RATIO, SERVICE_SIGNALS   # the service's own signals (re-exported)
+from monitor_service.scoring import NMSE, RATIO, SERVICE_SIGNALS  # noqa: F401  (the service's own signals, re-exported)
 
 COMBINATIONS: tuple[str, ...] = ("single", "fiper", "bonferroni")
 CALIBRATIONS: tuple[str, ...] = ("successes", "labelled")

@@ -1,8 +1,9 @@
 """The framework's floor for ``jepa-monitor bench``: bare FastAPI + SQLite that only inserts what it is sent.
 
-``POST /v1/decisions``, ``/v1/targets`` and ``/v1/batch`` decode the body exactly as the service does (JSON or msgpack), inserts one row per record
-(the latent as bytes) and commits: no auth, no validation, no scoring, no episode state, no alerts. The ratio of
-its throughput to the service's is the cost of everything the monitor does on top of its framework.
+``POST /v1/decisions``, ``/v1/targets`` and ``/v1/batch`` decode the body exactly as the service does (JSON or
+msgpack), inserts one row per record (the latent as bytes) and commits: no auth, no validation, no scoring, no
+episode state, no alerts. The ratio of its throughput to the service's is the cost of everything the monitor does
+on top of its framework.
 
     python -m uvicorn monitor_service.floor:create_app --factory   # JEPA_MONITOR_FLOOR_DB=/tmp/floor.db
 """

@@ -19,7 +19,8 @@ from monitor_service.db import Alert, CalibrationRow, Episode
 NMSE_BUCKETS = (0.01, 0.02, 0.05, 0.1, 0.2, 0.3, 0.5, 0.75, 1.0, 1.5, 2.0, 3.0, 5.0, 10.0, 20.0, 50.0)
 LATENCY_BUCKETS = (0.0005, 0.001, 0.002, 0.005, 0.01, 0.02, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5, 5.0)
 
-NMSE = Histogram("jepa_monitor_nmse", "Per-decision future-consistency NMSE (Sec. 3.6)", ["task", "robot"], buckets=NMSE_BUCKETS)
+NMSE = Histogram("jepa_monitor_nmse", "Per-decision future-consistency NMSE (Sec. 3.6)", ["task", "robot"],
+                 buckets=NMSE_BUCKETS)
 REQUEST_SECONDS = Histogram("jepa_monitor_request_seconds", "HTTP request latency", buckets=LATENCY_BUCKETS)
 DECISIONS = Counter("jepa_monitor_decisions", "Decisions ingested", ["task", "robot"])
 TARGETS = Counter("jepa_monitor_targets", "Realized latents ingested", ["task", "robot"])
@@ -82,8 +83,8 @@ class DatabaseGauges:
         thr = GaugeMetricFamily(
             "jepa_monitor_task_threshold", "Active alarm threshold (+Inf: too few successes)", labels=["task"]
         )
-        open_alerts = GaugeMetricFamily("jepa_monitor_open_alerts", "Alerts raised, neither cleared nor resolved by their "
-                                        "episode's outcome (open or acknowledged)", labels=["task"])
+        open_alerts = GaugeMetricFamily("jepa_monitor_open_alerts", "Alerts raised, neither cleared nor resolved by "
+                                        "their episode's outcome (open or acknowledged)", labels=["task"])
         target = GaugeMetricFamily(
             "jepa_monitor_calibration_false_alert_target",
             "Calibrated bound on the share of successful episodes that raise any alert (alpha)",
@@ -122,14 +123,16 @@ class DatabaseGauges:
                 for signal, data in row.result.get("signals", {}).items():
                     if data.get("rule") is not None:
                         signal_threshold.add_metric([*labels, signal], float(data["rule"]["threshold"]))
-                for signal in (row.result.get("detector") or {}).get("spec", {}).get("signals", ["nmse"] if rule else []):
+                spec = (row.result.get("detector") or {}).get("spec", {})
+                for signal in spec.get("signals", ["nmse"] if rule else []):
                     alerting.add_metric([*labels, signal], 1.0)
                 if self.rule_params is not None:
                     params = (rule or {}).get("params", {})
                     made_for = (params.get("window"), params.get("debounce"), params.get("clear_ratio"))
                     stale.add_metric(labels, float(made_for != self.rule_params or "shape" not in (rule or {})))
             live = Episode.held_out.is_(False)
-            episodes = dict(session.execute(select(Episode.task, func.count()).where(live).group_by(Episode.task)).all())
+            episodes = dict(session.execute(
+                select(Episode.task, func.count()).where(live).group_by(Episode.task)).all())
             alerted = dict(session.execute(
                 select(Episode.task, func.count(distinct(Alert.episode_id))).join(Alert, Alert.episode_id == Episode.id)
                 .where(live).group_by(Episode.task)).all())

@@ -195,8 +195,9 @@ def length_table(check: dict) -> str:
     lines = [f"  {'rule, alpha':<22}{head}"]
     for name, bins in check["rules"].items():
         lines.append(f"  {name:<22}" + "".join(f"{b['rate']:>20.3f}" for b in bins))
-    lines.append(f"  false alerts of fresh successes; {check['draws']} calibrations on {check['calibration_successes']} "
-                 f"successes, {check['fresh_per_draw']} fresh successes each; threshold shape {check['shape']}")
+    lines.append(f"  false alerts of fresh successes; {check['draws']} calibrations on "
+                 f"{check['calibration_successes']} successes, {check['fresh_per_draw']} fresh successes each; "
+                 f"threshold shape {check['shape']}")
     return "\n".join(lines)
 
 

@@ -50,7 +50,8 @@ def frame_error(a: np.ndarray, b: np.ndarray) -> dict:
     diff = np.abs(a.astype(np.float64) - b.astype(np.float64))
     mse = float((diff ** 2).mean())
     return {"max": float(diff.max()), "mean": round(float(diff.mean()), 3),
-            "p99": float(np.percentile(diff, 99)), "psnr_db": None if mse == 0 else round(10 * np.log10(255 ** 2 / mse), 1)}
+            "p99": float(np.percentile(diff, 99)),
+            "psnr_db": None if mse == 0 else round(10 * np.log10(255 ** 2 / mse), 1)}
 
 
 def check_lerobot(py: str, work: Path) -> dict:

@@ -189,8 +189,9 @@ def table_lines(result: dict) -> list[str]:
     def fmt(x):
         return "0" if x == 0 else f"{x:.1e}"
 
-    lines = ["| actions | pymunk | episodes x steps | max abs state diff | episodes within 1e-6 | max abs coverage diff "
-             "| success agreement | n_contacts agree | frames pixel-identical | min PSNR | render() frames identical |",
+    lines = ["| actions | pymunk | episodes x steps | max abs state diff | episodes within 1e-6 "
+             "| max abs coverage diff | success agreement | n_contacts agree | frames pixel-identical | min PSNR "
+             "| render() frames identical |",
              "|---|---|---|---|---|---|---|---|---|---|---|"]
     for name in ("random", "expert", "reset_to_state"):
         for label in ("pymunk7", "pymunk6"):
@@ -296,7 +297,8 @@ def check_lerobot_layout(lerobot_py: str, work: Path) -> dict:
     demos = work / "standard.hdf5"
     write_dataset(demos, episodes, env_args)
     export = work / "export"
-    _run([sys.executable, "-m", "jepa_envs.cli", "lerobot", "export", str(demos), str(export)], "jepa-envs lerobot export")
+    _run([sys.executable, "-m", "jepa_envs.cli", "lerobot", "export", str(demos), str(export)],
+         "jepa-envs lerobot export")
     _run([lerobot_py, str(LEROBOT_PEER), "read", str(export), str(work / "read.npz")], "LeRobot read")
     with np.load(work / "read.npz") as back:
         result["export_read_by_lerobot"] = {
@@ -312,7 +314,8 @@ def check_lerobot_layout(lerobot_py: str, work: Path) -> dict:
 
 def print_lerobot_layout(result: dict) -> None:
     print(f"lerobot/pusht layout written by LeRobot 0.4.4 ({result['layout']}): imported as PushTStandard, actions "
-          f"{'equal' if result['actions_equal'] else 'DIFFER'}, state {'equal' if result['state_equal'] else 'DIFFER'}, "
+          f"{'equal' if result['actions_equal'] else 'DIFFER'}, "
+          f"state {'equal' if result['state_equal'] else 'DIFFER'}, "
           f"frames PSNR {result['frames_psnr_db']} dB (LeRobot's AV1); jepa-policy train --dataset ROOT "
           f"{'trains' if result['train_from_root'] else 'FAILED'}")
     for name, r in result["refusals"].items():
@@ -405,8 +408,9 @@ def write_table(path: Path, result: dict, argv: list[str]) -> None:
         "",
     ]
     if result.get("sizes"):
-        text += ["Other frame sizes (gym-pusht's `visualization_width/height` for `render()`, `observation_width/height` "
-                 "for `pixels`), seed 3, reset and 5 actions, both envs in gym-pusht's venv:", "",
+        text += ["Other frame sizes (gym-pusht's `visualization_width/height` for `render()`, "
+                 "`observation_width/height` for `pixels`), seed 3, reset and 5 actions, both envs in gym-pusht's "
+                 "venv:", "",
                  *sizes_lines(result["sizes"]), ""]
     path.write_text("\n".join(text))
 

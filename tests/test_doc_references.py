@@ -8,8 +8,8 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 DOCS = [ROOT / "README.md", *sorted((ROOT / "docs").rglob("*.md")), *sorted((ROOT / "deploy").rglob("*.md"))]
 SECTION_REF = re.compile(r'(?:see (?:the )?"([^"]+)"|"([^"]+)" (?:below|above))', re.IGNORECASE)
-REPO_PATH = re.compile(r"(?<![/~\w.-])(?:docs|deploy|scripts|tests|jepa_envs|jepa_policy|monitor_service)/[A-Za-z0-9_./-]+"
-                       r"\.(?:md|toml|py|sh|yml|yaml|service|json|txt|ini)\b")
+REPO_PATH = re.compile(r"(?<![/~\w.-])(?:docs|deploy|scripts|tests|jepa_envs|jepa_policy|monitor_service)"
+                       r"/[A-Za-z0-9_./-]+\.(?:md|toml|py|sh|yml|yaml|service|json|txt|ini)\b")
 
 
 def _squash(text: str) -> str:

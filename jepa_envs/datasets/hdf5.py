@@ -11,7 +11,8 @@ Files:
 - LIBERO: ``data/demo_N/obs/{agentview_rgb, eye_in_hand_rgb, joint_states, gripper_states, ee_states}``, with
   ``bddl_file_name``, ``env_args`` and ``problem_info`` in ``data.attrs``. LIBERO stores the raw OpenGL frames
   of both cameras; their rows are flipped (``[::-1]``), exactly what our LIBERO env does to its renders
-  (``jepa_envs.tasks.robosuite_common.upright``: a 180-degree turn would also mirror left and right), ``ee_states`` (position 3 + axis-angle 3) becomes ``robot0_eef_pos`` and ``robot0_eef_quat`` (x, y, z, w)
+  (``jepa_envs.tasks.robosuite_common.upright``: a 180-degree turn would also mirror left and right),
+  ``ee_states`` (position 3 + axis-angle 3) becomes ``robot0_eef_pos`` and ``robot0_eef_quat`` (x, y, z, w)
   and ``gripper_states`` becomes ``robot0_gripper_qpos``.
 
 Actions: files with the task's action dimension are used as they are. Absolute 7-D-per-arm actions

@@ -192,7 +192,8 @@ def _main_module_hidden():
     spawn would otherwise import ``__main__`` again, which fails in a script without an
     ``if __name__ == "__main__":`` guard (and repeats whatever work its top level does)."""
     main = sys.modules.get("__main__")
-    saved = {name: main.__dict__[name] for name in ("__file__", "__spec__") if main is not None and name in main.__dict__}
+    saved = {name: main.__dict__[name] for name in ("__file__", "__spec__")
+             if main is not None and name in main.__dict__}
     try:
         if main is not None:
             main.__dict__.pop("__file__", None)

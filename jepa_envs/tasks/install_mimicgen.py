@@ -93,8 +93,8 @@ def install(mimicgen_dir: str | Path, task_zoo_dir: str | Path | None = None, py
     if existing["mimicgen_path"] and Path(existing["mimicgen_path"]).resolve() != mimicgen:
         where = existing["mimicgen_path"]
         if not (Path(where) / "mimicgen" / "envs" / "robosuite" / "coffee.py").is_file():
-            raise InstallError(f"a package named mimicgen that is not NVlabs' MimicGen is installed ({where}): the PyPI "
-                               f"'mimicgen' is unrelated. Remove it first: {python} -m pip uninstall -y mimicgen")
+            raise InstallError(f"a package named mimicgen that is not NVlabs' MimicGen is installed ({where}): the "
+                               f"PyPI 'mimicgen' is unrelated. Remove it first: {python} -m pip uninstall -y mimicgen")
         log(f"[install-mimicgen] replacing the MimicGen installed from {where}")
     pip = [python, "-m", "pip", "install", "-q", "--disable-pip-version-check"]
     for root in [mimicgen] + ([zoo] if zoo else []):

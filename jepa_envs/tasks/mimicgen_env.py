@@ -27,8 +27,8 @@ KITCHEN_MAX_NUMPY = (2, 4)
 
 INSTALL_MIMICGEN = "git clone https://github.com/NVlabs/mimicgen && jepa-envs install-mimicgen mimicgen"
 INSTALL_WITH_TASK_ZOO = ("git clone https://github.com/NVlabs/mimicgen && git clone "
-                         "https://github.com/ARISE-Initiative/robosuite-task-zoo && jepa-envs install-mimicgen mimicgen "
-                         "--task-zoo robosuite-task-zoo")
+                         "https://github.com/ARISE-Initiative/robosuite-task-zoo && "
+                         "jepa-envs install-mimicgen mimicgen --task-zoo robosuite-task-zoo")
 
 
 class MimicGenNotInstalled(ImportError):
@@ -50,7 +50,8 @@ def require_mimicgen(spec: TaskSpec) -> None:
         try:
             importlib.import_module("robosuite_task_zoo")
         except ImportError as e:
-            raise MimicGenNotInstalled(_message(spec, "robosuite-task-zoo", f"import robosuite_task_zoo failed: {e}")) from e
+            raise MimicGenNotInstalled(_message(spec, "robosuite-task-zoo",
+                                                f"import robosuite_task_zoo failed: {e}")) from e
     if spec.source_task == "Kitchen_D1" and tuple(int(p) for p in np.__version__.split(".")[:2]) >= KITCHEN_MAX_NUMPY:
         raise RuntimeError(f"{spec.env_id}: robosuite-task-zoo's Kitchen crashes with numpy {np.__version__}; "
                            "install numpy<2.4 (pip install 'numpy<2.4')")

@@ -265,7 +265,8 @@ def _expert_episode(seed: int, attempt: int, image_size: int | None, env_options
 
 def generate_demos(num_episodes: int, seed: int = 0, image_size: int | None = None, only_successes: bool = True,
                    max_attempts_factor: int = 2, workers: int = 1, progress: bool = False,
-                   finish_threshold: float | None = None, task: str = "PushT", **env_options) -> tuple[list[dict], dict]:
+                   finish_threshold: float | None = None, task: str = "PushT",
+                   **env_options) -> tuple[list[dict], dict]:
     """``num_episodes`` expert demos of ``task`` (PushT or PushTStandard) on seeds seed, seed+1, ...; returns
     (episodes, env_args).
 
@@ -311,8 +312,8 @@ def generate_demos(num_episodes: int, seed: int = 0, image_size: int | None = No
         else:
             pool = stack.enter_context(ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn")))
             stack.callback(pool.shutdown, cancel_futures=True)
-            results = pool.map(_expert_episode, itertools.repeat(seed), range(max_attempts), itertools.repeat(image_size),
-                               itertools.repeat(env_options))
+            results = pool.map(_expert_episode, itertools.repeat(seed), range(max_attempts),
+                               itertools.repeat(image_size), itertools.repeat(env_options))
         bar = stack.enter_context(tqdm(total=num_episodes, desc="PushT demos", unit="demo", disable=not progress))
         for ep in results:
             attempts += 1

@@ -379,7 +379,8 @@ class PushTStandardEnv(JEPAEnv):
         width = spec.image_size if observation_width is None else int(observation_width)
         height = spec.image_size if observation_height is None else int(observation_height)
         for name, value in (("observation_width", width), ("observation_height", height),
-                            ("visualization_width", visualization_width), ("visualization_height", visualization_height)):
+                            ("visualization_width", visualization_width),
+                            ("visualization_height", visualization_height)):
             if int(value) < 8:
                 raise ValueError(f"{name} must be >= 8 pixels, got {value}")
         if obs_type == "jepa":

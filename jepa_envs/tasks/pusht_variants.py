@@ -56,7 +56,8 @@ def demonstration_mismatches(spec, image_shapes: dict, feature_names, action_ran
         for key, shape in image_shapes.items():
             if list(shape)[:2] != [spec.image_size, spec.image_size]:
                 problems.append(f"{key} is {shape[0]} x {shape[1]}; the standard PushT observes {spec.image_size} x "
-                                f"{spec.image_size} frames (gym-pusht's, as in lerobot/pusht): record them at that size")
+                                f"{spec.image_size} frames (gym-pusht's, as in lerobot/pusht): record them at that "
+                                "size")
     if action_ranges is None or state_ranges is None:
         problems.append("the dataset gives no per-episode min/max of its actions and agent positions (meta/episodes "
                         "stats), so their units cannot be checked; re-download its meta folder")

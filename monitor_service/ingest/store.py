@@ -83,7 +83,8 @@ class IngestStore:
         req.drafts[episode_id] = draft
         return draft
 
-    def apply(self, records: list, principal: Principal, idem: tuple[int, str, str] | None = None) -> tuple[dict, Request]:
+    def apply(self, records: list, principal: Principal,
+              idem: tuple[int, str, str] | None = None) -> tuple[dict, Request]:
         """Apply ``records`` in one transaction and return (result, the committed request's record).
 
         ``idem`` = (api key id, Idempotency-Key, body hash): stored with the result in the same transaction.

@@ -152,7 +152,8 @@ def _record(rec: Any, latents: list[np.ndarray], route_kind: str | None):
         held_out = rec.get("held_out", False)
         if type(held_out) is not bool or (z_now is not None and z_hat is None):
             raise _Unusual
-        return Decision(NAMES.check(rec.get("task")), NAMES.check(rec.get("episode")), _int(rec.get("step"), 0, MAX_STEP),
+        return Decision(NAMES.check(rec.get("task")), NAMES.check(rec.get("episode")),
+                        _int(rec.get("step"), 0, MAX_STEP),
                         None if horizon is None else _int(horizon, 1, MAX_HORIZON),
                         None if z_hat is None else _latent(z_hat, latents), scores,
                         None if z_now is None else _latent(z_now, latents), NAMES.check(rec.get("robot"), True),

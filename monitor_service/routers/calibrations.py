@@ -23,7 +23,8 @@ def calibration_out(r: CalibrationRow) -> CalibrationOut:
 
 
 @router.post("/calibrations", response_model=CalibrationOut, status_code=201, responses=errors(404, 409))
-async def create_calibration(request: Request, body: CalibrateIn, _: Principal = Depends(require("admin"))) -> CalibrationOut:
+async def create_calibration(request: Request, body: CalibrateIn,
+                             _: Principal = Depends(require("admin"))) -> CalibrationOut:
     """Calibrate a task (or one checkpoint of it) from its held-out labelled episodes and make it the active one:
     the alert rule's threshold (at most alpha of successful episodes alert), detection figures, controls."""
     app = request.app
@@ -56,7 +57,8 @@ def list_calibrations(
 
 
 @router.get("/calibrations/{calibration_id}", response_model=CalibrationOut, responses=errors(404))
-def get_calibration(calibration_id: ObjectId, session: Session = Depends(get_read_session), _: Principal = Depends(require("operator"))) -> CalibrationOut:
+def get_calibration(calibration_id: ObjectId, session: Session = Depends(get_read_session),
+                    _: Principal = Depends(require("operator"))) -> CalibrationOut:
     row = session.get(CalibrationRow, calibration_id)
     if row is None:
         raise HTTPException(404, f"calibration {calibration_id} does not exist; list them with GET /v1/calibrations")

@@ -30,7 +30,8 @@ def readyz(request: Request):
     head = head_revision()
     if rev != head:
         return JSONResponse(
-            Health(status="unavailable", detail=f"schema at {rev}, needs {head}: run `jepa-monitor db upgrade`").model_dump(), 503
+            Health(status="unavailable",
+                   detail=f"schema at {rev}, needs {head}: run `jepa-monitor db upgrade`").model_dump(), 503
         )
     return Health(status="ok", detail=f"schema {rev}")
 

@@ -62,7 +62,8 @@ def _handle(request: Request, body: bytes, route: tuple[TypeAdapter, str | None]
                         return _error(409, f"Idempotency-Key {key!r} was used for a different body; use a new key")
                     return JSONResponse(prior[2], prior[1], headers={"Idempotent-Replayed": "true"})
             try:
-                result, req = store.apply(records, principal, None if key is None else (principal.key_id, key, body_hash))
+                idem = None if key is None else (principal.key_id, key, body_hash)
+                result, req = store.apply(records, principal, idem)
             except IngestError as exc:
                 return _error(exc.status, exc.message)
             except StaleState:

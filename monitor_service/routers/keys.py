@@ -18,7 +18,8 @@ def key_out(k: ApiKey) -> dict:
 
 
 @router.post("", response_model=KeyCreated, status_code=201, responses=errors(409))
-def new_key(body: KeyIn, session: Session = Depends(get_session), _: Principal = Depends(require("admin"))) -> KeyCreated:
+def new_key(body: KeyIn, session: Session = Depends(get_session),
+            _: Principal = Depends(require("admin"))) -> KeyCreated:
     """Create a key; the secret is in this response only."""
     try:
         row, secret = create_key(session, body.name, body.role, body.robot)

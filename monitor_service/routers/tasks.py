@@ -34,7 +34,8 @@ def put_task(request: Request, name: Name, body: TaskIn, session: Session = Depe
         session.add(task)
     else:
         if body.latent_dim is not None and task.latent_dim not in (None, body.latent_dim):
-            raise HTTPException(409, f"task {name!r} already uses latent_dim {task.latent_dim}; register a new task name")
+            raise HTTPException(409, f"task {name!r} already uses latent_dim {task.latent_dim}; register a new task "
+                                     "name")
         task.latent_dim = body.latent_dim or task.latent_dim
         task.description = body.description or task.description
         if body.signals:
@@ -45,6 +46,7 @@ def put_task(request: Request, name: Name, body: TaskIn, session: Session = Depe
 
 
 @router.get("", response_model=list[TaskOut])
-def list_tasks(session: Session = Depends(get_read_session), _: Principal = Depends(require("operator"))) -> list[TaskOut]:
+def list_tasks(session: Session = Depends(get_read_session),
+               _: Principal = Depends(require("operator"))) -> list[TaskOut]:
     """All registered tasks."""
     return [_out(t) for t in session.scalars(select(Task).order_by(Task.name))]

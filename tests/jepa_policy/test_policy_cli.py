@@ -105,7 +105,8 @@ def test_train_eval_protocols_from_the_command_line(pusht_demo_file, tmp_path, c
     assert list(json.loads(printed)["regimes"]) == ["sensor_noise", "noisier"]
     assert "eval:" not in err and "[eval] noisier: 2 episodes" in err     # the regime lines stay, the bar goes
     rows = [json.loads(line) for line in (tmp_path / "faults.jsonl").read_text().splitlines()]
-    assert [r["regime"] for r in rows] == ["sensor_noise"] * 2 + ["noisier"] * 2 and [r["seed"] for r in rows] == [3, 4] * 2
+    assert [r["regime"] for r in rows] == ["sensor_noise"] * 2 + ["noisier"] * 2
+    assert [r["seed"] for r in rows] == [3, 4] * 2
     assert main(["eval", "--checkpoint", str(ckpt), "--faults", "sensor_noise;sensor_noise:std=9"]) == 2
     assert "label=" in capsys.readouterr().err
     assert main(["audit", "--checkpoint", str(ckpt), "--dataset", str(pusht_demo_file), "--samples", "64",

@@ -16,7 +16,8 @@ ROOT = Path(__file__).resolve().parents[2]
 OPENPI_PYTHON = ROOT / ".cache" / "interop" / "openpi" / "bin" / "python"
 
 pytestmark = [pytest.mark.timeout(300),
-              pytest.mark.skipif(not OPENPI_PYTHON.exists(), reason="the openpi-client venv is not built (make interop)")]
+              pytest.mark.skipif(not OPENPI_PYTHON.exists(),
+                                 reason="the openpi-client venv is not built (make interop)")]
 
 
 def _interop_openpi():

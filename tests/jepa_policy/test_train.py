@@ -143,8 +143,8 @@ def test_best_of_k_start_continues_the_lowest_loss_candidate_exactly(demos, tmp_
     assert sel["chosen_seed"] == sel["seeds"][int(np.argmin(sel["scores"]))]
     assert json.loads((tmp_path / "best" / "init_selection.json").read_text()) == sel
     # the result is the plain run of the chosen seed, to the bit, with one learning curve from step 1
-    plain = train(load_config("PushT", "quick", out_dir=str(tmp_path / "plain"), **{**opts, "seed": sel["chosen_seed"]}),
-                  demos)
+    plain = train(load_config("PushT", "quick", out_dir=str(tmp_path / "plain"),
+                              **{**opts, "seed": sel["chosen_seed"]}), demos)
     a, b = load_checkpoint(result["checkpoint"]), load_checkpoint(plain["checkpoint"])
     assert a["step"] == 8 and a["init_selection"] == sel and b["init_selection"] is None
     for key in a["ema"]:

@@ -12,8 +12,8 @@ DIM = 16
 
 
 def make_settings(tmp_path, **overrides) -> MonitorSettings:
-    values = dict(database_url=f"sqlite:///{tmp_path / 'monitor.db'}", admin_key=ADMIN, n_bootstrap=500, n_permutation=500,
-                  create_database=True)
+    values = dict(database_url=f"sqlite:///{tmp_path / 'monitor.db'}", admin_key=ADMIN, n_bootstrap=500,
+                  n_permutation=500, create_database=True)
     values.update(overrides)
     return MonitorSettings(**values)
 

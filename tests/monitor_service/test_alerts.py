@@ -83,7 +83,8 @@ def _raise_one_alert(c):
     rng = np.random.default_rng(0)
     for i in range(30):
         fail = i % 3 == 0
-        post_batch(c, robot, episode_records(f"cal{i}", "Square", rng, 0.6 if fail else 0.3, n_steps=5, success=not fail)[0])
+        records, _ = episode_records(f"cal{i}", "Square", rng, 0.6 if fail else 0.3, n_steps=5, success=not fail)
+        post_batch(c, robot, records)
     assert c.post("/v1/calibrations", json={"task": "Square"}, headers={"X-API-Key": ADMIN}).status_code == 201
     r = post_batch(c, robot, episode_records("bad", "Square", rng, 2.0, n_steps=8, held_out=False)[0])
     assert len(r.json()["alerts_raised"]) == 1

@@ -58,9 +58,11 @@ def test_target_before_decision_and_missing_target_rules(client, robot, operator
     rng = np.random.default_rng(1)
     z = rng.normal(size=DIM).tolist()
     first = {"kind": "decision", "task": "Square", "episode": "e", "step": 0, "horizon": 3, "z_hat": z}
-    assert post_batch(client, robot, [first, {"kind": "target", "episode": "e", "step": 3, "z": z}]).json()["scored"] == 1
+    target = {"kind": "target", "episode": "e", "step": 3, "z": z}
+    assert post_batch(client, robot, [first, target]).json()["scored"] == 1
     # Decisions 1..5: targets for 1, 2, 4, 5 but not 3 -> the early score needs all first five: none.
-    recs = [{"kind": "decision", "task": "Square", "episode": "e", "step": t, "horizon": 3, "z_hat": z} for t in range(1, 6)]
+    recs = [{"kind": "decision", "task": "Square", "episode": "e", "step": t, "horizon": 3, "z_hat": z}
+            for t in range(1, 6)]
     recs += [{"kind": "target", "episode": "e", "step": t + 3, "z": z} for t in (1, 2, 4, 5)]
     assert post_batch(client, robot, recs).status_code == 200
     assert client.get("/v1/episodes/e", headers=operator).json()["early_score"] is None
@@ -91,7 +93,8 @@ def test_binary_and_json_encodings_store_identical_values(client, robot, operato
 def test_single_endpoints(client, robot):
     register_task(client, "Square")
     z = [0.5] * DIM
-    assert client.post("/v1/decisions", json={"task": "Square", "episode": "s", "step": 0, "horizon": 1, "z_hat": z}, headers=robot).status_code == 200
+    decision = {"task": "Square", "episode": "s", "step": 0, "horizon": 1, "z_hat": z}
+    assert client.post("/v1/decisions", json=decision, headers=robot).status_code == 200
     assert client.post("/v1/targets", json={"episode": "s", "step": 1, "z": z}, headers=robot).json()["scored"] == 1
     assert client.post("/v1/outcomes", json={"episode": "s", "success": True}, headers=robot).json()["outcomes"] == 1
 
@@ -136,11 +139,13 @@ def test_auth_roles_and_refusals(client, robot, operator, admin):
     keys = client.get("/v1/keys", headers=admin).json()
     arm2_id = next(k["id"] for k in keys if k["name"] == "arm2-key")
     token = arm2["X-API-Key"]
-    assert client.post("/v1/outcomes", json={"episode": "a", "success": True}, headers={"Authorization": f"Bearer {token}"}).status_code == 200
+    assert client.post("/v1/outcomes", json={"episode": "a", "success": True},
+                       headers={"Authorization": f"Bearer {token}"}).status_code == 200
     assert client.delete(f"/v1/keys/{arm2_id}", headers=admin).status_code == 200
     r = client.delete("/v1/keys/999", headers=admin)
     assert r.status_code == 404 and r.json()["detail"] == "API key id 999 does not exist; list keys with GET /v1/keys"
-    assert client.post("/v1/targets", json={"episode": "a", "step": 1, "z": [1.0] * DIM}, headers=arm2).status_code == 401
+    assert client.post("/v1/targets", json={"episode": "a", "step": 1, "z": [1.0] * DIM},
+                       headers=arm2).status_code == 401
     r = client.post("/v1/keys", json={"name": "r", "role": "robot"}, headers=admin)
     assert r.status_code == 422 and "body.robot.robot: Field required" in r.json()["detail"]
     r = client.post("/v1/keys", json={"name": "o", "role": "operator", "robot": "arm1"}, headers=admin)
@@ -168,9 +173,11 @@ def test_only_robot_keys_ingest(client, robot, operator, admin):
     ("GET", f"/v1/calibrations/{2**31}", None, "calibration_id"),
     ("POST", f"/v1/alerts/{2**64}/ack", None, "alert_id"),
     ("DELETE", f"/v1/keys/{10**30}", None, "key_id"),
-    ("POST", "/v1/decisions", b'{"task":"Square","episode":"b","step":9223372036854775808,"horizon":1,"z_hat":[1]}', "step"),
+    ("POST", "/v1/decisions", b'{"task":"Square","episode":"b","step":9223372036854775808,"horizon":1,'
+                              b'"z_hat":[1]}', "step"),
     ("POST", "/v1/decisions", b'{"task":"Square","episode":"b","step":0,"horizon":99999999999,"z_hat":[1]}', "horizon"),
-    ("POST", "/v1/decisions", b'{"task":"Square","episode":"b","step":0,"horizon":1,"z_hat":[1,' + b"9" * 400 + b']}', "index 1"),
+    ("POST", "/v1/decisions", b'{"task":"Square","episode":"b","step":0,"horizon":1,"z_hat":[1,' + b"9" * 400 + b']}',
+     "index 1"),
     ("POST", "/v1/batch", b"[" * 100_000 + b"]" * 100_000, "nested too deeply"),
     ("POST", "/v1/calibrations", b'{"task":"Square","seed":-1}', "seed"),
     ("POST", "/v1/calibrations", b'{"task":"Square","alpha":1e-300}', "alpha"),
@@ -192,8 +199,10 @@ def test_out_of_range_input_is_a_4xx_naming_the_field(client, robot, admin, meth
     [
         (b'{"task":"Square","episode":"b","step":0,"horizon":1,"z_hat":[NaN,0,0]}', 422, "NaN or inf at index 0"),
         (b'{"task":"Square","episode":"b","step":0,"horizon":1,"z_hat":[Infinity]}', 422, "NaN or inf"),
-        (b'{"task":"Square","episode":"b","step":0,"horizon":1,"z_hat":[1,2,3]}', 422, "3 dimensions but task 'Square' uses latents of 16"),
-        (b'{"task":"Square","episode":"b","step":0,"horizon":1,"z_hat":[[1,2],[3,4]]}', 422, "latent must be a list of numbers"),
+        (b'{"task":"Square","episode":"b","step":0,"horizon":1,"z_hat":[1,2,3]}', 422,
+         "3 dimensions but task 'Square' uses latents of 16"),
+        (b'{"task":"Square","episode":"b","step":0,"horizon":1,"z_hat":[[1,2],[3,4]]}', 422,
+         "latent must be a list of numbers"),
         (b'{"task":"Square","episode":"b","step":0,"horizon":1,"z_hat":[]}', 422, "non-empty"),
         (b'{"task":"Cube","episode":"b","step":0,"horizon":1,"z_hat":[1]}', 404, "task 'Cube' is not registered"),
         (b'{"task":"Square","episode":"b","step":-1,"horizon":1,"z_hat":[1]}', 422, "step"),
@@ -233,7 +242,8 @@ def test_bad_batch_rolls_back_everything_and_names_the_record(client, robot, ope
     assert "has ended" in post_batch(client, robot, [dec]).json()["detail"]
     bad_bin = client.post("/v1/batch", content=b"\xc1\xc1", headers={**robot, "Content-Type": MSGPACK_CONTENT_TYPE})
     assert bad_bin.status_code == 400 and "malformed msgpack" in bad_bin.json()["detail"]
-    short = pack({"records": [{"kind": "target", "episode": "g", "step": 3, "z": {"dtype": "<f4", "shape": [16], "data": b"\0" * 8}}]})
+    cut = {"dtype": "<f4", "shape": [16], "data": b"\0" * 8}
+    short = pack({"records": [{"kind": "target", "episode": "g", "step": 3, "z": cut}]})
     r = client.post("/v1/batch", content=short, headers={**robot, "Content-Type": MSGPACK_CONTENT_TYPE})
     assert r.status_code == 400 and "needs 64" in r.json()["detail"]
     r = client.post("/v1/batch", content=b"x", headers={**robot, "Content-Type": "text/plain"})
@@ -250,13 +260,15 @@ def test_oversized_payload_gets_413(tmp_path):
         assert r.status_code == 413 and "2048-byte limit" in r.json()["detail"]
         # Chunked upload without Content-Length is cut off while streaming.
         body = json.dumps(big).encode()
-        r = c.post("/v1/decisions", content=iter([body[:1000], body[1000:]]), headers={**robot, "Content-Type": "application/json"})
+        r = c.post("/v1/decisions", content=iter([body[:1000], body[1000:]]),
+                   headers={**robot, "Content-Type": "application/json"})
         assert r.status_code == 413
         with c.app.state.sessionmaker() as s:
             assert s.scalar(select(func.count()).select_from(Episode)) == 0
 
 
-def _ingest_calibration_set(client, robot, task, rng, n_success, n_failure, s_noise, f_noise, groups=("seed0", "seed1")):
+def _ingest_calibration_set(client, robot, task, rng, n_success, n_failure, s_noise, f_noise,
+                            groups=("seed0", "seed1")):
     for i in range(n_success + n_failure):
         fail = i >= n_success
         recs, _ = episode_records(f"{task}-{i}", task, rng, f_noise if fail else s_noise, n_steps=6,
@@ -339,7 +351,8 @@ def test_alert_hysteresis_clears_and_does_not_flap(client, robot, operator, admi
         direction = rng.normal(size=DIM)
         direction /= np.linalg.norm(direction)
         z_hat = z + direction * rms * np.sqrt(nmse_target * DIM)
-        return [{"kind": "decision", "task": "Square", "episode": "hyst", "step": step, "horizon": 1, "z_hat": z_hat.tolist(), "held_out": False},
+        return [{"kind": "decision", "task": "Square", "episode": "hyst", "step": step, "horizon": 1,
+                 "z_hat": z_hat.tolist(), "held_out": False},
                 {"kind": "target", "episode": "hyst", "step": step + 1, "z": z.tolist()}]
 
     # Scores well above, then wobbling just below the threshold (inside the band), then clearly low.
@@ -431,7 +444,8 @@ def test_sse_stream_delivers_new_alerts(tmp_path):
         op = new_key(c, "op", "operator")
         post_batch(c, robot, episode_records("e", "Square", np.random.default_rng(0), 0.3, n_steps=1)[0])
         with c.app.state.sessionmaker() as s:
-            s.add(Alert(episode_id="e", task="Square", robot="arm1", step=0, score=2.0, threshold=1.0, calibration_id=1, note=""))
+            s.add(Alert(episode_id="e", task="Square", robot="arm1", step=0, score=2.0, threshold=1.0,
+                        calibration_id=1, note=""))
             s.commit()
         with c.stream("GET", "/v1/alerts/stream", headers={**op, "Last-Event-ID": "0"}) as r:
             assert r.headers["content-type"].startswith("text/event-stream")

@@ -89,7 +89,8 @@ def test_the_prefix_view_reads_only_the_first_decisions_of_the_episodes_that_rea
     rows.append(record(500, True, 6))   # too short for the prefix view
     g = run(rows, prefix=10)["groups"]["jepa:jepa.pt"]
     prefix, whole = g["views"]["prefix"], g["views"]["whole"]
-    assert (prefix["episodes"], prefix["decisions"]) == (90, 10) and (whole["episodes"], whole["decisions"]) == (91, None)
+    assert (prefix["episodes"], prefix["decisions"]) == (90, 10)
+    assert (whole["episodes"], whole["decisions"]) == (91, None)
     assert prefix["ranking"]["natural"]["stac"]["auroc"] == 0.5     # every prefix ties
     assert whole["ranking"]["natural"]["stac"]["auroc"] == 1.0
     # the length-controlled cut also holds for detection: no prefix alert can come after decision 10
@@ -135,7 +136,7 @@ def test_cross_fitting_never_calibrates_on_the_fold_it_judges_nor_on_a_faulted_e
     calls = []
     real = detectors.study_judgements
 
-    def spy(calibration, test, alpha, specs, seed=0):   # records who calibrates and who is judged, then runs the real one
+    def spy(calibration, test, alpha, specs, seed=0):   # who calibrates and who is judged, then the real one
         calls.append(([e.episode for e in calibration], [e.episode for e in test]))
         return real(calibration, test, alpha, specs, seed)
 

@@ -28,14 +28,16 @@ def test_dashboard_shows_risk_roc_and_acknowledges(tmp_path):
         A = {"X-API-Key": ADMIN}
         http = httpx.Client(base_url=server.url, timeout=60)
         http.put("/v1/tasks/Square", json={"latent_dim": DIM}, headers=A).raise_for_status()
-        robot = {"X-API-Key": http.post("/v1/keys", json={"name": "r", "role": "robot", "robot": "arm1"}, headers=A).json()["key"]}
+        robot = {"X-API-Key": http.post("/v1/keys", json={"name": "r", "role": "robot", "robot": "arm1"},
+                                        headers=A).json()["key"]}
         op_key = http.post("/v1/keys", json={"name": "alice", "role": "operator"}, headers=A).json()["key"]
         rng = np.random.default_rng(0)
         for i in range(30):
             fail = i % 3 == 0
             recs, _ = episode_records(f"cal{i}", "Square", rng, 0.6 if fail else 0.3, n_steps=5, success=not fail)
             http.post("/v1/batch", json={"records": recs}, headers=robot).raise_for_status()
-        http.post("/v1/calibrations", json={"task": "Square", "n_bootstrap": 200, "n_permutation": 200}, headers=A).raise_for_status()
+        http.post("/v1/calibrations", json={"task": "Square", "n_bootstrap": 200, "n_permutation": 200},
+                  headers=A).raise_for_status()
         recs, _ = episode_records("live-bad", "Square", rng, 2.0, n_steps=8, held_out=False)
         alert_id = http.post("/v1/batch", json={"records": recs}, headers=robot).json()["alerts_raised"][0]
         # an episode that alerted and then failed: its alert is resolved by the outcome, nothing to acknowledge

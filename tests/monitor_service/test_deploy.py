@@ -27,8 +27,11 @@ def _served_metric_names(tmp_path) -> set[str]:
         robot = new_key(c, "r", "robot", "arm1")
         rng = np.random.default_rng(0)
         for i in range(12):
-            post_batch(c, robot, episode_records(f"e{i}", "Square", rng, 0.6 if i % 3 == 0 else 0.3, n_steps=5, success=i % 3 != 0)[0])
-        c.post("/v1/calibrations", json={"task": "Square", "alpha": 0.2}, headers={"X-API-Key": ADMIN}).raise_for_status()
+            fail = i % 3 == 0
+            post_batch(c, robot, episode_records(f"e{i}", "Square", rng, 0.6 if fail else 0.3, n_steps=5,
+                                                 success=not fail)[0])
+        c.post("/v1/calibrations", json={"task": "Square", "alpha": 0.2},
+               headers={"X-API-Key": ADMIN}).raise_for_status()
         text = c.get("/metrics", headers={"X-API-Key": ADMIN}).text
     names = {line.split("{")[0].split(" ")[0] for line in text.splitlines() if line and not line.startswith("#")}
     # Families without samples yet (no alert raised in this run) are still declared by their TYPE line.
@@ -81,7 +84,8 @@ def test_grafana_and_alert_rules_use_only_served_metrics(tmp_path):
     assert len({p["id"] for p in dash["panels"]}) == len(dash["panels"])
     ds = _load("grafana/provisioning/datasources/prometheus.yml")["datasources"][0]
     assert all(p["datasource"]["uid"] == ds["uid"] for p in dash["panels"])
-    assert _load("grafana/provisioning/dashboards/dashboards.yml")["providers"][0]["options"]["path"] == "/var/lib/grafana/dashboards"
+    provider = _load("grafana/provisioning/dashboards/dashboards.yml")["providers"][0]
+    assert provider["options"]["path"] == "/var/lib/grafana/dashboards"
 
 
 def _image_requirements() -> list[str]:

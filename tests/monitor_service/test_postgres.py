@@ -19,7 +19,8 @@ from monitor_service.server import free_port, start_server
 
 PG_BIN = "/usr/lib/postgresql/15/bin"
 pytestmark = pytest.mark.skipif(
-    not os.path.exists(f"{PG_BIN}/initdb"), reason="PostgreSQL server binaries are not installed (apt-get install postgresql)"
+    not os.path.exists(f"{PG_BIN}/initdb"),
+    reason="PostgreSQL server binaries are not installed (apt-get install postgresql)"
 )
 
 
@@ -34,13 +35,16 @@ def pg_url():
         shutil.chown(root, "postgres")
     port = free_port()
     data, log = root / "data", root / "log"
-    subprocess.run(prefix + [f"{PG_BIN}/initdb", "-D", str(data), "-A", "trust", "-U", "postgres"], check=True, capture_output=True)
+    subprocess.run(prefix + [f"{PG_BIN}/initdb", "-D", str(data), "-A", "trust", "-U", "postgres"], check=True,
+                   capture_output=True)
     opts = f"-p {port} -k {root} -c listen_addresses=127.0.0.1 -c fsync=off"
-    subprocess.run(prefix + [f"{PG_BIN}/pg_ctl", "-D", str(data), "-o", opts, "-l", str(log), "-w", "start"], check=True, capture_output=True)
+    subprocess.run(prefix + [f"{PG_BIN}/pg_ctl", "-D", str(data), "-o", opts, "-l", str(log), "-w", "start"],
+                   check=True, capture_output=True)
     try:
         yield f"postgresql+psycopg2://postgres@127.0.0.1:{port}/postgres"
     finally:
-        subprocess.run(prefix + [f"{PG_BIN}/pg_ctl", "-D", str(data), "-m", "immediate", "-w", "stop"], capture_output=True)
+        subprocess.run(prefix + [f"{PG_BIN}/pg_ctl", "-D", str(data), "-m", "immediate", "-w", "stop"],
+                       capture_output=True)
         shutil.rmtree(root, ignore_errors=True)
 
 
@@ -62,14 +66,16 @@ def test_service_on_postgres_concurrent_idempotent_calibrated_and_restarted(pg_u
     try:
         http = httpx.Client(base_url=server.url, timeout=60)
         http.put("/v1/tasks/PgTask", json={"latent_dim": DIM}, headers=A).raise_for_status()
-        robot = {"X-API-Key": http.post("/v1/keys", json={"name": "pg-arm", "role": "robot", "robot": "pg-arm"}, headers=A).json()["key"]}
+        robot = {"X-API-Key": http.post("/v1/keys", json={"name": "pg-arm", "role": "robot", "robot": "pg-arm"},
+                                        headers=A).json()["key"]}
 
         def writer(w):
             rng = np.random.default_rng(w)
             with httpx.Client(base_url=server.url, timeout=60) as h:
                 for i in range(8):
                     fail = (w + i) % 3 == 0
-                    recs, _ = episode_records(f"pg{w}-{i}", "PgTask", rng, 0.6 if fail else 0.3, n_steps=5, success=not fail)
+                    recs, _ = episode_records(f"pg{w}-{i}", "PgTask", rng, 0.6 if fail else 0.3, n_steps=5,
+                                              success=not fail)
                     key = {"Idempotency-Key": f"pg{w}-{i}"}
                     for _ in range(2):  # every request sent twice, as a client retrying after a timeout would
                         r = h.post("/v1/batch", json={"records": recs}, headers={**robot, **key})

@@ -115,7 +115,8 @@ def test_console_blocks_name_real_files_and_commands():
                 continue
             assert name in compose["services"], name
     token_step = console.index("secrets/prometheus_token")
-    assert console.index("up -d --build db monitor") < token_step < console.rindex("--env-file deploy/monitor/.env up -d")
+    started = console.rindex("--env-file deploy/monitor/.env up -d")
+    assert console.index("up -d --build db monitor") < token_step < started
     assert "deploy/monitor/.env" in (ROOT / ".gitignore").read_text()
     assert "chown monitor:monitor /data" in (DEPLOY / "Dockerfile").read_text()
 

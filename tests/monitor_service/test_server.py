@@ -22,7 +22,8 @@ A = {"X-API-Key": ADMIN}
 def _setup(url):
     http = httpx.Client(base_url=url, timeout=30)
     assert http.put("/v1/tasks/Square", json={"latent_dim": DIM}, headers=A).status_code == 200
-    robot = {"X-API-Key": http.post("/v1/keys", json={"name": "arm1", "role": "robot", "robot": "arm1"}, headers=A).json()["key"]}
+    robot = {"X-API-Key": http.post("/v1/keys", json={"name": "arm1", "role": "robot", "robot": "arm1"},
+                                    headers=A).json()["key"]}
     op = {"X-API-Key": http.post("/v1/keys", json={"name": "op", "role": "operator"}, headers=A).json()["key"]}
     return http, robot, op
 
@@ -170,7 +171,8 @@ def test_concurrent_writers_two_workers_and_metrics_aggregate(db_url, tmp_path):
         # Scrape several times: whichever worker answers, counters cover both workers' requests.
         for _ in range(4):
             text = http.get("/metrics", headers=op).text
-            total = float(re.search(r'jepa_monitor_decisions_total\{robot="arm1",task="Square"\} ([0-9.e+]+)', text).group(1))
+            total = float(re.search(r'jepa_monitor_decisions_total\{robot="arm1",task="Square"\} ([0-9.e+]+)',
+                                    text).group(1))
             assert total == 4 * 6 * 5 + 6
         http.close()
 

@@ -28,7 +28,8 @@ def test_average_precision_matches_sklearn(data):
     scores, labels = data
     assert stats.average_precision(scores, labels) == pytest.approx(average_precision_score(labels, scores), abs=1e-12)
     no_ties = scores + np.random.default_rng(0).normal(scale=1e-6, size=scores.size)
-    assert stats.average_precision(no_ties, labels) == pytest.approx(average_precision_score(labels, no_ties), abs=1e-12)
+    assert stats.average_precision(no_ties, labels) == pytest.approx(average_precision_score(labels, no_ties),
+                                                                     abs=1e-12)
 
 
 def test_roc_points_match_sklearn(data):

@@ -52,7 +52,8 @@ def test_cli_offline_calibrate_report_keys_tasks(tmp_path, capsys):
         rng = np.random.default_rng(5)
         for i in range(30):
             fail = i % 3 == 0
-            post_batch(c, robot, episode_records(f"e{i}", "Square", rng, 0.6 if fail else 0.3, n_steps=5, success=not fail)[0], key=f"k{i}")
+            records, _ = episode_records(f"e{i}", "Square", rng, 0.6 if fail else 0.3, n_steps=5, success=not fail)
+            post_batch(c, robot, records, key=f"k{i}")
     assert main(url + ["calibrate", "--task", "Square", "--n-bootstrap", "300", "--n-permutation", "300"]) == 0
     out = capsys.readouterr().out
     assert "AUROC" in out and "n_success=20, n_failure=10" in out and "alert rule band (window 5, debounce 2)" in out

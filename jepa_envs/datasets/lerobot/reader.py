@@ -63,7 +63,8 @@ def open_lerobot(root: str | Path) -> LeRobotDataset:
     except FileNotFoundError:
         raise LeRobotError(f"{root / TASKS_PATH} is missing; download the dataset's meta folder whole") from None
     except Exception as exc:
-        raise LeRobotError(f"{TASKS_PATH} is not a readable parquet file ({short_error(exc)}); re-download it") from None
+        raise LeRobotError(f"{TASKS_PATH} is not a readable parquet file ({short_error(exc)}); "
+                           "re-download it") from None
     tasks = _task_strings(tasks_table)
     episodes = []
     files = sorted((root / "meta" / "episodes").glob("chunk-*/file-*.parquet"))
@@ -182,7 +183,8 @@ class _RowStream:
                 pfile = pq.ParquetFile(str(path))
                 yield from pfile.iter_batches(batch_size=4096)
             except Exception as exc:
-                raise LeRobotError(f"{rel} is not a readable parquet file ({short_error(exc)}); re-download it") from None
+                raise LeRobotError(f"{rel} is not a readable parquet file ({short_error(exc)}); "
+                                   "re-download it") from None
 
     def take(self, episode: int, n: int) -> dict[str, list]:
         while not self.buffer or len(self.buffer["episode_index"]) < n:

@@ -40,7 +40,8 @@ class RunningStats:
             delta = mean - self.mean
             self.mean = self.mean + delta * n / total
             self.m2 = self.m2 + m2 + delta ** 2 * self.count * n / total
-            self.min, self.max = np.minimum(self.min, _flat(episode["min"])), np.maximum(self.max, _flat(episode["max"]))
+            self.min = np.minimum(self.min, _flat(episode["min"]))
+            self.max = np.maximum(self.max, _flat(episode["max"]))
         self.count += n
         episode.pop("m2")
         return episode

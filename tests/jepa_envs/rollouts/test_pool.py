@@ -85,7 +85,8 @@ def test_a_hung_worker_is_found_in_the_limit_derived_from_the_task_not_300_s(mon
         pool.step(np.zeros((2, 2), np.float32))
         pool.inject(0, "hang", 60.0)
         started = time.monotonic()
-        with pytest.raises(WorkerFailure, match=r"no answer within .*hung; 30 x its 2 env\(s\) x .*JEPA_POOL_TIMEOUT_S"):
+        with pytest.raises(WorkerFailure,
+                           match=r"no answer within .*hung; 30 x its 2 env\(s\) x .*JEPA_POOL_TIMEOUT_S"):
             pool.step(np.zeros((2, 2), np.float32))
         waited = time.monotonic() - started
         assert limit * 0.9 <= waited < limit + 5, (waited, limit)   # the derived limit, not 300 s
@@ -100,7 +101,8 @@ def test_the_fixed_limit_from_timeout_s_or_the_environment(monkeypatch):
         pool.reset([0])
         pool.inject(0, "hang", 3.0)                      # past the limit, and over soon after (close waits for it)
         started = time.monotonic()
-        with pytest.raises(WorkerFailure, match=r"within 1.5s \(hung; the fixed limit \(timeout_s / JEPA_POOL_TIMEOUT_S"):
+        with pytest.raises(WorkerFailure,
+                           match=r"within 1.5s \(hung; the fixed limit \(timeout_s / JEPA_POOL_TIMEOUT_S"):
             pool.step(np.zeros((1, 2), np.float32))
         assert time.monotonic() - started < 6
     with EnvPool("JEPA/PushT-v0", 1, workers=0, env_kwargs=KW, timeout_s=7) as pool:   # the argument wins

@@ -20,7 +20,8 @@ def test_export_writes_lerobots_v3_layout(exported, pusht_demo_file):
     assert info["codebase_version"] == CODEBASE_VERSION == "v3.0" and info["fps"] == 10
     assert info["total_episodes"] == summary["episodes"] == 4 and info["splits"] == {"train": "0:4"}
     feats = info["features"]
-    assert feats["observation.images.top"]["dtype"] == "video" and feats["observation.images.top"]["shape"] == [84, 84, 3]
+    top = feats["observation.images.top"]
+    assert top["dtype"] == "video" and top["shape"] == [84, 84, 3]
     assert feats["observation.images.top"]["info"]["video.codec"] == "h264"
     assert feats["observation.state"] == {"dtype": "float32", "shape": [2], "names": ["agent_pos[0]", "agent_pos[1]"]}
     assert {"timestamp", "frame_index", "episode_index", "index", "task_index", "action", "next.reward",
