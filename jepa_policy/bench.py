@@ -644,7 +644,7 @@ def bench_serve_hostile(checkpoint: str, body: bytes, seconds: float = 5.0, thre
     return result
 
 
-STRING_LIST_FRAMES = {   # a list of strings or bytes where a low-dim array goes (issue 45: numpy sized them)
+STRING_LIST_FRAMES = {   # a list of strings or bytes where a low-dim array goes (numpy would size them)
     "65,536-char str + 4,000 str": ["x" * 65536] + ["y"] * 4000,
     "4 MB bytes + 4,000 bytes": [b"x" * 4_000_000] + [b"y"] * 4000,
     "8 MB str + 4,000 str": ["x" * (8 * 2**20 - 70_000)] + ["y"] * 4000,
@@ -750,7 +750,7 @@ def bench_serve_peers(checkpoint: str, body: bytes, seconds: float = 5.0, thread
                         ws.recv(timeout=30)
                         frames_sent[0] += 1
                 except (OSError, TimeoutError, websockets.WebSocketException):
-                    pass   # refused (429) or closed: try again at once, as the hostile tester's clients did
+                    pass   # refused (429) or closed: try again at once, as a hostile client does
         junk = [threading.Thread(target=reconnecting) for _ in range(junk_clients)]
         for t in junk:
             t.start()

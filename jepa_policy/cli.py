@@ -470,7 +470,7 @@ def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
                         "default: the paper's)")
     p.add_argument("--scores", action="store_true",
                    help="also time each arm with every failure score the runtime adds (STAC, RND, PCA-kmeans, "
-                        "Mahalanobis, whitened NMSE), interleaved with the same arm without them (issue 38)")
+                        "Mahalanobis, whitened NMSE), interleaved with the same arm without them")
     p.add_argument("--device", default="auto", help="auto | cpu | cuda | cuda:N")
     p.add_argument("--seed", type=int, default=0, help="seed of the random weights and inputs")
     p.add_argument("--json", action="store_true", help="print JSON instead of a table")

@@ -17,7 +17,7 @@ waits k steps for its target and lives in ``evaluate.py``):
     training embeddings, the distance to the nearest of K k-means centres there;
   - ``mahalanobis``: a Gaussian density score, (c - mean)^T Sigma^-1 (c - mean) / d with the Ledoit-Wolf shrunk
     covariance of the training embeddings (about 1 in distribution).
-- ``nmse_white`` (an attempt to sharpen our own signal, issue 38.6; scored when the target arrives): the
+- ``nmse_white`` (an attempt to sharpen our own signal; scored when the target arrives): the
   prediction error whitened per latent dimension by the training set's error scale,
   mean_j ((z_hat_j - z_j) / s_j)^2, with s_j the RMS of z_hat_j - z_j over the training windows.
 
@@ -119,7 +119,7 @@ class EmbeddingDetectors:
         -2 p.C_k, and both RND networks' first layers; then the rest of the two small networks. The same numbers
         as scoring each in turn (float32 rounding aside) in about a third of the numpy calls: right after the
         policy's forward pass each call runs with cold caches, so the count is the cost a decision pays
-        (issue 38: <= 5 %)."""
+        (the goal: at most 5 % of a decision)."""
         c = np.asarray(c, dtype=np.float32)
         if c.ndim != 2 or c.shape[1] != self.mean.size:
             raise ValueError(f"score needs c_t rows of shape (B, {self.mean.size}), got {list(c.shape)}; pass "

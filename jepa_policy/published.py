@@ -1,5 +1,5 @@
 """The standard Push-T's published metrics, computed from our evaluation records and printed beside the published
-figures (issue 40.4).
+figures.
 
 gym-pusht's reward is ``clip(coverage / 0.95, 0, 1)``; LeRobot's evaluation reports the success rate (coverage >
 0.95) and ``avg_max_reward``, the mean over episodes of each episode's maximum reward (the "average max overlap"

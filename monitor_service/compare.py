@@ -1,5 +1,5 @@
 """``jepa-monitor compare``: every failure signal and alert rule on the same episodes, against the published
-runtime monitors' designs (issue 38): our future-consistency NMSE beside STAC, RND, PCA-kmeans, a Gaussian
+runtime monitors' designs: our future-consistency NMSE beside STAC, RND, PCA-kmeans, a Gaussian
 density score, a random chance row, FIPER's both-exceed rule and a Bonferroni p-value fusion.
 
 Input: episode records as ``jepa-policy eval --faults ... --out`` writes them (one JSON object per line, any

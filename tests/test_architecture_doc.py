@@ -1,4 +1,4 @@
-"""docs/architecture.md cannot go stale (issue 37): its folder map lists every package folder and only those,
+"""docs/architecture.md cannot go stale: its folder map lists every package folder and only those,
 its layer lists hold every module of each package exactly once and every import inside a package points down
 them, and every module, class, function or attribute it names in backticks is defined where the page says
 (in a file named beside it, or, where the sentence names no file, somewhere in the project).

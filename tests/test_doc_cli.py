@@ -1,4 +1,4 @@
-"""Docs and CLI stay one truth (issue 36.6): every command line that README.md, docs/*.md and the two runbooks
+"""Docs and CLI stay one truth: every command line that README.md, docs/*.md and the two runbooks
 show is parsed by the real argument parser of its command (parsed only, never run), and every Python snippet
 marked runnable (a fenced block opened with ```python run) runs; every other Python snippet at least compiles.
 

@@ -39,7 +39,7 @@ def test_stats_on_known_spectra():
 
 
 def test_low_rank_boundary_scales_with_the_dimension():
-    """Issue 36.4: with TE32 < 0.05 as the criterion any view of <= 32 dimensions is 'low-rank' (TE32 is 0 there),
+    """With TE32 < 0.05 as the criterion any view of <= 32 dimensions is 'low-rank' (TE32 is 0 there),
     so random 16-d data was flagged. The criterion now counts k = 32 D / 384 leading directions below 384
     dimensions and states itself; full-rank random data passes, low-rank data is caught, at every width."""
     rng = np.random.default_rng(5)

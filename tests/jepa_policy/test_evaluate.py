@@ -53,7 +53,7 @@ def _residuals(record) -> list[float]:
 
 
 def test_residualised_nmse_does_not_depend_on_the_runs_other_episodes():
-    """Issue 36.4: one line over the run gave an episode 0.090 with one companion and -0.611 with another."""
+    """One line fitted over the run gave an episode 0.090 with one companion and -0.611 with another."""
     calibration = synthetic_records(range(300_000, 300_040), seed=1)   # a held-out block of seeds
     episode, companion_a, companion_b = synthetic_records([100_000, 100_001, 100_002], seed=2)
     with_a = [json_copy(episode), json_copy(companion_a)]

@@ -38,7 +38,7 @@ def bernoulli_player(true_rate: dict, repetition: int):
 
 
 def test_the_reported_success_is_unbiased_where_the_confirmation_is_not():
-    """Issue 36.4: the pick's success measured on the episodes that chose it is biased upwards (two candidates of
+    """The pick's success measured on the episodes that chose it is biased upwards (two candidates of
     true success 0.50 reported 0.529 on average). On the untouched report block the successes are Binomial(n, 0.5)
     exactly, overall and within each group the report shows (decided or not)."""
     reps, ladder = 200, (16, 32, 64)

@@ -1,4 +1,4 @@
-"""Deploying jepa-policy serve off loopback (issue 36, item 1): a network bind needs an API key or mutual TLS (TLS
+"""Deploying jepa-policy serve off loopback: a network bind needs an API key or mutual TLS (TLS
 alone let a client with neither key nor certificate drive the robot), and the keys come from the environment or
 a file so that no local user reads them in ``ps``. Real certificates (openssl), real `jepa-policy serve` processes,
 the real monitor service."""

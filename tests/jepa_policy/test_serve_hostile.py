@@ -1,4 +1,4 @@
-"""jepa-policy serve against a hostile peer (issue 36, item 1): every numpy path of the wire checked before
+"""jepa-policy serve against a hostile peer: every numpy path of the wire checked before
 anything is built, bounded frames refused from their header, a connection cap, and an event log that a flood
 cannot flood. Real servers on real sockets; the codec's pure checks at the end."""
 from __future__ import annotations
@@ -244,7 +244,7 @@ def test_the_event_log_rate_limits_each_kind_on_its_own():
 
 
 def test_a_client_whose_requests_are_refused_in_a_row_is_paced_then_closed(serve, events, monkeypatch):
-    """Junk in a loop (the hostile tester's 8 MiB frames) no longer runs at the server's decode speed: from the
+    """Junk in a loop (8 MiB frames of tiny arrays) no longer runs at the server's decode speed: from the
     second refused request on, the connection's next frame waits a pause that doubles, and the 8th refused in a row
     closes it (1008) with a reason naming the fix. Another robot of the same host is not slowed by it."""
     import jepa_policy.serve.server as server_module
@@ -326,7 +326,7 @@ def test_the_rest_of_an_oversized_frame_is_not_read(serve):
     other.close()
 
 
-# ----------------------------------------------------------------------------- issue 45: the policy server's holes
+# ----------------------------------------------------------------------------- low-dim lists, pacing per peer
 
 STRING_LISTS = [   # a list of strings or bytes where a low-dim array goes: numpy sizes it items x longest item
     ["x" * 65536] + ["y"] * 4000,                    # 270 KB on the wire, +1 GB in numpy before

@@ -97,7 +97,7 @@ def test_resume_reproduces_the_uninterrupted_run_exactly(demos, tmp_path):
 
 
 def test_resume_with_more_steps_continues_one_cosine_to_the_new_end(demos, tmp_path, capsys):
-    """Issue 36.4: resuming a finished 6-step run with --steps 12 kept the 6-step cosine: lr 0 at step 6, then back
+    """Resuming a finished 6-step run with --steps 12 kept the 6-step cosine: lr 0 at step 6, then back
     up to the peak at step 12. Now it follows the schedule of a run launched with 12 steps, bit for bit."""
     opts = dict(log_every=1, warmup_steps=2, batch_size=8)
     short = train(load_config("PushT", "quick", out_dir=str(tmp_path / "short"), steps=6, **opts), demos)

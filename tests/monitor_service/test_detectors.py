@@ -1,4 +1,4 @@
-"""Detectors over named signals (issue 38, part 4): the false-alert guarantee of FIPER's rule and of the
+"""Detectors over named signals: the false-alert guarantee of FIPER's rule and of the
 Bonferroni (min-p) fusion on fresh episodes from a known distribution, their semantics against the single-signal
 rules, labelled (Youden) calibration, and the offline study's API."""
 import numpy as np

@@ -1,5 +1,5 @@
 """The false-alert promise per episode length on real PushT rollouts, and live alerts over real HTTP equal to the
-documented rule offline at every length (issue 39).
+documented rule offline at every length.
 
 ``data/pusht_jepa_records.jsonl.gz`` is our own main job's output: ``jepa-demo`` (default mode, seed 42, at commit
 e9d86c3), the JEPA arm's 128 rollouts of its ``records.jsonl`` (64 calibration, 64 live), trimmed to episode id,

@@ -1,4 +1,4 @@
-"""``nmse_ratio``, the service's second built-in signal (issue 38): NMSE over the persistence NMSE of the same
+"""``nmse_ratio``, the service's second built-in signal: NMSE over the persistence NMSE of the same
 decision, derived when both are known (at the target step, like NMSE), the one definition ``jepa-monitor
 compare`` uses too; calibrated (HTTP and CLI), combined and alerted on live through the real HTTP service exactly
 as the offline detector judges; refused with a clear 4xx when a robot sends it, and a calibration without z_now

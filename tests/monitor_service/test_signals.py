@@ -1,4 +1,4 @@
-"""Named per-decision scores beside the latents (issue 38, part 4): calibrated and alerted on per task and
+"""Named per-decision scores beside the latents: calibrated and alerted on per task and
 signal through the real HTTP service, exactly as the offline detectors judge; bad scores refused with a clear
 4xx and nothing accepted lost; a policy without a future head sends scores alone; MonitorClient sends them."""
 import re

@@ -1,6 +1,6 @@
 """Gaps in the decision stream: a skipped decision index is recorded per episode (API, metrics), the early score
 comes only from the first five decisions of the episode's decision grid, and a changed early score is marked as
-revised (issue 39, part 3)."""
+revised."""
 import re
 
 import numpy as np

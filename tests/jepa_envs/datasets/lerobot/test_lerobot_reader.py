@@ -114,7 +114,7 @@ def test_a_dataset_with_embedded_png_images_imports(exported, tmp_path):
     assert ds.fps == 10
 
 
-# ----------------------------------------------------------------------------- issue 36.2: what import says
+# ----------------------------------------------------------------------------- what import says
 
 
 def _add_feature(root, key, values, ft):
