@@ -153,8 +153,10 @@ class RobosuiteRenderer:
         self.reference: RobosuiteTaskEnv | None = None   # the live renders frames are checked against
 
     def _make(self):
+        # hard_reset=False, as the task's env: robosuite's hard reset rebuilds the model and redraws object sizes
+        # (Lift's cube) from the reset seed, so frames and replays would use another cube than the recorded one
         backend = make_backend_from_env_args(self.env_args, control_delta=self.delta, cameras=self.spec.cameras,
-                                             image_size=self.spec.image_size)
+                                             image_size=self.spec.image_size, hard_reset=False)
         return RobosuiteTaskEnv(self.spec, backend, action_mode="delta" if self.delta else "abs",
                                 reflections=self.reflections)
 
