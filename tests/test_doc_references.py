@@ -57,3 +57,20 @@ def test_the_documented_speed_over_gym_pusht_is_the_range_its_table_measured():
     prose = " ".join(table[table.index("With the image observation"):].split())
     assert f"ours steps {images} as fast as gym-pusht in CPU time" in prose, (images, prose[:200])
     assert f"without images {states}" in prose, states
+
+
+def test_every_number_of_the_readme_results_names_what_produced_it():
+    """README's results are a table whose third column names a console-script command or a file of the repository
+    (a page recording the commands, or a committed record) for every row."""
+    text = (ROOT / "README.md").read_text()
+    section = text[text.index("## Results"):]
+    section = section[:section.index("\n## ", 1)]
+    rows = [line.split("|")[1:-1] for line in section.splitlines() if line.startswith("|")][2:]
+    assert len(rows) >= 10
+    scripts = ("jepa-demo", "jepa-policy", "jepa-monitor", "jepa-envs", "jepa-robot-bridge")
+    for what, measured, source in rows:
+        assert any(ch.isdigit() for ch in measured), what
+        commands = [c for c in re.findall(r"`([^`]+)`", source) if c.startswith(scripts)]
+        files = [f for f in REPO_PATH.findall(source) + re.findall(r"`([^`\s]+/[^`\s]+)`", source)
+                 if (ROOT / f).is_file()]
+        assert commands or files, f"README results row {what.strip()!r} names no command or file: {source.strip()!r}"
