@@ -17,7 +17,9 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from monitor_service import detectors, rules, scoring, stats
+from monitor_service import rules, scoring, stats
+from monitor_service.signals import (RATIO, SERVICE_SIGNALS, DetectorSpec, SignalEpisode, calibrate_detector,
+                                     cross_fit_detector)
 
 ASSUMPTIONS = (
     "The false-alert guarantee P(a successful episode raises any alert) <= alpha holds in each length regime of "
@@ -53,18 +55,18 @@ class LabelledEpisode:
             values = [v for v in values if v is not None]
         return scoring.early_score(values, n_first)
 
-    def signal_episode(self) -> detectors.SignalEpisode:
+    def signal_episode(self) -> SignalEpisode:
         """Its decisions as per-signal arrays (NaN where a decision lacks a signal); NMSE and nmse_ratio (the
-        service's signals, ``detectors.SERVICE_SIGNALS``) known at t + k."""
+        service's signals, ``SERVICE_SIGNALS``) known at t + k."""
         ordered = sorted(self.decisions, key=lambda d: d["step"])
-        names = {s for s in detectors.SERVICE_SIGNALS if any(_value(d, s) is not None for d in ordered)}
+        names = {s for s in SERVICE_SIGNALS if any(_value(d, s) is not None for d in ordered)}
         names |= {name for d in ordered for name in (d.get("scores") or {})}
         steps = np.array([d["step"] for d in ordered], dtype=np.int64)
         known = np.array([d.get("target_step") if d.get("target_step") is not None else d["step"] for d in ordered],
                          dtype=np.int64)
         scores = {name: np.array([np.nan if _value(d, name) is None else _value(d, name) for d in ordered],
                                  dtype=np.float64) for name in sorted(names)}
-        return detectors.SignalEpisode(scores, self.success, steps, {s: known for s in detectors.SERVICE_SIGNALS},
+        return SignalEpisode(scores, self.success, steps, {s: known for s in SERVICE_SIGNALS},
                                        self.length, self.group, self.episode)
 
 
@@ -73,7 +75,7 @@ TARGET_TIME = ("nmse", "nmse_persistence", "nmse_ratio")   # per decision, known
 
 def _value(decision: dict, signal: str) -> float | None:
     """A decision's NMSE (or persistence NMSE, or their ratio ``scoring.nmse_ratio``), or one of its named scores."""
-    if signal == detectors.RATIO:
+    if signal == RATIO:
         return scoring.nmse_ratio_or_none(decision.get("nmse"), decision.get("nmse_persistence"))
     if signal in TARGET_TIME:
         return decision.get(signal)
@@ -146,8 +148,8 @@ def calibrate(episodes: list[LabelledEpisode], params: rules.RuleParams, alpha: 
     each signal's own rule and early-score ranking, cross-fitted detection, the paper's figures and controls.
     Raises ValueError with the fix when the data cannot support it: no usable early scores, one outcome class
     only, or too few successes for a signal's rule at alpha."""
-    spec = detectors.DetectorSpec(tuple(signals), combination, "successes", params)
-    if detectors.RATIO in spec.signals and not any(e.signal_episode().scores.get(detectors.RATIO) is not None
+    spec = DetectorSpec(tuple(signals), combination, "successes", params)
+    if RATIO in spec.signals and not any(e.signal_episode().scores.get(RATIO) is not None
                                                    for e in episodes):
         raise ValueError("no held-out episode has an nmse_ratio (NMSE over the persistence NMSE): its decisions sent "
                          "no z_now; send z_now (the current latent) with each decision of the held-out episodes "
@@ -156,8 +158,8 @@ def calibrate(episodes: list[LabelledEpisode], params: rules.RuleParams, alpha: 
     figures, skipped = early_figures(episodes, early_decisions, n_bootstrap, n_permutation, seed, ranking)
     judged = [e.signal_episode() for e in episodes]
     judged = [e for e in judged if e.scores and any(np.isfinite(v).any() for v in e.scores.values())]
-    detector = detectors.calibrate_detector(spec, judged, alpha, seed)
-    detection = {kind: detectors.cross_fit_detector(
+    detector = calibrate_detector(spec, judged, alpha, seed)
+    detection = {kind: cross_fit_detector(
         judged, replace(spec, params=replace(params, kind=kind)), alpha, folds, seed) for kind in rules.RULE_KINDS}
     return {
         **figures,
@@ -177,14 +179,14 @@ def calibrate(episodes: list[LabelledEpisode], params: rules.RuleParams, alpha: 
     }
 
 
-def signal_figures(episodes: list[LabelledEpisode], judged: list[detectors.SignalEpisode], params: rules.RuleParams,
+def signal_figures(episodes: list[LabelledEpisode], judged: list[SignalEpisode], params: rules.RuleParams,
                    alpha: float, early_decisions: int, n_bootstrap: int, seed: int) -> dict:
     """Per signal with data: its own rule at alpha (or why it has none) and its early score's AUROC with CI."""
     out = {}
     for signal in sorted({s for e in judged for s in e.scores}):
         entry: dict = {"rule": None, "reason": None, "early_auroc": None}
         try:
-            entry["rule"] = detectors.calibrate_detector(detectors.DetectorSpec((signal,), params=params), judged,
+            entry["rule"] = calibrate_detector(DetectorSpec((signal,), params=params), judged,
                                                          alpha, seed).rules[signal].to_dict()
         except ValueError as exc:
             entry["reason"] = str(exc)

@@ -29,7 +29,7 @@ pooled across checkpoints):
   decisions after its onset and those before it alike) with its bootstrap 95 % CI;
 - detection, cross-fitted in ``folds`` folds (stratified by outcome; a faulted episode sits in the fold of its
   natural twin, the episode of the same seed, so no calibration ever saw its first ``onset`` steps): each
-  detector (``monitor_service.detectors``) calibrated on the natural episodes of the other folds, on successes
+  detector (``monitor_service.signals``) calibrated on the natural episodes of the other folds, on successes
   only (conformal, FAIL-Detect's and FIPER's way) or on labelled successes and failures (Youden); TPR, TNR,
   balanced accuracy, the Clopper-Pearson interval of the false-alert rate; detection time: for natural failures
   the lead before the episode's end (env steps), for faults the delay after the onset (env steps, and in
@@ -44,8 +44,9 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from monitor_service import detectors, rules, scoring, stats
+from monitor_service import rules, scoring, stats
 from monitor_service.encoding import jsonl_rows
+from monitor_service.signals import CALIBRATIONS, DetectorSpec, SignalEpisode, study_judgements
 
 TARGET_TIME = ("nmse", "nmse_persistence", "nmse_white")
 RANDOM = "random"
@@ -76,10 +77,10 @@ class Episode:
     def n_decisions(self) -> int:
         return int(self.steps.size)
 
-    def signal_episode(self, signals, prefix: int | None = None) -> detectors.SignalEpisode:
+    def signal_episode(self, signals, prefix: int | None = None) -> SignalEpisode:
         """The monitor's view of this episode (``prefix``: its first decisions only)."""
         cut = slice(None) if prefix is None else slice(0, prefix)
-        return detectors.SignalEpisode({s: self.values[s][cut] for s in signals if s in self.values},
+        return SignalEpisode({s: self.values[s][cut] for s in signals if s in self.values},
                                        self.success, self.steps[cut],
                                        {s: self.known_at[s][cut] for s in signals if s in self.values},
                                        self.length, self.group, f"{self.regime}-{self.seed}")
@@ -318,17 +319,17 @@ def stacked_scores(episodes: list[Episode], members: list[str], cut: int | None,
     return out
 
 
-def detector_specs(signals, params: rules.RuleParams) -> list[detectors.DetectorSpec]:
+def detector_specs(signals, params: rules.RuleParams) -> list[DetectorSpec]:
     """Each signal alone, calibrated both ways; FIPER's rule on an OOD score with STAC and on NMSE with STAC and
     RND; the Bonferroni fusion of every non-control signal, and of NMSE with STAC."""
     signals = [s for s in signals]
     real = [s for s in signals if s not in (RANDOM, "nmse_persistence", "nmse_white", RATIO)]
-    specs = [detectors.DetectorSpec((s,), "single", cal, params) for s in signals for cal in detectors.CALIBRATIONS]
+    specs = [DetectorSpec((s,), "single", cal, params) for s in signals for cal in CALIBRATIONS]
     pairs = [("rnd", "stac"), ("pca_kmeans", "stac"), ("mahalanobis", "stac"), (OURS, "stac"), (OURS, "rnd")]
-    specs += [detectors.DetectorSpec(p, "fiper", "successes", params) for p in pairs if set(p) <= set(signals)]
+    specs += [DetectorSpec(p, "fiper", "successes", params) for p in pairs if set(p) <= set(signals)]
     for combo in (tuple(real), (OURS, "stac")):
         if len(combo) > 1 and set(combo) <= set(signals):
-            specs.append(detectors.DetectorSpec(combo, "bonferroni", "successes", params))
+            specs.append(DetectorSpec(combo, "bonferroni", "successes", params))
     return specs
 
 
@@ -343,7 +344,7 @@ def detection(episodes: list[Episode], signals, cut: int | None, alpha: float, p
         calibration = [e.signal_episode(signals, cut) for e in episodes if e.regime == "natural" and e.fold != fold]
         test_idx = [i for i, e in enumerate(episodes) if e.fold == fold]
         test = [episodes[i].signal_episode(signals, cut) for i in test_idx]
-        fold_judged, fold_refused = detectors.study_judgements(calibration, test, alpha, specs, seed)
+        fold_judged, fold_refused = study_judgements(calibration, test, alpha, specs, seed)
         refused.update(fold_refused)
         for name, rows in fold_judged.items():
             for i, row in zip(test_idx, rows):

@@ -7,7 +7,7 @@ from sqlalchemy.orm import Session
 
 from monitor_service import calibration, stats
 from monitor_service.db import CalibrationRow, Decision, Episode, Task
-from monitor_service.detectors import SERVICE_SIGNALS
+from monitor_service.signals import SERVICE_SIGNALS
 from monitor_service.ingest import rule_params
 from monitor_service.settings import MonitorSettings
 

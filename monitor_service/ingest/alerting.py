@@ -1,6 +1,6 @@
 """Per episode after its records are applied: the early and running scores, and the active calibration's
 detector stepped over each of its signals' values scored since the last evaluation (``rules.py`` and
-``detectors.py`` are the same rules, offline).
+``signals.py`` are the same rules, offline).
 
 Each alerting signal keeps its own state in ``EpisodeState.signal_state``: the last evaluated step, how many
 consecutive values were above their thresholds (over) and below their clear levels (under), its latest value and
@@ -17,11 +17,12 @@ from bisect import bisect_right
 
 import numpy as np
 
-from monitor_service import detectors, rules, scoring
+from monitor_service import rules, scoring
 from monitor_service.ingest import sql as statements
 from monitor_service.ingest.sql import Sql
 from monitor_service.ingest.state import EpisodeState, Request
 from monitor_service.settings import MonitorSettings
+from monitor_service.signals import RATIO, CalibratedDetector, DetectorSpec
 
 CALIBRATION_TTL_S = 1.0      # another process's new calibration is seen within this time
 FLAGS_KEPT = 64              # recent over flags per signal (FIPER's partner may be scored a little later)
@@ -34,13 +35,13 @@ def rule_params(settings: MonitorSettings, kind: str | None = None, shape: str |
                             settings.alert_clear_ratio, shape or settings.threshold_shape)
 
 
-def stored_detector(result: dict) -> detectors.CalibratedDetector:
+def stored_detector(result: dict) -> CalibratedDetector:
     """The detector of a calibration's result (one made before named signals: its NMSE rule alone). KeyError for
     a calibration made before per-length thresholds."""
     if "detector" in result:
-        return detectors.CalibratedDetector.from_dict(result["detector"])
+        return CalibratedDetector.from_dict(result["detector"])
     rule = rules.CalibratedRule.from_dict(result["rule"])
-    return detectors.CalibratedDetector(detectors.DetectorSpec(("nmse",), params=rule.params), rule.alpha,
+    return CalibratedDetector(DetectorSpec(("nmse",), params=rule.params), rule.alpha,
                                         {"nmse": rule})
 
 
@@ -51,7 +52,7 @@ class Alerting:
         self.sql = sql
         self.settings = settings
         self.calibrations: dict[tuple[str, str | None], tuple[float, tuple[int | None, dict | None]]] = {}
-        self.detectors: dict[int, detectors.CalibratedDetector] = {}
+        self.detectors: dict[int, CalibratedDetector] = {}
 
     def forget_calibrations(self) -> None:
         self.calibrations.clear()
@@ -73,7 +74,7 @@ class Alerting:
             return None
         return cal_id, frozenset(result.get("signals", {}) or ("nmse",))
 
-    def usable_detector(self, cur, ep: EpisodeState) -> tuple[int | None, detectors.CalibratedDetector | None, str]:
+    def usable_detector(self, cur, ep: EpisodeState) -> tuple[int | None, CalibratedDetector | None, str]:
         """(calibration id, its detector or None when it cannot alert, the episode's alert note saying why)."""
         cal_id, result = self._calibration(cur, ep.task, ep.checkpoint)
         fix = f"`jepa-monitor calibrate --task {ep.task}` (or POST /v1/calibrations)"
@@ -99,7 +100,7 @@ class Alerting:
                 f"{fix}")
         first = detector.rules[detector.spec.signals[0]]
         blind = ""
-        if detectors.RATIO in detector.spec.signals and ep.scored and not ep.values(detectors.RATIO):
+        if RATIO in detector.spec.signals and ep.scored and not ep.values(RATIO):
             blind = ("; no nmse_ratio yet: this episode's scored decisions sent no z_now (send z_now, the current "
                      "latent, with each decision)")
         return cal_id, detector, (
@@ -203,7 +204,7 @@ class Alerting:
         state[signal] = st
         return out
 
-    def _judge(self, cur, req: Request, ep: EpisodeState, state: dict, detector: detectors.CalibratedDetector,
+    def _judge(self, cur, req: Request, ep: EpisodeState, state: dict, detector: CalibratedDetector,
                cal_id: int, step: int, signal: str, over: bool, under: bool, value: float, threshold: float,
                beyond: bool) -> None:
         """The detector's raise or clear after one signal's value at ``step``."""

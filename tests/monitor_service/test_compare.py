@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from monitor_service import compare as cmp
-from monitor_service import detectors
+from monitor_service.signals import DetectorSpec
 from monitor_service.cli import main as monitor_main
 
 ONSET = 30
@@ -56,7 +56,7 @@ def run(rows, **kw):
 
 
 def single(view, rule, signal):
-    return view["detection"][rule]["detectors"][detectors.DetectorSpec((signal,), params=cmp.RULES[rule]).name]
+    return view["detection"][rule]["detectors"][DetectorSpec((signal,), params=cmp.RULES[rule]).name]
 
 
 def test_a_separating_signal_ranks_and_detects_every_failure_and_the_random_row_sits_at_chance():
@@ -134,13 +134,13 @@ def test_cross_fitting_never_calibrates_on_the_fold_it_judges_nor_on_a_faulted_e
     rows = natural(stac=lambda failed, i, s, g: g.random() + failed)
     rows += faulted(range(0, 60, 2), "block_displaced", lambda i, s, g: g.random() + (s > ONSET))
     calls = []
-    real = detectors.study_judgements
+    real = cmp.study_judgements
 
     def spy(calibration, test, alpha, specs, seed=0):   # who calibrates and who is judged, then the real one
         calls.append(([e.episode for e in calibration], [e.episode for e in test]))
         return real(calibration, test, alpha, specs, seed)
 
-    monkeypatch.setattr(detectors, "study_judgements", spy)
+    monkeypatch.setattr(cmp, "study_judgements", spy)   # the name compare calls
     run(rows, folds=5, views=("whole",))
     assert len(calls) == 5
     judged = [e for _, test in calls for e in test]

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 from scipy.stats import binom, binomtest
 
-from monitor_service import detectors as D
+from monitor_service import signals as D
 from monitor_service import rules
 
 PAIRS = 300

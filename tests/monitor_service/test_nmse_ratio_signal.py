@@ -13,7 +13,8 @@ import pytest
 from monitor_testkit import ADMIN, DIM, make_settings, post_batch, records_for_nmse, register_task
 from scipy.stats import binomtest
 
-from monitor_service import compare, detectors, rules, scoring
+from monitor_service import compare, rules, scoring
+from monitor_service.signals import CalibratedDetector, DetectorSpec, calibrate_detector
 from monitor_service.calibration import LabelledEpisode
 from monitor_service.cli import main as monitor_main
 from monitor_service.ingest.sql import Sql, load_episode
@@ -91,10 +92,10 @@ def test_nmse_ratio_calibrates_and_alerts_through_the_http_service_and_the_cli(t
                              "--n-permutation", "200"]) == 0
         out = capsys.readouterr().out
         assert "detector single of nmse_ratio" in out and "signal nmse_ratio: early-score AUROC 0." in out
-        served = detectors.CalibratedDetector.from_dict(
+        served = CalibratedDetector.from_dict(
             http.get("/v1/calibrations", params={"task": "Ratio", "active": True}, headers=A).json()[0]["result"][
                 "detector"])
-        expected = detectors.calibrate_detector(detectors.DetectorSpec(("nmse_ratio",)), offline, 0.2, seed=3)
+        expected = calibrate_detector(DetectorSpec(("nmse_ratio",)), offline, 0.2, seed=3)
         assert served.rules["nmse_ratio"].threshold == pytest.approx(expected.rules["nmse_ratio"].threshold, rel=1e-4)
         time.sleep(detectors_ttl())   # the server sees the other process's calibration
         # live: a failure whose ratio climbs from its 4th decision, a success at the ratio's median (one frozen
@@ -183,7 +184,7 @@ def test_nmse_ratio_keeps_the_false_alert_promise_on_fresh_successes(alpha):
     """Independent (calibration set, fresh success) pairs, the ratio derived from (nmse, persistence) as the
     service derives it (frozen decisions left out), lengths 5-40: alerts ~ Binomial(PAIRS, p <= alpha)."""
     pairs, alerts = 200, 0
-    spec = detectors.DetectorSpec(("nmse_ratio",), params=rules.RuleParams("band"))
+    spec = DetectorSpec(("nmse_ratio",), params=rules.RuleParams("band"))
 
     def success(rng, i):
         nmse, pers = ratio_episode(rng, True, int(rng.integers(5, 41)))
@@ -192,7 +193,7 @@ def test_nmse_ratio_keeps_the_false_alert_promise_on_fresh_successes(alpha):
 
     for i in range(pairs):
         rng = np.random.default_rng([38, 7, i])
-        detector = detectors.calibrate_detector(spec, [success(rng, j) for j in range(40)], alpha, seed=i)
+        detector = calibrate_detector(spec, [success(rng, j) for j in range(40)], alpha, seed=i)
         alerts += detector.judge(success(rng, -1))["alerted"]
     assert binomtest(alerts, pairs, alpha, alternative="greater").pvalue > 1e-3, alerts
     assert alerts >= 5, alerts   # the rule does fire: the promise is not met by never alerting

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from monitor_testkit import ADMIN, DIM, post_batch, records_with_scores, register_task
 
-from monitor_service import detectors
+from monitor_service.signals import CalibratedDetector, DetectorSpec, calibrate_detector
 from monitor_service.calibration import LabelledEpisode
 from monitor_service.client import MonitorClient
 from monitor_service.server import start_server
@@ -53,17 +53,17 @@ def test_per_signal_calibration_and_alerts_through_the_http_service(tmp_path):
         # the service reads its held-out episodes in id order
         offline = [_as_labelled(n, a, s, ok).signal_episode() for n, a, s, ok in sorted(calib, key=lambda c: c[0])]
         for spec_json, spec in (
-                ({"signals": ["stac"]}, detectors.DetectorSpec(("stac",))),
+                ({"signals": ["stac"]}, DetectorSpec(("stac",))),
                 ({"signals": ["nmse", "stac"], "combination": "fiper"},
-                 detectors.DetectorSpec(("nmse", "stac"), "fiper")),
-                ({"signals": ["stac", "rnd", "nmse"]}, detectors.DetectorSpec(("stac", "rnd", "nmse"), "bonferroni"))):
+                 DetectorSpec(("nmse", "stac"), "fiper")),
+                ({"signals": ["stac", "rnd", "nmse"]}, DetectorSpec(("stac", "rnd", "nmse"), "bonferroni"))):
             cal = http.post("/v1/calibrations", json={"task": "Square", "alpha": 0.2, "seed": 3, "rule": "band",
                                                       "n_bootstrap": 200, "n_permutation": 200, **spec_json}, headers=A)
             assert cal.status_code == 201, cal.text
             result = cal.json()["result"]
             # the service's detector is the offline one, calibrated on the same episodes
-            expected = detectors.calibrate_detector(spec, offline, 0.2, seed=3)
-            served = detectors.CalibratedDetector.from_dict(result["detector"])
+            expected = calibrate_detector(spec, offline, 0.2, seed=3)
+            served = CalibratedDetector.from_dict(result["detector"])
             for signal in spec.signals:
                 assert served.rules[signal].threshold == pytest.approx(expected.rules[signal].threshold, rel=1e-4)
             assert set(result["signals"]) == {"nmse", "stac", "rnd"}
