@@ -103,7 +103,7 @@ def add_ceiling_parser(sub) -> argparse.ArgumentParser:
 
 
 def run_ceiling(args) -> int:
-    from monitor_service.ceiling import ceiling, summary_text
+    from monitor_service.outcome_ceiling import ceiling, summary_text
     from monitor_service.compare import load_records, parse_where
 
     t0 = time.perf_counter()
