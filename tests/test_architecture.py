@@ -183,6 +183,47 @@ def test_no_project_import_hides_inside_a_function(edges):
     assert hidden_imports(edges) == []
 
 
+# a deployable service (where it starts) and what it must never load: offline studies, benchmarks, plotting
+SERVICES = {"monitor_service.app": ("monitor_service.compare", "monitor_service.compare_cli", "monitor_service.study",
+                                    "monitor_service.outcome_ceiling", "monitor_service.synthetic",
+                                    "monitor_service.bench", "monitor_service.floor"),
+            "jepa_robot.bridge": ("jepa_robot.bench", "jepa_robot.load_bench")}
+
+
+def loaded_by(start: str, edges: list[Edge]) -> set[str]:
+    """Every project module ``start`` imports, directly or through others."""
+    graph: dict[str, set[str]] = {}
+    for e in edges:
+        graph.setdefault(e.source, set()).add(e.target)
+    seen, todo = set(), [start]
+    while todo:
+        for target in graph.get(todo.pop(), set()) - seen:
+            seen.add(target)
+            todo.append(target)
+    return seen
+
+
+def service_problems(edges: list[Edge], root: Path = ROOT, services=SERVICES) -> list[str]:
+    problems = []
+    for start, offline in services.items():
+        loaded = loaded_by(start, edges) | {start}
+        problems += [f"{start} loads {m}" for m in sorted(loaded & set(offline))]
+        modules = project_modules(root, (start.split(".")[0],))
+        for module in sorted(loaded & set(modules)):
+            tree = ast.parse(modules[module].read_text())
+            names = [a.name for n in ast.walk(tree) if isinstance(n, ast.Import) for a in n.names]
+            names += [n.module or "" for n in ast.walk(tree) if isinstance(n, ast.ImportFrom) and not n.level]
+            problems += [f"{start} loads {module}, which imports {name}" for name in names
+                         if name.split(".")[0] == "matplotlib"]
+    return problems
+
+
+def test_the_deployable_services_load_no_study_benchmark_or_plotting(edges):
+    """The monitor's app and the robot bridge import none of the offline studies, benchmarks or figures kept
+    beside them (their command lines may, lazily)."""
+    assert service_problems(edges) == []
+
+
 def test_main_job_lives_in_its_own_subpackage():
     top = {p.stem for p in (ROOT / "jepa_policy").glob("*.py")}
     assert not top & {"demo", "report", "ceiling"}
@@ -238,3 +279,16 @@ def test_checker_finds_upward_imports(tmp_path):
     assert any("monitor_service.service imports jepa_envs" in b for b in bad)
     assert len(bad) == 6   # the policy importing envs and the main job importing the client are the allowed shape
     assert hidden_imports(found) == []   # the one nested import sits in a cli.py
+
+
+def test_checker_finds_a_study_or_plot_a_service_loads(tmp_path):
+    _write_package(tmp_path, {
+        "monitor_service/__init__.py": "",
+        "monitor_service/app.py": "from monitor_service import service\n",
+        "monitor_service/service.py": "from monitor_service.study import run_study\n",
+        "monitor_service/study.py": "import matplotlib.pyplot as plt\n",
+    })
+    found = import_edges(tmp_path, ("monitor_service",))
+    assert service_problems(found, tmp_path, {"monitor_service.app": ("monitor_service.study",)}) == [
+        "monitor_service.app loads monitor_service.study",
+        "monitor_service.app loads monitor_service.study, which imports matplotlib.pyplot"]
