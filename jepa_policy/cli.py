@@ -363,8 +363,8 @@ def cmd_robot(args) -> int:
         print(f"error: {exc}", file=sys.stderr)
         return 1
     print(json.dumps(summary, indent=2, default=str))
-    if args.json:
-        Path(args.json).write_text(json.dumps(summary, indent=2, default=str))
+    if args.out:
+        Path(args.out).write_text(json.dumps(summary, indent=2, default=str))
     return 0
 
 
@@ -564,7 +564,7 @@ def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
     p.add_argument("--replan-steps", type=int, help="--async: replan after this many actions (default n/2)")
     p.add_argument("--curve-server-key", help="CurveZMQ: the bridge's public key file (jepa-robot-bridge keys)")
     p.add_argument("--curve-client-key", help="CurveZMQ: this computer's secret key file")
-    p.add_argument("--json", help="also write the summary to this file")
+    p.add_argument("--out", metavar="FILE.json", help="also write the summary (printed as JSON) to this file")
     p.add_argument("--monitor-url", help="report every decision (z_hat, scores), target and outcome to this monitor "
                                          "service, e.g. http://127.0.0.1:8765 (synchronous loop)")
     p.add_argument("--monitor-key", help="a robot key of the monitor; visible in ps: prefer JEPA_POLICY_MONITOR_KEY "

@@ -403,7 +403,7 @@ def _free_port() -> int:
 
 
 @pytest.mark.timeout(300)
-def test_the_readme_bridge_and_robot_pair_runs_as_written(reader_folder, tmp_path):
+def test_the_readme_bridge_and_robot_pair_runs_as_written(reader_folder, tmp_path, capsys):
     """README's simulated bridge line, started as written (on free ports), serves what the README's cpu-preset
     checkpoint acts on, and its `jepa-policy robot` line runs an episode on it (the bridge at its default 84 px
     refused the 48 px checkpoint until the line said --image-size 48)."""
@@ -428,10 +428,11 @@ def test_the_readme_bridge_and_robot_pair_runs_as_written(reader_folder, tmp_pat
         cwd = os.getcwd()
         os.chdir(reader_folder)
         try:
-            code = policy_main([*argv, "--address", control, "--no-wait", "--json", str(summary)])
+            code = policy_main([*argv, "--address", control, "--no-wait", "--out", str(summary)])
         finally:
             os.chdir(cwd)
         assert code == 0
+        assert "robot: 100%" in capsys.readouterr().err      # its episodes on a bar
         episode = json.loads(summary.read_text())["episodes"][0]
         assert episode["steps"] == 24 and episode["interrupted"] == ""     # 3 chunks of 8 actions
     finally:

@@ -56,7 +56,7 @@ def test_cli_run_with_a_trained_checkpoint(robot, pusht_demo_file, tmp_path, cap
     bridge = robot.bridge(chunk_budget=2, image_size=32)
     out_json = tmp_path / "summary.json"
     assert main(["robot", "--address", bridge.control_endpoint, "--checkpoint", str(checkpoint), "--episodes", "1",
-                 "--no-wait", "--json", str(out_json)]) == 0
+                 "--no-wait", "--out", str(out_json)]) == 0
     summary = json.loads(out_json.read_text())
     assert summary["episodes"][0]["steps"] == 16 and summary["episodes"][0]["chunks"] == 2
     manifest, arrays = load_episode(summary["episodes"][0]["episode_manifest"])

@@ -40,7 +40,7 @@ def test_robot_loop_sends_decisions_scores_targets_and_outcome(robot, monitor, p
     bridge = robot.bridge(chunk_budget=3, image_size=32)
     out = tmp_path / "summary.json"
     assert main(["robot", "--address", bridge.control_endpoint, "--checkpoint", str(checkpoint), "--episodes", "1",
-                 "--no-wait", "--json", str(out), "--monitor-url", server.url, "--monitor-key-file", str(key_file),
+                 "--no-wait", "--out", str(out), "--monitor-url", server.url, "--monitor-key-file", str(key_file),
                  "--robot", "arm-1"]) == 0
     summary = json.loads(out.read_text())
     assert summary["monitor"]["delivered"] and summary["monitor"]["rejected"] == 0
