@@ -251,11 +251,11 @@ def cmd_bench_latency(args) -> int:
 
 
 def cmd_bench_serve(args) -> int:
-    from jepa_policy.bench import bench_serve, format_serve
+    from jepa_policy.serve.bench import bench_serve, format_serve
 
     result = bench_serve(args.task, args.preset, args.checkpoint, iters=args.iters, seconds=args.seconds,
                          clients=tuple(int(c) for c in args.clients.split(",")), threads=args.threads,
-                         hostile=args.hostile)
+                         hostile=args.hostile, progress=not args.no_progress)
     print(json.dumps(result, indent=2) if args.json else format_serve(result))
     return 0
 
@@ -501,6 +501,7 @@ def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
                    help="also: one robot's latency beside a client sending 8 MiB frames of 190,000 tiny arrays, and "
                         "the server's peak memory under 8 clients sending oversized frames")
     p.add_argument("--json", action="store_true", help="print JSON instead of a table")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar on stderr (for logs)")
     p.set_defaults(func=cmd_bench_serve)
 
     p = bsub.add_parser("rollouts", help="episodes/min of rollouts with 1 and N pool workers, side by side")

@@ -192,3 +192,17 @@ def test_fault_options_take_json_lists_with_commas():
     assert _fault_spec("action_noise:std=40, onset=30") == {"name": "action_noise", "std": 40, "onset": 30}
     with pytest.raises(ValueError, match="not a number or JSON list"):
         _fault_spec("block_displaced:onset=[20")
+
+
+@pytest.mark.timeout(300)
+def test_bench_serve_measures_the_server_beside_in_process_decisions(capsys):
+    """The server's benchmark (jepa_policy/serve/bench.py) end to end on a random-weight PushT quick model: the
+    overhead phase and one concurrency level per batching setting, each phase on the bar."""
+    assert main(["bench", "serve", "--preset", "quick", "--iters", "3", "--seconds", "0.5", "--clients", "1",
+                 "--json"]) == 0
+    printed, err = capsys.readouterr()
+    result = json.loads(printed)
+    assert result["overhead"]["served_p50_ms"] > 0 and result["overhead"]["in_process_p50_ms"] > 0
+    assert set(result["concurrency"]) == {"batch16_clients1", "batch1_clients1"}
+    assert all(row["decisions_per_s"] > 0 for row in result["concurrency"].values())
+    assert "bench serve: 100%" in err and "3/3" in err
