@@ -245,6 +245,8 @@ def _lerobot_args(p: argparse.ArgumentParser) -> None:
                                      "frames, each phase in a fresh process")
     b.add_argument("src", help="a demos HDF5 file (e.g. the main job's demo_out/default/data/*.hdf5)")
     b.add_argument("--codec", default="lossless", choices=("lossless", "av1", "h264"))
+    for command in (e, i, b):
+        command.add_argument("--no-progress", action="store_true", help="no progress bar on stderr (for logs)")
 
 
 @subcommand("lerobot", "LeRobotDataset v3.0: export our demos, import a LeRobot dataset", _lerobot_args)
@@ -252,7 +254,7 @@ def lerobot(args: argparse.Namespace) -> int:
     from jepa_envs.datasets import lerobot as lr
 
     if args.action == "bench":
-        result = lr.bench_lerobot(args.src, args.codec)
+        result = lr.bench_lerobot(args.src, args.codec, progress=not args.no_progress)
         print(f"LeRobot v3.0 export/import of {result['src']} ({result['codec']}), load {result['load_average']:.2f}; "
               f"HDF5 {result['hdf5_mib']:.1f} MiB, LeRobot folder {result['dataset_mib']:.1f} MiB")
         for name, row in result["phases"].items():
@@ -262,9 +264,11 @@ def lerobot(args: argparse.Namespace) -> int:
     t0 = time.perf_counter()
     if args.action == "export":
         summary = lr.export_lerobot(args.src, args.out, task=args.task, fps=args.fps, codec=args.codec,
-                                    instruction=args.instruction, encoder_timeout_s=args.encoder_timeout)
+                                    instruction=args.instruction, encoder_timeout_s=args.encoder_timeout,
+                                    progress=not args.no_progress)
     else:
-        summary = lr.import_lerobot(args.src, args.out, args.task, args.map, fps=args.fps, overwrite=args.overwrite)
+        summary = lr.import_lerobot(args.src, args.out, args.task, args.map, fps=args.fps, overwrite=args.overwrite,
+                                    progress=not args.no_progress)
         for key, what in summary["unmapped"].items():
             print(f"jepa-envs lerobot import: note: feature {key!r} ({what}) was not imported: no key of task "
                   f"{summary['task']} takes it; to bring it in as one of the task's keys, pass "

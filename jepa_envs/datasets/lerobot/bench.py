@@ -9,10 +9,12 @@ import sys
 import tempfile
 from pathlib import Path
 
+from tqdm import tqdm
 
-def bench_lerobot(src: str | Path, codec: str = "lossless") -> dict:
+
+def bench_lerobot(src: str | Path, codec: str = "lossless", progress: bool = False) -> dict:
     """Frames/s and peak memory of export and import beside an h5py read of the same frames, each phase in a
-    fresh process (its own peak RSS), in one run."""
+    fresh process (its own peak RSS), in one run (``progress``: a bar of the phases on stderr)."""
     src = Path(src).resolve()
     work = Path(tempfile.mkdtemp(prefix="jepa-lerobot-bench-"))
     phases = {
@@ -27,7 +29,7 @@ def bench_lerobot(src: str | Path, codec: str = "lossless") -> dict:
     }
     out = {"src": str(src), "codec": codec, "load_average": os.getloadavg()[0], "phases": {}}
     try:
-        for name, code in phases.items():
+        for name, code in tqdm(phases.items(), desc="lerobot bench", unit="phase", disable=not progress):
             script = ("import json, resource, time\nt0 = time.perf_counter()\n" + code + "\n"
                       "print(json.dumps({'frames': frames, 'seconds': time.perf_counter() - t0, "
                       "'peak_rss_mib': resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}))")

@@ -6,6 +6,8 @@ import hashlib
 import json
 from pathlib import Path
 
+from tqdm import tqdm
+
 from jepa_envs.datasets.hdf5 import DatasetError, DemoWriter, default_cache_dir, open_hdf5, task_for_env_name
 from jepa_envs.datasets.lerobot.checks import check_features, unmapped_features
 from jepa_envs.datasets.lerobot.format import INFO_PATH, ROBOT_TYPE_PREFIX, KeyMap, LeRobotError, jsonable
@@ -15,14 +17,14 @@ from jepa_envs.tasks.spec import TaskSpec, all_task_specs, get_task_spec
 
 def import_lerobot(root: str | Path, out: str | Path, task: str | None = None,
                    key_map: list[str] | tuple[str, ...] = (), fps: int | None = None, overwrite: bool = False,
-                   fps_fix: str | None = None, map_flag: str = "--map") -> dict:
+                   fps_fix: str | None = None, map_flag: str = "--map", progress: bool = False) -> dict:
     """Convert a LeRobot v3.0 dataset into a robomimic-layout HDF5 file the loader reads; returns a summary
     (``unmapped``: the dataset's features no spec key took, with their dtype and shape).
 
     ``task`` defaults to the one the dataset names (our exports' ``robot_type`` is ``jepa/<task>``); ``fps``
     accepts a dataset recorded at another rate than the task's (it must be the dataset's own); an existing
     ``out`` is replaced only with ``overwrite``; ``map_flag``: the caller's option for ``key_map``, named in
-    refusals (``jepa-policy train`` calls it --dataset-map)."""
+    refusals (``jepa-policy train`` calls it --dataset-map); ``progress``: a bar of the episodes on stderr."""
     out = Path(out)
     if out.exists() and not overwrite:
         raise LeRobotError(f"{out} exists; pass another path, or --overwrite to replace it (nothing was written)")
@@ -38,7 +40,8 @@ def import_lerobot(root: str | Path, out: str | Path, task: str | None = None,
                             "robot_type": ds.info.get("robot_type"), "map": jsonable(km.__dict__)}}
     frames = 0
     with DemoWriter(out, env_args) as writer:   # an error anywhere leaves no file at ``out``
-        for episode in iter_episodes(ds, spec, km):
+        for episode in tqdm(iter_episodes(ds, spec, km), total=len(ds.episodes), desc="lerobot import", unit="episode",
+                            disable=not progress):
             writer.add(episode)
             frames += len(episode["actions"])
         if frames != ds.info["total_frames"]:

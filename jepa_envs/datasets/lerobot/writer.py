@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
+from tqdm import tqdm
 
 from jepa_envs.datasets.hdf5 import demo_names, open_hdf5, resolve_task
 from jepa_envs.datasets.lerobot.format import (ACTION, CHUNKS_SIZE, CODEBASE_VERSION, CODECS, DATA_FILE_MB, DATA_PATH,
@@ -24,8 +25,9 @@ from jepa_envs.tasks.spec import TaskSpec
 
 def export_lerobot(src: str | Path, out_dir: str | Path, task: str | None = None, fps: int | None = None,
                    codec: str = "lossless", instruction: str | None = None, robot_type: str | None = None,
-                   encoder_timeout_s: float = ENCODER_TIMEOUT_S) -> dict:
-    """Write a robomimic-layout demos (or rollouts) file as a LeRobotDataset v3.0 folder; returns a summary.
+                   encoder_timeout_s: float = ENCODER_TIMEOUT_S, progress: bool = False) -> dict:
+    """Write a robomimic-layout demos (or rollouts) file as a LeRobotDataset v3.0 folder; returns a summary
+    (``progress``: a bar of the episodes on stderr).
 
     ``fps`` defaults to the rate the file was recorded at (a LeRobot import keeps it), else the task's control
     rate; another rate than the recorded one is refused (it would re-time the frames, not resample them). An
@@ -52,7 +54,7 @@ def export_lerobot(src: str | Path, out_dir: str | Path, task: str | None = None
         tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", dir=out.parent))
         try:
             summary = _write_export(f, names, spec, features, tmp, fps, codec, instruction, robot_type,
-                                    encoder_timeout_s)
+                                    encoder_timeout_s, progress)
             if out.exists():
                 out.rmdir()
             tmp.rename(out)
@@ -106,7 +108,7 @@ def _arrow_type(ft: dict):
 
 
 def _write_export(f, names, spec, features, root: Path, fps: int, codec: str, instruction, robot_type,
-                  encoder_timeout_s: float) -> dict:
+                  encoder_timeout_s: float, progress: bool = False) -> dict:
     vectors = {k: ft for k, ft in features.items() if ft["dtype"] != "video"}
     schema = pa.schema([(k, _arrow_type(ft)) for k, ft in vectors.items()])
     videos = {k: VideoWriter(root, k, fps, codec, ft["shape"][0], ft["shape"][1], encoder_timeout_s)
@@ -118,7 +120,7 @@ def _write_export(f, names, spec, features, root: Path, fps: int, codec: str, in
     writer = None
     index = 0
     try:
-        for e, name in enumerate(names):
+        for e, name in enumerate(tqdm(names, desc="lerobot export", unit="episode", disable=not progress)):
             demo = f["data"][name]
             obs = demo["obs"]
             n = int(demo["actions"].shape[0])

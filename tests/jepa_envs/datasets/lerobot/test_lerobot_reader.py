@@ -174,12 +174,19 @@ def test_a_missing_path_is_named_as_missing(tmp_path):
         import_lerobot(tmp_path / "nope", tmp_path / "out.hdf5", "PushT")
 
 
-def test_import_finds_the_task_the_dataset_names(exported, tmp_path):
-    """README's `jepa-envs lerobot import DIR OUT.hdf5` works on our exports without --task."""
+def test_import_finds_the_task_the_dataset_names(exported, tmp_path, capsys):
+    """README's `jepa-envs lerobot import DIR OUT.hdf5` works on our exports without --task (its episodes on a
+    bar; the export's too)."""
     from jepa_envs.cli import main
 
     assert import_lerobot(exported[0], tmp_path / "a.hdf5")["task"] == "PushT"
     assert main(["lerobot", "import", str(exported[0]), str(tmp_path / "b.hdf5")]) == 0
+    episodes = exported[1]["episodes"]
+    assert "lerobot import: 100%" in capsys.readouterr().err
+    assert main(["lerobot", "export", str(tmp_path / "b.hdf5"), str(tmp_path / "again")]) == 0
+    assert f"{episodes}/{episodes}" in capsys.readouterr().err
+    assert main(["lerobot", "import", str(exported[0]), str(tmp_path / "c.hdf5"), "--no-progress"]) == 0
+    assert capsys.readouterr().err == ""
     root = copy(exported[0], tmp_path)
     edit_info(root, robot_type="koch")
     refused(root, tmp_path, r"names no task of ours \(robot_type 'koch'\); pass --task", task=None)
