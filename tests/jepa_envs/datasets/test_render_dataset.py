@@ -193,13 +193,20 @@ def _shipped_lift_demo(tmp_path, steps):
     return one
 
 
-def _live_frames(task, states, size):
-    """Each state rendered live by a freshly made env of the task (the content every written frame must have).
-    Hard reset, as render-dataset's own model: the model (the cube's randomised size) is built at the seeded
-    reset, not at construction."""
-    env = gym.make(f"JEPA/{task}-v0", image_size=size, hard_reset=True).unwrapped
+def _live_frames(task, states, size, cube_size=None):
+    """Each state rendered live by a freshly made env of the task (the content every written frame must have),
+    its cube resized to ``cube_size`` by editing the task's own XML here (the size the recording drew)."""
+    env = gym.make(f"JEPA/{task}-v0", image_size=size).unwrapped
     try:
-        env.reset(seed=0, options={"state": states[0]})
+        options = {"state": states[0]}
+        if cube_size is not None:
+            xml = env.backend.sim.model.get_xml()
+            for name in ("cube_g0", "cube_g0_vis"):
+                start = xml.index(f'name="{name}"')
+                at = xml.index('size="', start) + len('size="')
+                xml = xml[:at] + cube_size + xml[xml.index('"', at):]
+            options["model"] = xml
+        env.reset(seed=0, options=options)
         frames = []
         for state in states:
             env.set_sim_state(state)
@@ -209,6 +216,13 @@ def _live_frames(task, states, size):
     return frames
 
 
+def _recorded_cube_size(raw):
+    with h5py.File(raw) as f:
+        xml = f["data/demo_0"].attrs["model_file"]
+    geom = xml[xml.index('<geom name="cube_g0"'):]
+    return geom[geom.index('size="') + 6:].split('"')[0]
+
+
 @pytest.mark.robosuite
 def test_robosuites_shipped_lift_demo_renders_the_scene_of_its_states(tmp_path):
     """robosuite 1.4.0's XML fails to load here and the task's own model takes over: every written frame must be
@@ -216,10 +230,15 @@ def test_robosuites_shipped_lift_demo_renders_the_scene_of_its_states(tmp_path):
     the new context's GL buffers with it)."""
     raw = _shipped_lift_demo(tmp_path, steps=4)
     report = render_dataset(raw, tmp_path / "out.hdf5", task="Lift", size=32)
-    assert report["episodes"][0]["model"].startswith("own")
+    model = report["episodes"][0]["model"]
+    assert model.startswith("own") and "2 geoms sized as recorded: cube_g0, cube_g0_vis" in model
     with h5py.File(raw) as f:
         states = f["data/demo_0/states"][()]
-    live = _live_frames("Lift", states, 32)
+    cube = _recorded_cube_size(raw)
+    assert cube == "0.0208459 0.0202324 0.020821"   # robosuite 1.4.0's draw, smaller than this task's own cube
+    live = _live_frames("Lift", states, 32, cube_size=cube)
+    assert not np.array_equal(live[0]["agentview_image"],
+                              _live_frames("Lift", states[:1], 32)[0]["agentview_image"])   # the size shows
     with h5py.File(tmp_path / "out.hdf5") as f:
         for camera in ("agentview_image", "robot0_eye_in_hand_image"):
             written = f[f"data/demo_0/obs/{camera}"][()]
