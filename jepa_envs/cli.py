@@ -67,6 +67,9 @@ def _make_demos_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--no-images", action="store_true",
                    help="Lift and Can only: render no camera (about ten times faster) and write states, actions and "
                         "low-dim observations; `jepa-envs render-dataset` renders the frames later")
+    p.add_argument("--no-reflections", action="store_true",
+                   help="Lift and Can only: draw the table without its reflection (software rendering 4.5x faster; "
+                        "recorded in the file, so evaluation and render-dataset draw the same frames)")
     p.add_argument("--workers", type=int, default=os.cpu_count() or 1,
                    help="processes that record episodes (default: one per core; the file is the same for any number)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar on stderr (for logs)")
@@ -92,6 +95,9 @@ def make_demos(args: argparse.Namespace) -> int:
     if robosuite and (args.difficulty is not None or args.finish_threshold is not None):
         raise SystemExit(f"error: --difficulty and --finish-threshold are PushT's options; {spec.name}'s expert "
                          "ends each demonstration when the task's own success check has held for a few steps")
+    if args.no_reflections and not robosuite:
+        raise SystemExit(f"error: --no-reflections is for the robosuite tasks ({', '.join(ROBOSUITE_EXPERT_TASKS)}); "
+                         f"{spec.name} draws no reflection")
     if args.no_images and not robosuite:
         raise SystemExit(f"error: --no-images is for the robosuite tasks ({', '.join(ROBOSUITE_EXPERT_TASKS)}); "
                          f"{spec.name} renders its frames in about a millisecond")
@@ -104,7 +110,8 @@ def make_demos(args: argparse.Namespace) -> int:
 
             episodes, env_args = generate_robosuite_demos(spec.name, args.episodes, seed=args.seed,
                                                           image_size=args.image_size, images=not args.no_images,
-                                                          workers=args.workers, progress=not args.no_progress)
+                                                          workers=args.workers, progress=not args.no_progress,
+                                                          reflections=not args.no_reflections)
         else:
             from jepa_envs.tasks.pusht_expert import generate_demos
 
@@ -288,6 +295,9 @@ def _render_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--task", help="our task (default: from the file's env name)")
     p.add_argument("--cameras", nargs="+", default=(), help="cameras to render (default: the task's)")
     p.add_argument("--size", type=int, help="image size (default: the task's, 84)")
+    p.add_argument("--reflections", choices=("on", "off"), default=None,
+                   help="draw the table's reflection (robomimic's frames) or not (4.5x faster; recorded in the "
+                        "output); default: the source's own setting, else on")
     p.add_argument("--replay", action="store_true",
                    help="then replay the written actions open-loop in the task's gym env from each recorded start")
     p.add_argument("--no-progress", action="store_true", help="no progress bar on stderr (for logs)")
@@ -300,7 +310,8 @@ def render_dataset_cmd(args: argparse.Namespace) -> int:
 
     t0 = time.perf_counter()
     report = render_dataset(args.src, args.out, task=args.task, cameras=tuple(args.cameras), size=args.size,
-                            progress=not args.no_progress)
+                            progress=not args.no_progress,
+                            reflections=None if args.reflections is None else args.reflections == "on")
     report["seconds"] = round(time.perf_counter() - t0, 1)
     if args.replay:
         report["replay_in_env"] = replay_in_env(args.out, report["task"])

@@ -205,3 +205,35 @@ def test_render_dataset_draws_the_frames_make_demos_recorded_live(lift_files, li
     live, rendered = _arrays(lift_with_images), _arrays(out)
     for key in ("demo_0/obs/agentview_image", "demo_0/obs/robot0_eye_in_hand_image"):
         assert np.array_equal(live[key], rendered[key]), key
+
+
+def test_without_reflections_the_file_says_so_and_every_reader_draws_it_so(tmp_path):
+    """make-demos --no-reflections records the setting; render-dataset keeps the source's setting, and the env
+    rebuilt from the file's env_args (as evaluation builds it) renders the very frames the file holds, which
+    differ from the frames with the table's reflection."""
+    path = tmp_path / "plain.hdf5"
+    assert main(["make-demos", "Lift", "--episodes", "1", "--out", str(path), "--seed", "0", "--no-reflections",
+                 "--image-size", str(SIZE), "--workers", "1", "--no-progress"]) == 0
+    plain = _arrays(path)
+    assert plain["env_args"]["render"] == {"reflections": False}
+    raw = tmp_path / "raw.hdf5"
+    assert main(["make-demos", "Lift", "--episodes", "1", "--out", str(raw), "--seed", "0", "--no-images",
+                 "--no-reflections", "--image-size", str(SIZE), "--workers", "1", "--no-progress"]) == 0
+    rendered = tmp_path / "rendered.hdf5"
+    assert main(["render-dataset", str(raw), str(rendered), "--size", str(SIZE), "--no-progress"]) == 0
+    again = _arrays(rendered)
+    assert again["env_args"]["render"] == {"reflections": False}
+    key = "demo_0/obs/agentview_image"
+    assert np.array_equal(plain[key], again[key])
+    env = gym.make("JEPA/Lift-v0", image_size=SIZE, env_args=plain["env_args"]).unwrapped
+    try:
+        env.reset(seed=0, options={"state": plain["demo_0/states"][0]})
+        for t in (0, len(plain["demo_0/states"]) - 1):
+            env.set_sim_state(plain["demo_0/states"][t])
+            assert np.array_equal(env.observe_now()["agentview_image"], plain[key][t]), t
+        env.reflections = True   # the same state with the table's reflection: another frame
+        assert not np.array_equal(env.observe_now()["agentview_image"], plain[key][-1])
+    finally:
+        env.close()
+    with pytest.raises(SystemExit, match="--no-reflections is for the robosuite tasks"):
+        main(["make-demos", "PushT", "--episodes", "1", "--out", str(tmp_path / "p.hdf5"), "--no-reflections"])
