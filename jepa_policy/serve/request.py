@@ -7,6 +7,7 @@ thread, so a slow or hostile frame never holds up the event loop that serves the
 from __future__ import annotations
 
 import math
+import unicodedata
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -110,12 +111,31 @@ def parse_request(msg, schema: RequestSchema) -> Parsed:
             raise RequestError(f"the keys stack different numbers of frames ({stacked}); send the same number for "
                                "every key")
         frames = [{k: v[i] for k, v in arrays.items()} for i in range(len(arrays[next(iter(arrays))]))]
-    episode = control["episode"]
-    if isinstance(episode, str) and not episode.strip():
-        raise RequestError("'episode' is empty; send a non-empty id (a new id starts an episode) or leave the field "
-                           "out to stay in the current one")
-    return Parsed(frames, None if episode is None else str(episode)[:128], bool(control["reset"]), control["step"],
+    return Parsed(frames, _episode_id(control["episode"]), bool(control["reset"]), control["step"],
                   control["outcome"], bool(control["observe"]), bool(control["full_chunk"]))
+
+
+MAX_EPISODE_ID = 128
+# what a reader cannot see: whitespace, control and format characters (zero-width spaces and joiners, BOMs)
+_INVISIBLE = ("Cc", "Cf", "Zs", "Zl", "Zp")
+
+
+def _episode_id(episode) -> str | None:
+    """The request's episode id as text; a bool, an id nobody could read (empty once whitespace, control and
+    zero-width characters are left out) or one longer than MAX_EPISODE_ID characters is refused, never cut (two
+    long ids with one prefix would be one episode)."""
+    if episode is None:
+        return None
+    if isinstance(episode, bool):
+        raise RequestError(f"'episode' is {episode}, a bool; send an id (str or int), or leave the field out")
+    text = str(episode)
+    if not any(not ch.isspace() and unicodedata.category(ch) not in _INVISIBLE for ch in text):
+        raise RequestError("'episode' is empty (or only whitespace, control or zero-width characters); send an id "
+                           "a reader can see (a new id starts an episode) or leave the field out to stay in the "
+                           "current one")
+    if len(text) > MAX_EPISODE_ID:
+        raise RequestError(f"'episode' has {len(text)} characters; send an id of at most {MAX_EPISODE_ID}")
+    return text
 
 
 # a low-dim value more than this many training ranges beyond its training range is refused (4.6e18 for a PushT

@@ -6,16 +6,27 @@ Memory is bounded before anything is read: websockets refuses a frame above ``MA
 connection beyond ``--max-connections`` is refused at the handshake (HTTP 503), so buffered requests stay under
 about 2 x ``max_connections`` x ``MAX_REQUEST_BYTES``.
 
-Refused requests are paced per peer address (the host: a client that reconnects after every refused frame keeps
-its record): each one adds 1 to the address's penalty (which halves every ``PENALTY_HALF_LIFE_S`` seconds); from
-the second one on, the connection's next frame is read only after a pause that doubles with the penalty
-(``PACE_FIRST_S`` up to ``PACE_MAX_S``), a new connection from that address waits the same pause before its
-first frame is read, and the eighth refused in a row closes the connection (1008) after the longest pause; from
-then on, until the penalty has decayed, that address's handshakes are answered 429 after ``PACE_MAX_S``. A
-robot whose one frame is wrong hears of it at once; a client that sends junk in a loop, reconnecting or not, gets
-about 8 frames in 5 s instead of as many as the server can decode. Requests the server itself fails on (a bug, a
-MemoryError) are paced the same way, answered in one line and logged as one JSON line with the traceback as a
-field.
+Refused requests are paced twice, so that neither reconnecting nor rotating source addresses buys a flood
+anything, and a robot whose own requests are accepted is never slowed by another's:
+
+* all peers together: refused requests draw on one budget (``RefusalBudget``: ``REFUSED_RATE`` a second, bursts of
+  ``REFUSED_BURST``; a refused frame costs one more for each MiB it held). Once it is spent, a new connection's
+  handshake waits until the budget has room again (at most ``BACKLOG_MAX_S``; it is never refused for it), a
+  refused connection waits as long before its next frame is read, and one whose refusal would book the budget
+  beyond ``BACKLOG_MAX_S`` is closed (1008);
+* per connection and address: from an address's second refused request on, the refused connection's next frame is
+  read only after a pause that doubles with the address's penalty (``PACE_FIRST_S`` up to ``PACE_MAX_S``; the
+  penalty halves every ``PENALTY_HALF_LIFE_S``), and a connection's eighth refused request in a row closes it
+  (1008).
+
+A connection is *trusted* from its first accepted request until one is refused: it is never paused, and at the
+connection cap an untrusted connection (the longest-refused first, then the oldest) is closed (1013) to let a new
+one in rather than refusing the new one's handshake. A robot whose one frame is wrong hears of it at once; a
+client that sends junk in a loop, reconnecting or not, from one address or many, shares a few refusals a second
+with every other. Requests the server itself fails on (a bug, a MemoryError) are paced the same way, answered in
+one line and logged as one JSON line with the traceback as a field; so are the event loop's own errors (an
+``accept()`` out of descriptors is an ``accept_failed`` line, at most one a second, with the count of failures it
+stands for).
 
 The monitor's state is bounded: a session keeps at most ``MAX_PENDING`` predictions waiting for their target
 frame (one whose target step passed unseen is dropped), and the alert state of an episode is kept only while a
@@ -24,6 +35,7 @@ session runs it.
 from __future__ import annotations
 
 import asyncio
+import errno
 import hmac
 import http
 import math
@@ -50,15 +62,19 @@ from jepa_policy.serve.codec import MAX_ARRAYS, MAX_MAPS, MAX_REQUEST_BYTES, Req
 from jepa_policy.serve.config import ServeConfig, check_config
 from jepa_policy.serve.events import EventLog, log_to_stderr
 from jepa_policy.serve.request import RequestSchema, decode_request
-from jepa_policy.serve.sessions import PeerPenalties, Session
+from jepa_policy.serve.sessions import PeerPenalties, RefusalBudget, Session
 from monitor_service.client import MonitorClient
 from monitor_service.scoring import nmse
 
 
 PENALTY_HALF_LIFE_S = 60.0
-PENALTY_CLOSE = 7.5         # refused requests (decayed) at which a connection is closed: the 8th in a row
+PENALTY_CLOSE = 8           # refused requests in a row at which a connection is closed
 PACE_FIRST_S = 0.05         # the pause after the second refused request; it doubles with each next one
 PACE_MAX_S = 2.0
+REFUSED_RATE = 5.0          # refused requests a second, all peers together (a frame costs one more per MiB) ...
+REFUSED_BURST = 10.0        # ... in bursts of this many
+BACKLOG_MAX_S = 2.0         # how far ahead refusals may book that budget (the longest a handshake waits for it)
+TLS_HANDSHAKE_TIMEOUT_S = 10.0   # a TLS handshake not done by then is closed, and logged as tls_refused (stalled)
 MAX_PENDING = 64            # predictions a session keeps waiting for their target frame
 
 
@@ -79,6 +95,10 @@ class _Connection(ServerConnection):
 OVERSIZE_DROP_S = 1.0
 
 
+_ACCEPT_ERRNOS = (errno.EMFILE, errno.ENFILE, errno.ENOBUFS, errno.ENOMEM)
+ACCEPT_LOG_EVERY_S = 1.0   # accept_failed lines: at most one a second (each counts the failures since the last)
+
+
 def _peer(connection: ServerConnection) -> str:
     address = connection.remote_address
     return f"{address[0]}:{address[1]}" if address else "?"
@@ -96,20 +116,34 @@ def _pause(penalty: float) -> float:
 
 class _HandshakeWatch(ssl.SSLObject):
     """The TLS side of a connection (``SSLContext.sslobject_class``): a refused handshake (an unknown client
-    certificate, none, plain HTTP on the TLS port) calls ``on_refused`` with the reason and the peer; asyncio
-    itself says nothing of it outside its debug mode."""
+    certificate, none, plain HTTP on the TLS port) calls ``on_refused`` with the reason and the peer, and so does one
+    still unfinished after ``TLS_HANDSHAKE_TIMEOUT_S`` (a stalled client, which asyncio closes without a word);
+    asyncio itself says nothing of either outside its debug mode."""
 
     on_refused = None   # set per context (``PolicyServer._tls_context``)
 
     def do_handshake(self):
+        if not hasattr(self, "_watched"):   # the first step of this handshake: look again once its time is up
+            self._watched, self._ended = True, False
+            peer, started = _handshake_peer(), time.monotonic()
+            asyncio.get_running_loop().call_later(TLS_HANDSHAKE_TIMEOUT_S + 0.05, self._stalled, peer, started)
         try:
-            return super().do_handshake()
+            done = super().do_handshake()
         except (ssl.SSLWantReadError, ssl.SSLWantWriteError):
             raise
         except (ssl.SSLError, OSError) as exc:
+            self._ended = True
             if self.on_refused is not None:
                 self.on_refused(exc, _handshake_peer())
             raise
+        self._ended = True
+        return done
+
+    def _stalled(self, peer: str, started: float) -> None:
+        if not self._ended and self.on_refused is not None:
+            self.on_refused(TimeoutError(f"the TLS handshake was not finished within {TLS_HANDSHAKE_TIMEOUT_S:g} s "
+                                         f"(stalled for {time.monotonic() - started:.1f} s); the connection was "
+                                         "closed"), peer)
 
 
 def _handshake_peer() -> str:
@@ -142,10 +176,13 @@ class PolicyServer:
         self._live: dict[str, int] = {}                   # episode id -> sessions running it
         self._alerts_lock = threading.Lock()
         self.penalties = PeerPenalties(PENALTY_HALF_LIFE_S)
+        self.refusals = RefusalBudget(REFUSED_RATE, REFUSED_BURST, BACKLOG_MAX_S)
         self.batcher: Batcher | None = None
         self.decoder = ThreadPoolExecutor(max_workers=2, thread_name_prefix="jepa-serve-decode")
         self.connections = 0
-        self._admitted: set[ServerConnection] = set()
+        self._accept_failures, self._accept_logged = 0, -math.inf   # accept() errors not yet logged
+        # admitted connections -> (trusted: a request accepted and none refused since, last refused, opened)
+        self._admitted: dict[ServerConnection, list] = {}
         self.port: int | None = None
         self.ready = threading.Event()
         self.on_ready = None   # called with the bound port once the server listens (the CLI's banner)
@@ -187,13 +224,9 @@ class PolicyServer:
         if request.path == "/healthz":
             return connection.respond(http.HTTPStatus.OK, "OK\n")
         peer = _peer(connection)
-        penalty = self.penalties.current(_host(connection), time.monotonic())
-        if penalty >= PENALTY_CLOSE:   # an address whose requests keep being refused: slowed, then turned away
-            await asyncio.sleep(PACE_MAX_S)
-            self.events.emit("refused", peer=peer, status=429, penalty=round(penalty, 2))
-            return connection.respond(http.HTTPStatus.TOO_MANY_REQUESTS,
-                                      f"{penalty:.0f} recent requests from {_host(connection)} were refused; fix the "
-                                      "client (see the text replies) and retry in a minute\n")
+        wait = self.refusals.admit(time.monotonic())
+        if wait > 0:   # refusals spent the shared budget: every new connection waits its turn, none is turned away
+            await asyncio.sleep(wait)
         if self.config.api_key is not None:
             given = request.headers.get_all("Authorization")
             expected = f"Api-Key {self.config.api_key}".encode()
@@ -203,14 +236,24 @@ class PolicyServer:
                 self.events.emit("unauthorized", peer=peer, status=401, problem=problem)
                 return connection.respond(http.HTTPStatus.UNAUTHORIZED, "send one 'Authorization: Api-Key <key>' "
                                           "header with the server's key (openpi-client's api_key)\n")
-        self._admitted = {c for c in self._admitted if not c.transport.is_closing()}
+        self._admitted = {c: state for c, state in self._admitted.items() if not c.transport.is_closing()}
         if len(self._admitted) >= self.config.max_connections:
-            self.events.emit("refused", peer=peer, status=503, connections=len(self._admitted),
-                             limit=self.config.max_connections)
-            return connection.respond(http.HTTPStatus.SERVICE_UNAVAILABLE,
-                                      f"the server has {len(self._admitted)} connections, its limit "
-                                      "(--max-connections); retry later, or raise the limit\n")
-        self._admitted.add(connection)
+            untrusted = [(state[1], -state[2], c) for c, state in self._admitted.items() if not state[0]]
+            if not untrusted:
+                self.events.emit("refused", peer=peer, status=503, connections=len(self._admitted),
+                                 limit=self.config.max_connections)
+                return connection.respond(http.HTTPStatus.SERVICE_UNAVAILABLE,
+                                          f"the server has {len(self._admitted)} connections, its limit "
+                                          "(--max-connections), each serving a robot; retry later, or raise the "
+                                          "limit\n")
+            # the connection refused most recently (else the oldest not yet served) makes room for this one
+            victim = max(untrusted, key=lambda item: (item[0], item[1]))[2]
+            self.events.emit("evicted", peer=_peer(victim), connections=len(self._admitted),
+                             limit=self.config.max_connections, problem="no request of it was accepted yet, or its "
+                                                                        "last one was refused")
+            del self._admitted[victim]
+            victim.transport.abort()
+        self._admitted[connection] = [False, -math.inf, time.monotonic()]
         return None
 
     async def _handler(self, ws: ServerConnection) -> None:
@@ -222,8 +265,6 @@ class PolicyServer:
                          client=", ".join(ws.request.headers.get_all("User-Agent"))[:200] or None)
         try:
             await ws.send(pack(self.metadata))
-            # a new connection from an address with refused requests waits their pause before its first frame
-            await asyncio.sleep(_pause(self.penalties.current(_host(ws), time.monotonic())))
             async for message in ws:
                 start = time.monotonic()
                 session.requests += 1
@@ -236,7 +277,7 @@ class PolicyServer:
                 except RequestError as exc:
                     self.events.emit("rejected", peer=session.peer, session=session.id, problem=str(exc)[:300])
                     await ws.send(f"jepa-policy serve: {exc}")
-                    await self._pace(ws, session)
+                    await self._pace(ws, session, len(message))
                     continue
                 except Exception as exc:   # a bug of ours (or MemoryError): one line back, one JSON line logged
                     self.events.emit("error", peer=session.peer, session=session.id,
@@ -244,8 +285,11 @@ class PolicyServer:
                                      traceback="".join(traceback.format_exception(exc))[-4000:])
                     await ws.send(f"jepa-policy serve: the server failed on this request ({type(exc).__name__}); "
                                   "a bug of the server: report it with the server's log")
-                    await self._pace(ws, session)
+                    await self._pace(ws, session, len(message))
                     continue
+                session.refused_in_row = 0
+                if ws in self._admitted:
+                    self._admitted[ws][0] = True   # trusted: never paused, never evicted
                 reply["server_timing"]["prev_total_ms"] = session.prev_total_ms
                 await ws.send(pack(reply))
                 session.prev_total_ms = (time.monotonic() - start) * 1e3
@@ -276,12 +320,21 @@ class PolicyServer:
             session.previous_chunk = (session.step, chunk)
         return {k: v for k, v in scores.items() if math.isfinite(v) and (wanted is None or k in wanted)}
 
-    async def _pace(self, ws: ServerConnection, session: Session) -> None:
-        """After a refused request: pause before reading the connection's next frame, or close it (1008)."""
-        penalty = self.penalties.refused(_host(ws), time.monotonic())
-        await asyncio.sleep(_pause(penalty))
-        if penalty >= PENALTY_CLOSE:
-            await ws.close(1008, "8 requests refused in a row; fix the client (see the text replies)")
+    async def _pace(self, ws: ServerConnection, session: Session, size: int) -> None:
+        """After a refused request of ``size`` bytes: the connection is no longer trusted; pause before reading its
+        next frame (its address's pause, or its turn in the shared budget, whichever is longer), or close it."""
+        now = time.monotonic()
+        session.refused_in_row += 1
+        if ws in self._admitted:
+            self._admitted[ws][:2] = [False, now]
+        penalty = self.penalties.refused(_host(ws), now)
+        turn = self.refusals.charge(now, 1.0 + size / 2**20)
+        if turn is None or session.refused_in_row >= PENALTY_CLOSE:
+            await ws.close(1008, f"{session.refused_in_row} requests refused in a row; fix the client (see the text "
+                                 "replies)" if turn is not None else "the server is refusing too many requests from "
+                                                                     "its clients; fix this one (see the text replies)")
+            return
+        await asyncio.sleep(max(_pause(penalty), turn))
 
     async def _answer(self, session: Session, message) -> dict:
         parsed = await asyncio.get_running_loop().run_in_executor(self.decoder, decode_request, message, self.schema)
@@ -357,14 +410,16 @@ class PolicyServer:
             self.monitor = MonitorClient(self.config.monitor_url, self.config.monitor_key, robot=self.config.robot,
                                          max_buffer=self.config.monitor_buffer, on_result=self._on_monitor_result)
         self._loop = asyncio.get_running_loop()
+        self._loop.set_exception_handler(self._loop_error)
         self._stop = asyncio.Event()
         self.batcher = Batcher(self.policy, self.config.max_batch, self.config.max_queue,
                                scores=self.monitor is not None and self.config.monitor_scores != ())
         self.batcher.start()
         try:
+            tls = {"ssl_handshake_timeout": TLS_HANDSHAKE_TIMEOUT_S} if ctx is not None else {}
             async with serve(self._handler, self.config.host, self.config.port, ssl=ctx, compression=None,
                              max_size=MAX_REQUEST_BYTES, max_queue=0, create_connection=_Connection,
-                             process_request=self._process_request) as server:
+                             process_request=self._process_request, **tls) as server:
                 self.port = next(s.getsockname()[1] for s in server.sockets if s.family in (socket.AF_INET,
                                                                                               socket.AF_INET6))
                 self.ready.set()
@@ -379,6 +434,24 @@ class PolicyServer:
                 self.events.emit("stop", monitor_records_lost=self.monitor.pending,
                                  problem=f"the monitor at {self.config.monitor_url} did not take every record within "
                                          f"{self.config.monitor_flush_s} s")
+
+    def _loop_error(self, loop: asyncio.AbstractEventLoop, context: dict) -> None:
+        """The event loop's own errors as event lines, never asyncio's tracebacks: an accept() out of descriptors
+        (EMFILE: asyncio retries a second later) as ``accept_failed``, anything else as ``error``."""
+        exc = context.get("exception")
+        if isinstance(exc, OSError) and exc.errno in _ACCEPT_ERRNOS:
+            # one line a second at most, counting the failures it stands for (each listening socket fails on its
+            # own, and a flood of connections keeps them failing for as long as it lasts)
+            now = time.monotonic()
+            self._accept_failures += 1
+            if now - self._accept_logged >= ACCEPT_LOG_EVERY_S:
+                self.events.emit("accept_failed", problem=f"{context.get('message')}: {exc.strerror or exc}"[:300],
+                                 errno=errno.errorcode.get(exc.errno, exc.errno), failures=self._accept_failures)
+                self._accept_failures, self._accept_logged = 0, now
+            return
+        self.events.emit("error", problem=f"{context.get('message')}: {type(exc).__name__ if exc else ''} {exc or ''}"
+                                          .strip()[:300],
+                         traceback="".join(traceback.format_exception(exc))[-4000:] if exc else None)
 
     def run(self) -> None:
         asyncio.run(self.serve())

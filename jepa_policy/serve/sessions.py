@@ -28,6 +28,7 @@ class Session:
     pending: dict[int, tuple[int, np.ndarray]] = field(default_factory=dict)   # target step -> (t, z_hat)
     previous_chunk: tuple[int, np.ndarray] | None = None   # (step, normalised chunk) of the last decision: STAC
     prev_total_ms: float | None = None
+    refused_in_row: int = 0                          # this connection's refused requests since its last accepted one
 
     def new_episode(self, episode: str | None) -> None:
         self.episodes += 1
@@ -86,3 +87,33 @@ class PeerPenalties:
         while len(self._peers) > self.most:
             self._peers.popitem(last=False)
         return penalty
+
+
+class RefusalBudget:
+    """Refused requests of all peers together, ``rate`` cost units a second in bursts of ``burst`` (a generic cell
+    rate algorithm: ``_tat`` is the time the budget is booked up to), so that rotating source addresses buys no more
+    refusals than one address; refusals may book it at most ``backlog_s`` ahead."""
+
+    def __init__(self, rate: float, burst: float, backlog_s: float):
+        self.rate, self.burst, self.backlog_s = float(rate), float(burst), float(backlog_s)
+        self._tat = 0.0
+
+    def admit(self, now: float) -> float:
+        """How long a new connection waits before it is let in: 0 while the budget lasts; once refusals spent it,
+        each new connection books one unit too, so that those waiting are let in one by one at the budget's rate
+        (never more than ``backlog_s`` later: a robot's connection is delayed, never turned away)."""
+        spent = self.burst / self.rate
+        if self._tat - now <= spent:
+            return 0.0
+        self._tat = min(self._tat + 1.0 / self.rate, now + spent + self.backlog_s)
+        return min(self.backlog_s, self._tat - now - spent)
+
+    def charge(self, now: float, cost: float) -> float | None:
+        """Book one refused request of ``cost`` units; the pause before that connection's next frame is read, or
+        None when the budget is booked more than ``backlog_s`` ahead (the connection is then closed, unbooked)."""
+        tat = max(self._tat, now) + cost / self.rate
+        turn = tat - now - self.burst / self.rate
+        if turn > self.backlog_s:
+            return None
+        self._tat = tat
+        return max(0.0, turn)

@@ -51,6 +51,7 @@ def unpaced(monkeypatch):
     import jepa_policy.serve.server as server_module
     monkeypatch.setattr(server_module, "PACE_FIRST_S", 0.0)
     monkeypatch.setattr(server_module, "PENALTY_CLOSE", float("inf"))
+    monkeypatch.setattr(server_module, "REFUSED_RATE", float("inf"))
 
 
 @pytest.fixture

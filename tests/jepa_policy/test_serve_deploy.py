@@ -212,3 +212,71 @@ def test_the_served_keys_never_appear_on_the_command_line(checkpoint, tmp_path):
     lines = err.decode().splitlines()
     assert any('"event": "unauthorized"' in line for line in lines), lines[-20:]
     assert not any(api_key in line or robot_key in line for line in lines)
+
+
+def test_a_stalled_tls_handshake_is_closed_and_logged(serve, pki, events, monkeypatch):
+    """The first bytes of a ClientHello, then silence: the server closed it after 10 s without a line; now the
+    close is a tls_refused line naming the stall (the timeout shortened here)."""
+    import jepa_policy.serve.server as server_module
+    monkeypatch.setattr(server_module, "TLS_HANDSHAKE_TIMEOUT_S", 0.5)
+    server = serve(tls_cert=str(pki / "server.pem"), tls_key=str(pki / "server.key"))
+    stalled = socket.create_connection(("127.0.0.1", server.port))
+    stalled.sendall(b"\x16\x03\x01\x02\x00\x01\x00\x01\xfc\x03\x03")
+    stalled.settimeout(10)
+    start = time.monotonic()
+    assert stalled.recv(100) == b"" and time.monotonic() - start < 5, "the server closed the stalled handshake"
+    stalled.close()
+    deadline = time.monotonic() + 5
+    while not (refused := [e for e in events() if e["event"] == "tls_refused"]):
+        assert time.monotonic() < deadline, events()
+        time.sleep(0.05)
+    assert "not finished within 0.5 s" in refused[0]["problem"] and refused[0]["peer"].startswith("127.0.0.1:")
+    ws, meta = _tls_client(server.port, pki, None)   # a client that finishes its handshake is served as before
+    assert meta["task"] == "PushT"
+    ws.close()
+    assert len([e for e in events() if e["event"] == "tls_refused"]) == 1
+
+
+def test_accept_errors_out_of_descriptors_are_json_lines_not_tracebacks(checkpoint, tmp_path):
+    """jepa-policy serve at RLIMIT_NOFILE 128 and 200 idle connections: asyncio's accept() failed with EMFILE and
+    wrote 15,934 lines of tracebacks in 25 s; now each failure is an accept_failed event line, rate-limited, and a
+    robot is served once the connections close."""
+    import json
+    import resource
+    out = tmp_path / "serve.err"
+    with out.open("w") as err:
+        proc = subprocess.Popen([sys.executable, "-m", "jepa_policy.cli", "serve", "--checkpoint", str(checkpoint),
+                                 "--port", "0", "--threads", "1"], stdout=subprocess.PIPE, stderr=err, text=True,
+                                preexec_fn=lambda: resource.setrlimit(resource.RLIMIT_NOFILE, (128, 128)))
+    try:
+        banner = proc.stdout.readline()
+        port = int(banner.rsplit(":", 1)[1].split()[0])
+        held = []
+        for _ in range(200):
+            try:
+                held.append(socket.create_connection(("127.0.0.1", port), timeout=2))
+            except OSError:
+                break
+        time.sleep(3.0)
+        for sock in held:
+            sock.close()
+        ws = None
+        deadline = time.monotonic() + 30
+        while ws is None:
+            try:
+                ws = connect(f"ws://127.0.0.1:{port}", compression=None, max_size=None, open_timeout=5)
+            except (OSError, websockets.InvalidHandshake, TimeoutError):
+                assert time.monotonic() < deadline
+                time.sleep(0.5)
+        unpack(ws.recv())
+        ws.send(pack(GOOD))
+        assert unpack(ws.recv())["actions"].shape == (8, 2)
+        ws.close()
+    finally:
+        proc.terminate()
+        proc.wait(30)
+    lines = [line for line in out.read_text().splitlines() if line.strip()]
+    assert lines and all(line.startswith("{") for line in lines), lines[:5]
+    failed = [json.loads(line) for line in lines if '"accept_failed"' in line]
+    assert failed and failed[0]["errno"] == "EMFILE" and len(failed) <= 8, (len(failed), failed[:2])   # ~1 a second
+    assert sum(e["failures"] for e in failed) >= len(failed)
