@@ -11,6 +11,8 @@ module each:
 * ``sessions.py``: who controls the robot (token, seq) and the liveness of that client's link.
 * ``estop.py``: the latch, the robot's stop, and the latch across restarts (``supervisor.py`` restarts).
 * ``operator_channel.py``: the operator socket in a thread of its own; the e-stop is answered there.
+* ``guard.py``: the open connections against the descriptor limit, and the memory: the e-stop latches before
+  either runs out.
 * ``runner.py``: an episode's actions through the safety rules onto the backend (``streaming.py``: the
   asynchronous queue; ``episodes.py``: the record and the served frames).
 
@@ -59,6 +61,7 @@ from jepa_robot.endpoints import (IO_THREADS, BridgeConfig, is_loopback, network
                                             operator_curve, realtime_context)
 from jepa_robot.episodes import check_manifest, latency_stats
 from jepa_robot.estop import EStop
+from jepa_robot.guard import ResourceGuard
 from jepa_robot.operator_channel import OperatorChannel
 from jepa_robot.runner import EpisodeRunner, EStopLatched, Pending
 from jepa_robot.safety import ActionGuard, SafetyConfig
@@ -121,6 +124,7 @@ class RobotBridge:
         self._monitor: zmq.Socket | None = None
         self._wire: ControlWire | None = None
         self._operator: OperatorChannel | None = None
+        self._guard: ResourceGuard | None = None
         self._poller = zmq.Poller()
         self._thread: threading.Thread | None = None
         self._stop = threading.Event()
@@ -153,18 +157,35 @@ class RobotBridge:
             self.estop.press(reason)
         if reason is not None:
             log.warning("the bridge starts with the e-stop latched: %s", reason)
-        self._control, self._auth = open_control_socket(self._ctx, self.config)
+        try:
+            self._control, self._auth = open_control_socket(self._ctx, self.config)
+            try:
+                self._operator = OperatorChannel(self._ctx, self.config.operator_address, self.estop,
+                                                 self._operator_command, lambda: self._guarded(self.backend.hold),
+                                                 secret=secret, secret_file=str(secret_file),
+                                                 curve=lambda sock: operator_curve(self.config, sock),
+                                                 rt_priority=self.config.rt_priority)
+            except (zmq.ZMQError, ValueError, OSError):
+                if self._auth is not None:
+                    self._auth.stop()
+                self._control.close(linger=0)
+                self._control = None
+                raise
+        except (zmq.ZMQError, ValueError, OSError, RuntimeError):
+            # nothing ran: the state file says so (a latch it held stays), so the next start is not "unclean"
+            self.estop.mark_clean_exit()
+            raise
         self._wire = ControlWire(self._control, self.counters)
         self.control_endpoint = self._control.getsockopt_string(zmq.LAST_ENDPOINT)
-        self._monitor = self._control.get_monitor_socket(zmq.EVENT_DISCONNECTED)
         self.operator_secret_file = str(secret_file)
-        self._operator = OperatorChannel(self._ctx, self.config.operator_address, self.estop,
-                                         self._operator_command, lambda: self._guarded(self.backend.hold),
-                                         secret=secret, secret_file=str(secret_file),
-                                         curve=lambda sock: operator_curve(self.config, sock),
-                                         rt_priority=self.config.rt_priority)
         self.operator_endpoint = self._operator.endpoint
-        for sock in (self._control, self._monitor, self._operator.loop_commands):
+        # both sockets are watched from here on; the control socket's disconnects come to the loop through it
+        self._guard = ResourceGuard(self._ctx, {"control": self._control, "operator": self._operator.sock},
+                                    self.estop, self.config.max_rss_mb)
+        self._monitor = self._ctx.socket(zmq.PULL)
+        self._monitor.setsockopt(zmq.LINGER, 0)
+        self._monitor.connect(self._guard.disconnect_address)
+        for sock in (self._control, self._monitor, *self._operator.loop_commands):
             self._poller.register(sock, zmq.POLLIN)
         if self.config.curve_secret_key is None and not is_loopback(self.control_endpoint):
             log.warning("the control socket %s is reachable from the network without encryption "
@@ -204,6 +225,7 @@ class RobotBridge:
     def _loop(self) -> None:
         self._operator.loop_thread = threading.get_ident()
         self._operator.start()
+        self._guard.start()
         try:
             while not self._stop.is_set():
                 try:
@@ -220,6 +242,7 @@ class RobotBridge:
                 self.runner.end("interrupted", "bridge stopped")
             self.estop.mark_clean_exit()
             self._operator.stop()
+            self._guard.stop()
             try:
                 self._control.disable_monitor()
             except zmq.ZMQError:
@@ -553,10 +576,14 @@ class RobotBridge:
         the e-stop latches in the calling thread, as on the operator socket."""
         return self._operator.handle(message)
 
-    def _operator_command(self, msg: dict) -> dict:
+    def _operator_command(self, msg: dict, generation: int | None = None) -> dict:
+        """One operator command on the event loop; ``generation``: the latch's when a clear_estop arrived."""
         kind = msg["type"]
         if kind == P.OP_CLEAR_ESTOP:
-            self.estop.clear()
+            if not self.estop.clear(generation):
+                return P.error(P.ERR_PRESSED_SINCE, "the e-stop was pressed again after this clear_estop reached the "
+                                                    "bridge; it stays latched: check the robot and the scene, then "
+                                                    "clear again")
             self._estop_applied = False
         elif kind == P.OP_CONFIRM:
             success = msg.get("success")
@@ -599,6 +626,8 @@ class RobotBridge:
         counters = collections.Counter(self.counters)
         if self._operator is not None:
             counters.update(self._operator.counts())
+        if self._guard is not None:
+            counters.update(self._guard.counts())
         return {
             "task": self.spec.name, "pid": os.getpid(), "observe_only": self.config.observe_only,
             "client": s.client if s else None, "link": None if s is None else ("held" if s.held else "up"),
@@ -612,5 +641,6 @@ class RobotBridge:
                 "frame_to_chunk_latency": latency_stats(ep.chunk_latency_s)},
             "frame_to_chunk_latency_all": run.latency_summary(),
             "counters": dict(counters),
+            "resources": None if self._guard is None else self._guard.facts(),
             "events": [dict(e) for e in run.events[-20:]],
         }

@@ -26,6 +26,7 @@ import time
 import tomllib
 from pathlib import Path
 
+from jepa_robot.guard import DEFAULT_MAX_RSS_MB, FD_FRACTION, descriptor_limit
 from jepa_robot.operator import DEFAULT_OPERATOR
 from jepa_robot.operator_cli import OPERATOR_COMMANDS, run_operator_command
 
@@ -72,6 +73,10 @@ def _parser() -> argparse.ArgumentParser:
                        help="run the e-stop path (the operator thread and the bridge's ZeroMQ I/O threads) at this "
                             "SCHED_FIFO priority (1-99; needs CAP_SYS_NICE, which the systemd unit grants): the e-stop's bound "
                             "under CPU overload (docs/real_robot.md, 'E-stop and load')")
+    serve.add_argument("--max-rss-mb", type=float, default=DEFAULT_MAX_RSS_MB,
+                       help="the memory guard: latch the e-stop when the bridge's resident memory passes this many MiB "
+                            f"(default {DEFAULT_MAX_RSS_MB:g}; 0: no guard); the systemd unit's MemoryMax is above it "
+                            "(docs/real_robot.md, 'Connections and memory')")
     serve.add_argument("-v", "--verbose", action="store_true")
 
     supervise = sub.add_parser("supervise", help="run `serve` and restart it with the e-stop latched after a crash; "
@@ -142,7 +147,12 @@ def _parser() -> argparse.ArgumentParser:
     return parser
 
 
+MAX_SETUP_BYTES = 1024 * 1024   # a set-up file is a few KiB; a bigger one is refused before it is parsed
+
+
 def _read_toml(path: str | None) -> dict:
+    """The TOML file at ``path`` ({} for none); SystemExit with one line for anything that is not a readable,
+    reasonably sized TOML text (the bridge's ``serve`` exits 2 with it, ``check`` prints it)."""
     if not path:
         return {}
     file = Path(path)
@@ -150,6 +160,9 @@ def _read_toml(path: str | None) -> dict:
     try:
         if not file.is_file():
             raise SystemExit(f"config file {shown} not found")
+        if file.stat().st_size > MAX_SETUP_BYTES:
+            raise SystemExit(f"config file {shown} has {file.stat().st_size} bytes; a set-up file is a few KiB (at "
+                             f"most {MAX_SETUP_BYTES // 1024} KiB are read)")
         with file.open("rb") as f:
             return tomllib.load(f)
     except OSError as exc:   # a name too long, a folder we may not read ...
@@ -158,6 +171,12 @@ def _read_toml(path: str | None) -> dict:
         raise SystemExit(f"{shown} is not a UTF-8 text file (byte {exc.start}): a set-up file is TOML text") from None
     except tomllib.TOMLDecodeError as exc:
         raise SystemExit(f"{shown} is not valid TOML: {exc}") from None
+    except RecursionError:
+        raise SystemExit(f"{shown} nests arrays or tables too deeply to be a set-up file (TOML that deep cannot be "
+                         "read); write each limit as a flat list of numbers") from None
+    except ValueError as exc:   # tomllib's own int(): an integer of more than 4,300 digits
+        raise SystemExit(f"{shown} holds a value TOML cannot be read as ({str(exc)[:120]}); write each limit as a "
+                         "number of a few digits") from None
 
 
 def _unknown_tables(raw: dict) -> list[str]:
@@ -214,10 +233,16 @@ def _curve(folder: str | None) -> dict:
 
 
 EXIT_REFUSED = 2   # serve refused its set-up before touching the robot (the supervisor does not restart it)
+EXIT_PORT_BUSY = 3   # a port serve must bind is held by another process (the supervisor retries, latched)
 
 
 class SetupRefused(Exception):
     """``serve`` cannot start with this set-up; each line of the message is one problem and its fix."""
+
+
+class PortBusy(Exception):
+    """A port ``serve`` must bind is held by another process: perhaps a bridge still stopping, perhaps a process
+    squatting it to answer in the bridge's place."""
 
 
 def serve(args) -> int:
@@ -234,6 +259,9 @@ def serve(args) -> int:
 
     try:
         bridge, backend = _build_bridge(args)
+    except PortBusy as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return EXIT_PORT_BUSY
     except SetupRefused as exc:
         print("\n".join(f"error: {line}" for line in str(exc).splitlines()), file=sys.stderr)
         return EXIT_REFUSED
@@ -274,7 +302,8 @@ def _build_bridge(args):
         config = BridgeConfig(control, operator, record_dir, args.chunk_budget, args.observe_only,
                               insecure_network=args.insecure_network, state_file=args.state_file,
                               rt_priority=args.rt_priority, start_latched=args.start_latched,
-                              operator_secret_file=args.operator_secret, **curve)
+                              operator_secret_file=args.operator_secret,
+                              max_rss_mb=args.max_rss_mb if args.max_rss_mb > 0 else None, **curve)
         # refused before any hardware is opened (the bridge checks again before it binds)
         problem = (network_bind_problem(config.control_address, config.curve_secret_key is not None,
                                         config.insecure_network)
@@ -326,6 +355,9 @@ def _build_bridge(args):
         bridge.bind()
     except (ValueError, zmq.ZMQError) as exc:
         backend.close()
+        if isinstance(exc, zmq.ZMQError) and exc.errno == zmq.EADDRINUSE:
+            raise PortBusy(f"{str(exc)[:300]}: another process holds a port this bridge binds (a bridge still "
+                           "stopping, or a process answering in its place: find it with ss -ltnp)") from None
         raise SetupRefused(str(exc)) from None
     return bridge, backend
 
@@ -408,6 +440,7 @@ def check(args) -> int:
                 notes += _rules_off(safety, joints=backend.joint_count is not None)
             finally:
                 backend.close()
+    notes += _descriptor_notes()
     for note in notes:
         print(f"ok: {note}")
     for error in errors:
@@ -415,6 +448,17 @@ def check(args) -> int:
     print(f"{args.config}: " + ("OK, nothing touched" if not errors else f"{len(errors)} problem(s); fix them "
                                                                           "before starting the bridge"))
     return 0 if not errors else 1
+
+
+def _descriptor_notes() -> list[str]:
+    """The descriptor limit a bridge started from this shell would have, and where its connection guard trips."""
+    limit = descriptor_limit()
+    notes = [f"descriptors: a bridge started here may hold {limit} (RLIMIT_NOFILE); it latches its e-stop at "
+             f"{int(FD_FRACTION * limit)} (the connection guard); the systemd unit sets LimitNOFILE=65536"]
+    if limit < 4096:
+        notes.append(f"WARNING the descriptor limit {limit} is low: about {int(FD_FRACTION * limit)} idle local "
+                     "connections latch the e-stop; raise it (ulimit -n 65536, or the unit's LimitNOFILE)")
+    return notes
 
 
 def _rules_off(safety, joints: bool) -> list[str]:

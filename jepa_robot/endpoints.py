@@ -1,9 +1,11 @@
 """Where the bridge listens and who may connect: its configuration, the loopback rule, CurveZMQ, the control socket.
 
 The control socket is a ROUTER with no ZMTP heartbeats (liveness is the bridge's own pings, ``sessions.py``),
-a size limit checked by libzmq before the bridge reads a byte (``protocol.MAX_CONTROL_MESSAGE_BYTES``), and
-``ROUTER_MANDATORY`` so that a reply to a vanished client fails instead of vanishing. A network address is
-refused without CurveZMQ unless ``insecure_network`` says so (docs/real_robot.md, "Network security").
+a size limit checked by libzmq before the bridge reads a byte (``protocol.MAX_CONTROL_MESSAGE_BYTES``),
+``ROUTER_MANDATORY`` so that a reply to a vanished client fails instead of vanishing, and a ZMTP handshake that
+must end within ``HANDSHAKE_IVL_MS`` (both sockets: a TCP connection that never greets is dropped, not kept). A
+network address is refused without CurveZMQ unless ``insecure_network`` says so (docs/real_robot.md, "Network
+security").
 """
 from __future__ import annotations
 
@@ -16,6 +18,10 @@ import zmq.auth
 from zmq.auth.thread import ThreadAuthenticator
 
 from jepa_robot import protocol as P
+from jepa_robot.guard import DEFAULT_MAX_RSS_MB
+
+
+HANDSHAKE_IVL_MS = 2000       # a connection's ZMTP handshake must end within this (libzmq's default: 30 s)
 
 
 @dataclass
@@ -34,6 +40,7 @@ class BridgeConfig:
     operator_secret_file: str | None = None          # the operator credential (None: operator_secret_file's default)
     start_latched: str | None = None                 # start with the e-stop latched, for this reason (supervisor)
     rt_priority: int | None = None                   # SCHED_FIFO priority of the e-stop path (``realtime_path``)
+    max_rss_mb: float | None = DEFAULT_MAX_RSS_MB    # the memory guard's bound (``guard.py``); None: no guard
 
 
 def is_loopback(endpoint: str) -> bool:
@@ -111,6 +118,7 @@ def open_control_socket(ctx: zmq.Context, config: BridgeConfig) -> tuple[zmq.Soc
     sock.setsockopt(zmq.ROUTER_MANDATORY, 1)
     sock.setsockopt(zmq.MAXMSGSIZE, P.MAX_CONTROL_MESSAGE_BYTES)
     sock.setsockopt(zmq.AFFINITY, CONTROL_IO_AFFINITY)   # its connections' I/O never shares the operator's thread
+    sock.setsockopt(zmq.HANDSHAKE_IVL, HANDSHAKE_IVL_MS)  # a raw TCP connection that never greets is dropped
     auth = None
     try:
         auth = _setup_curve(ctx, sock, config)

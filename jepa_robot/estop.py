@@ -9,15 +9,21 @@ the last action that will ever start before a ``clear``. A long move (a homing m
 ``motion("move")``; a press does not wait for it: it latches and calls ``emergency_stop`` concurrently (the
 backend's contract), which stops that move, and nothing starts after it either.
 
-``press`` runs in the caller's thread (the operator thread), without waiting for the event loop, the control
-socket or any other operator request. The loop then interrupts the episode
+``press`` runs in the caller's thread (the operator thread, or the resource guard's), without waiting for the
+event loop, the control socket or any other operator request. The loop then interrupts the episode
 (``RobotBridge._apply_estop_if_latched``).
+
+Every press, even one on a latch already set, starts a new *generation* of the latch. A ``clear`` releases only
+the generation it was received against (the operator thread reads it when the command arrives; the loop clears
+later): a press that reached the bridge after the clear keeps the e-stop latched, as a hardware button pressed
+while someone starts releasing it stays pressed, and the operator is told to clear again.
 
 With a ``state_file`` the latch survives the process: a bridge started after one that did not stop cleanly
 (a crash, a kill, a power cut: its state still says ``running``) starts latched, as does one started after an
 e-stop nobody cleared. Only an operator's ``clear`` releases it. A state file that cannot be written is
-refused when the bridge starts (``check_state_file``): a latch that cannot be recorded would not survive a
-crash.
+refused when the bridge starts (``check_state_file``, which runs the very write-and-replace every record
+takes: an immutable file, or another user's file in a sticky folder, can be written beside but not replaced):
+a latch that cannot be recorded would not survive a crash.
 """
 from __future__ import annotations
 
@@ -49,12 +55,19 @@ class EStop:
         self._cv = threading.Condition(threading.Lock())
         self._latched = False
         self._moving: str | None = None        # "action" or "move" while the loop is inside one
+        self._generation = 0                   # bumped by every press (module docstring)
         self.latched_at: float | None = None   # wall clock, comparable with the operator's
         self.reason: str | None = None
 
     @property
     def latched(self) -> bool:
         return self._latched
+
+    @property
+    def generation(self) -> int:
+        """The latch's generation now: a ``clear`` received now releases only this one."""
+        with self._cv:
+            return self._generation
 
     @contextmanager
     def motion(self, kind: str = "action") -> Iterator[bool]:
@@ -79,6 +92,7 @@ class EStop:
         with self._cv:
             newly = not self._latched
             self._latched = True
+            self._generation += 1
             if self.latched_at is None:
                 self.latched_at, self.reason = time.time(), reason
             facts = {"estop": True, "latched_at": self.latched_at, "reason": self.reason}
@@ -96,12 +110,16 @@ class EStop:
             self._write(running=True)
         return {**facts, "held": held, "action_in_flight": not waited}
 
-    def clear(self) -> None:
-        """The operator's release (``clear-estop``)."""
+    def clear(self, generation: int | None = None) -> bool:
+        """The operator's release (``clear-estop``) of the latch ``generation`` it was received against (None: the
+        current one); False, and the latch stays, when a press came after it."""
         with self._cv:
+            if generation is not None and generation != self._generation:
+                return False
             self._latched = False
             self.latched_at = self.reason = None
         self._write(running=True)
+        return True
 
     # ------------------------------------------------------------ across restarts
     def restore(self) -> str | None:
@@ -114,7 +132,9 @@ class EStop:
             reason = ("unclean restart: the previous bridge process ended without a clean shutdown (crash, kill or "
                       "power loss); check the robot and the scene, then clear-estop")
         elif previous.get("estop"):
-            reason = f"latched before the restart ({previous.get('reason')}); clear-estop once the scene is safe"
+            before = str(previous.get("reason"))
+            reason = before if before.startswith("latched before the restart") else \
+                f"latched before the restart ({before}); clear-estop once the scene is safe"
         if reason is not None:
             self.press(reason)
         else:
@@ -135,21 +155,38 @@ class EStop:
         return state if isinstance(state, dict) else {"running": True}
 
     def check_state_file(self) -> None:
-        """Refuse (OSError naming the file and the fix) a state file this process cannot write: the latch would
-        not survive a crash, and a supervisor would restart the bridge unlatched."""
+        """Refuse (OSError naming the file and the fix) a state file this process cannot record the latch in: the
+        latch would not survive a crash, and a supervisor would restart the bridge unlatched. It takes the path
+        every record takes (a sibling written, then renamed over the file), keeping what the file held."""
         if self.state_file is None:
             return
-        if self.state_file.is_dir():
-            raise OSError(f"the e-stop state file {self.state_file} is a folder; pass a file path in it, e.g. "
-                          f"{self.state_file / 'bridge-state.json'}")
         probe = self.state_file.with_name(self.state_file.name + ".tmp")
         try:
-            probe.write_text("{}")
-            probe.unlink()
+            if self.state_file.is_dir():
+                raise IsADirectoryError(f"the e-stop state file {self.state_file} is a folder; pass a file path in "
+                                        f"it, e.g. {self.state_file / 'bridge-state.json'}")
+            existed = self.state_file.is_file()
+            kept = self.state_file.read_bytes() if existed else b"{}"
+            probe.write_bytes(kept)
+            os.replace(probe, self.state_file)   # what _write does: an immutable file or another user's in a
+            if not existed:                      # sticky folder (/tmp) is refused here, not at the first press
+                self.state_file.unlink()
+        except IsADirectoryError as exc:
+            if exc.errno is None:   # ours, above
+                raise
+            problem = exc
         except OSError as exc:
-            raise OSError(f"the e-stop state file {self.state_file} cannot be written ({exc.strerror or exc}): the "
-                          "latch would not survive a crash; pass a --state-file in a folder this user can write "
-                          "(e.g. /var/lib/jepa-robot/bridge-state.json)") from None
+            problem = exc
+        else:
+            return
+        try:
+            probe.unlink()
+        except OSError:
+            pass
+        raise OSError(f"the e-stop state file {self.state_file} cannot be written and replaced "
+                      f"({problem.strerror or problem}): the latch would not survive a crash; pass a --state-file in "
+                      "a folder this user owns (e.g. /var/lib/jepa-robot/bridge-state.json), not another user's "
+                      "file nor an immutable one") from None
 
     def _write(self, running: bool) -> None:
         if self.state_file is None:

@@ -41,6 +41,7 @@ import collections
 import json
 import os
 import random
+import resource
 import subprocess
 import sys
 import threading
@@ -185,6 +186,35 @@ def run_operators(address: str, connections: int = OPERATOR_CONNECTIONS) -> None
     ctx.term()
 
 
+def run_status_flood(address: str, connections: int = MANY_CONNECTIONS, in_flight: int = 4) -> None:
+    """``connections`` DEALER sockets without the credential, each keeping ``in_flight`` valid ``status`` requests
+    waiting (the next sent as an answer comes): the event loop's queue of operator commands stays full."""
+    stop = _until_stdin_closes()
+    ctx = zmq.Context()
+    ctx.MAX_SOCKETS = connections + 64
+    request = [b"", msgpack.packb({"v": P.PROTOCOL_VERSION, "type": P.OP_STATUS})]
+    poller, socks = zmq.Poller(), []
+    for _ in range(connections):
+        sock = ctx.socket(zmq.DEALER)
+        sock.setsockopt(zmq.LINGER, 0)
+        sock.connect(address)
+        for _ in range(in_flight):
+            sock.send_multipart(request)
+        poller.register(sock, zmq.POLLIN)
+        socks.append(sock)
+    print(json.dumps({"ready": True}), flush=True)
+    answers: collections.Counter = collections.Counter()
+    while not stop.is_set():
+        for sock, _ in poller.poll(50):
+            reply = msgpack.unpackb(sock.recv_multipart()[-1], raw=False)
+            answers[reply.get("code") or reply.get("type")] += 1
+            sock.send_multipart(request)
+    print(json.dumps({"answers": dict(answers)}), flush=True)
+    for sock in socks:
+        sock.close(linger=0)
+    ctx.term()
+
+
 def run_big(address: str) -> None:
     """A stranger that keeps one 16 MiB slow-to-decode message in flight."""
     stop = _until_stdin_closes()
@@ -243,14 +273,15 @@ def run_estop_junk(address: str, connections: int = 1) -> None:
 def operator_silence(operator: str, flood: "Child", flood_s: float, every_s: float = 0.1,
                      timeout_s: float = 2.0, secret_file: str | None = None) -> dict:
     """While ``flood`` runs for ``flood_s`` seconds: a ``status`` every ``every_s`` from a new connection without
-    the operator's credential and one with it, each answered or not within ``timeout_s``; then the flood
-    stops and ``status`` is asked (1 s timeout each) until answered. Latencies in ms; answers by kind."""
+    the operator's credential and the operator's authenticated ``clear_estop`` (nothing latched: it changes
+    nothing), each answered or not within ``timeout_s``; then the flood stops and ``status`` is asked (1 s timeout
+    each) until answered. Latencies in ms; answers by kind."""
     def ask(authenticated: bool, timeout: float) -> tuple[str, float]:
         t0 = time.perf_counter()
         try:
             with OperatorClient(operator, timeout_s=timeout, secret_file=secret_file if authenticated
                                 else "/nonexistent/operator.secret") as op:
-                op.status()
+                op.clear_estop() if authenticated else op.status()
             kind = "result"
         except OperatorError as exc:
             kind = exc.code or "error"
@@ -394,7 +425,7 @@ def run_spin(address: str) -> None:
 ROLES = {"flood": run_flood, "spin": run_spin, "estopjunk": run_estop_junk,
          "estopjunk64": lambda address: run_estop_junk(address, 64), "operators": run_operators, "big": run_big,
          "controller": run_controller,
-         "strangers": lambda address: run_many(address, STRANGER_JUNK),
+         "strangers": lambda address: run_many(address, STRANGER_JUNK), "statusflood": run_status_flood,
          "opflood": lambda address: run_many(address, OPERATOR_JUNK)}
 
 
@@ -428,10 +459,11 @@ class Bridge:
     """A sim bridge in a child process on free loopback ports (heartbeats on: the default link timeout)."""
 
     def __init__(self, extra: tuple[str, ...] = (), nice: int = 0, rt_priority: int | None = None,
-                 process_fifo: int | None = None):
+                 process_fifo: int | None = None, descriptors: int | None = None):
         """``extra``: more serve arguments, e.g. ("--realtime",); ``nice``: the process's niceness (the systemd
         unit's Nice=-10); ``rt_priority``: the e-stop path at SCHED_FIFO (serve --rt-priority);
-        ``process_fifo``: every thread of the bridge at SCHED_FIFO (chrt), for comparison."""
+        ``process_fifo``: every thread of the bridge at SCHED_FIFO (chrt), for comparison; ``descriptors``: the
+        bridge's RLIMIT_NOFILE (the unit's LimitNOFILE)."""
         env = {**os.environ, "PYTHONUNBUFFERED": "1"}
         priority = ["nice", "-n", str(nice)] if nice else []
         if process_fifo is not None:
@@ -441,7 +473,9 @@ class Bridge:
         self.proc = subprocess.Popen(
             [*priority, sys.executable, "-m", "jepa_robot.cli", "serve", "--backend", "sim", "--task", "PushT",
              "--chunk-budget", "1000000", "--bind", "tcp://127.0.0.1:*", "--operator-bind", "tcp://127.0.0.1:*",
-             "--no-prompt", *extra], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
+             "--no-prompt", *extra], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env,
+            preexec_fn=None if descriptors is None else lambda: resource.setrlimit(resource.RLIMIT_NOFILE,
+                                                                                   (descriptors, descriptors)))
         banner = self.proc.stdout.readline()
         if " on " not in banner:
             raise RuntimeError(f"the bridge did not start: {banner!r} {self.proc.stderr.read()[-2000:]}")

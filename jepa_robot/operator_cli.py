@@ -5,7 +5,11 @@
     jepa-robot-bridge serve | check | bench | keys | observe ...   (jepa_robot.cli)
 
 The operator commands import only ZeroMQ and msgpack, so an e-stop is sent within tens of milliseconds of
-pressing Enter. Other subcommands need the simulator, numpy and the safety models; for them this process
+pressing Enter. With the operator credential (the bridge's user, or --operator-secret) every answer is checked:
+one the bridge did not prove (a process squatting the operator port) exits 1 naming it; without the credential
+``estop`` and ``status`` still work and say on stderr that their answer is unverified.
+
+Other subcommands need the simulator, numpy and the safety models; for them this process
 replaces itself with ``python -m jepa_robot.cli`` (a new program, not an import), which keeps this
 package free of the heavy stack.
 """
@@ -32,7 +36,8 @@ def _parser() -> argparse.ArgumentParser:
     default = os.environ.get(OPERATOR_ENV) or DEFAULT_OPERATOR
     where = f"operator socket (default {default}: ${OPERATOR_ENV}, else {DEFAULT_OPERATOR})"
     secret = (f"the operator credential the bridge made (default ${SECRET_ENV}, else "
-              "~/.config/jepa-robot/operator.secret); clear-estop, home, confirm and shutdown need it")
+              "~/.config/jepa-robot/operator.secret); clear-estop, home, confirm and shutdown need it, and with it "
+              "every answer is checked to come from the bridge")
     commands = [sub.add_parser(name, help=text) for name, text in (
         ("estop", "latch the emergency stop (takes effect mid-chunk; any local process may)"),
         ("clear-estop", "release the emergency stop (the operator's credential)"),
@@ -90,6 +95,10 @@ def run_operator_command(argv: list[str]) -> int:
         except (OperatorError, TimeoutError) as exc:
             print(f"error: {exc}", file=sys.stderr)
             return 1
+    if result.get("verified") is False:
+        print(f"note: this answer is unverified: without the operator credential ({op.secret_file}) this client "
+              "cannot check that the robot bridge sent it; if the robot must stop, the hardware e-stop does",
+              file=sys.stderr)
     print(json.dumps(result, indent=2, default=str))
     return 0
 

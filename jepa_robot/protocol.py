@@ -16,8 +16,8 @@ import msgpack
 import numpy as np
 
 # the protocol version and the operator messages live in the import-light operator package (one home)
-from jepa_robot.operator import (ERROR, OP_CLEAR_ESTOP, OP_CONFIRM, OP_ESTOP, OP_HOME, OP_SHUTDOWN,  # noqa: F401
-                           OP_STATUS, PROTOCOL_VERSION, RESULT)
+from jepa_robot.operator import (ERROR, OP_CHALLENGE, OP_CLEAR_ESTOP, OP_CONFIRM, OP_ESTOP, OP_HOME,  # noqa: F401
+                                 OP_SHUTDOWN, OP_STATUS, PROTOCOL_VERSION, RESULT)
 
 # size limits, checked before anything is decoded (decoding holds the interpreter: 64 KiB of the slowest msgpack
 # takes ~3 ms). ZeroMQ closes a connection whose message is above its socket's limit before the bridge reads a
@@ -57,6 +57,7 @@ ERR_REPLAY = "replayed_or_stale"   # a seq not above the session's last one
 ERR_OBSERVE_ONLY = "observe_only"  # the bridge serves observations only; actions are disabled
 ERR_LOST = "request_lost"          # the request never arrived (the connection dropped first); send it again
 ERR_RATE = "rate_limited"          # a connection without the session sent faster than the bridge answers strangers
+ERR_PRESSED_SINCE = "pressed_since_clear"   # a clear_estop refused: the e-stop was pressed after it arrived
 
 
 class ProtocolError(RuntimeError):

@@ -98,3 +98,31 @@ def test_check_says_which_rules_are_off(tmp_path, capsys):
     setup.write_text("[safety]\ncommand_deadline_s = 30.0\n")
     assert bridge_main(["check", str(setup), "--task", "PushT"]) == 0
     assert "WARNING safety.max_step_delta is not set: no per-step jump limit" in capsys.readouterr().out
+
+
+UNREADABLE = {
+    "nested arrays": "[safety]\nmax_step_delta = " + "[" * 5000 + "]" * 5000 + "\n",
+    "nested tables": "[safety]\nx = " + "{a=" * 3000 + "1" + "}" * 3000 + "\n",
+    "a 5,000-digit integer": "[safety]\nmax_step_delta = " + "9" * 5000 + "\n",
+}
+
+
+@pytest.mark.parametrize("name", list(UNREADABLE))
+def test_a_file_no_reader_can_take_is_one_line_everywhere(tmp_path, name):
+    """Deeply nested TOML (a RecursionError inside tomllib) and an integer beyond Python's 4,300-digit limit: check
+    printed a traceback, serve exited 1 with 2,995 lines of one, and supervise retried it forever (17,976 lines in
+    60 s). Now: check one line (exit 1), serve one line (exit 2), supervise exit 2 without a restart."""
+    import subprocess
+    import sys
+    setup = tmp_path / "setup.toml"
+    setup.write_text(UNREADABLE[name])
+    bridge = [sys.executable, "-m", "jepa_robot.cli"]
+    out = subprocess.run([*bridge, "check", str(setup), "--task", "PushT"], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 1 and "Traceback" not in out.stderr + out.stdout, out
+    assert len((out.stdout + out.stderr).strip().splitlines()) == 1, out
+    for command in (["serve"], ["supervise", "--state-file", str(tmp_path / "state.json")]):
+        out = subprocess.run([*bridge, *command, "--backend", "sim", "--task", "PushT", "--config", str(setup),
+                              "--no-prompt"], capture_output=True, text=True, timeout=120)
+        lines = out.stderr.strip().splitlines()
+        assert out.returncode == EXIT_REFUSED and "Traceback" not in out.stderr, out
+        assert len(lines) == (1 if command == ["serve"] else 2) and "restart" not in out.stderr, lines

@@ -223,7 +223,7 @@ def test_console_script_hands_other_commands_to_the_full_cli(tmp_path):
     out = subprocess.run([sys.executable, "-m", "jepa_robot.operator_cli", "check", str(_setup_file(tmp_path))],
                          capture_output=True, text=True, timeout=120)
     assert out.returncode == 0 and "OK, nothing touched" in out.stdout
-    assert P.PROTOCOL_VERSION == 3
+    assert P.PROTOCOL_VERSION == 4
 
 
 # ----------------------------------------------------------------------------- a long-lived operator client
