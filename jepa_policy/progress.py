@@ -1,5 +1,14 @@
-"""Rollouts on a progress bar: what ``jepa-policy eval`` and ``protocols --select`` show on stderr while they run."""
+"""Rollouts on a progress bar: what ``jepa-policy eval`` and ``protocols --select`` show on stderr while they run;
+and whether bars are wanted at all (``TQDM_DISABLE``, which ``jepa-demo --no-progress`` sets for its processes)."""
 from __future__ import annotations
+
+import os
+
+
+def bars_disabled() -> bool:
+    """True when the environment turns tqdm's bars off (tqdm's own ``TQDM_DISABLE``, inherited by the processes a
+    job spawns); a bar whose ``disable`` is passed explicitly would otherwise ignore it."""
+    return os.environ.get("TQDM_DISABLE", "").strip().lower() in ("1", "true", "yes")
 
 
 class EpisodeProgress:

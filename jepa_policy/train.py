@@ -42,6 +42,7 @@ from jepa_policy.dataset import ResumableBatchSampler, WindowDataset, make_loade
 from jepa_policy.evaluate import evaluate, make_pool
 from jepa_policy.model import build_model
 from jepa_policy.policy import Policy
+from jepa_policy.progress import bars_disabled
 
 CONFIG_DIR = Path(__file__).parent / "configs"
 
@@ -492,7 +493,8 @@ class RunLog:
         (out / "train_config.json").write_text(json.dumps(cfg.to_dict(), indent=2))
         self.writer = SummaryWriter(str(out / "tensorboard"))
         self.file = open(out / "log.jsonl", "a")
-        self.progress = tqdm(total=cfg.steps, initial=step, disable=not cfg.progress, desc=f"{cfg.task}/{cfg.arm}")
+        self.progress = tqdm(total=cfg.steps, initial=step, disable=not cfg.progress or bars_disabled(),
+                             desc=f"{cfg.task}/{cfg.arm}")
 
     def write(self, row: dict) -> None:
         self.file.write(json.dumps(row) + "\n")

@@ -50,7 +50,7 @@ def test_help_imports_nothing_heavy(script, tmp_path):
 
 def _demo_parser() -> argparse.ArgumentParser:
     """jepa-demo builds its parser inside main(): taken at parse_args, before anything runs."""
-    from jepa_policy.demo.job import main
+    from jepa_policy.demo.cli import main
 
     class Built(Exception):
         pass
@@ -105,10 +105,7 @@ LONG_RUNNING = {
 # breaches in files their owners are editing now (each must still be one: a fixed breach fails the test below)
 EXEMPT = {("jepa-robot-bridge bench", "--json"): "jepa_robot/cli.py: bench --json FILE should be --out FILE",
           ("jepa-robot-bridge bench", "--no-progress"): "jepa_robot/cli.py",
-          ("jepa-demo", "--no-progress"): "jepa_policy/demo/job.py",
-          ("jepa-demo ceiling", "--no-progress"): "jepa_policy/demo/job.py",
-          ("jepa-robot-bridge", "--version"): "jepa_robot/operator_cli.py and jepa_robot/cli.py",
-          ("jepa-demo", "--version"): "jepa_policy/demo/job.py"}
+          ("jepa-robot-bridge", "--version"): "jepa_robot/operator_cli.py and jepa_robot/cli.py"}
 
 
 def convention_problems(parsers: dict[str, argparse.ArgumentParser], long_running=LONG_RUNNING
@@ -167,7 +164,7 @@ BLOCKED = "its command line is in a file its owner is editing now; a strict xfai
 @pytest.mark.parametrize("script", ["jepa-envs", "jepa-policy", "jepa-monitor",
                                     pytest.param("jepa-robot-bridge", marks=pytest.mark.xfail(strict=True,
                                                                                               reason=BLOCKED)),
-                                    pytest.param("jepa-demo", marks=pytest.mark.xfail(strict=True, reason=BLOCKED))])
+                                    "jepa-demo"])
 def test_every_console_script_says_its_version(script):
     import shutil
     from importlib.metadata import version

@@ -20,7 +20,7 @@ from jepa_envs.cli import main as envs_main
 from jepa_robot.cli import main as bridge_main
 from jepa_policy.checkpoint import FORMAT
 from jepa_policy.cli import main as policy_main
-from jepa_policy.demo.job import main as demo_main
+from jepa_policy.demo.cli import main as demo_main
 from monitor_service.cli import main as monitor_main
 
 PROGRAMS = {"jepa-envs": envs_main, "jepa-policy": policy_main, "jepa-demo": demo_main,

@@ -2,26 +2,31 @@
 
 1. scripted PushT demonstrations (robomimic-layout HDF5);
 2. JEPA Policy and MIP trained with the same seed, data and budget (the ``cpu`` preset of the paper's recipe);
-3. the monitor service started for real (uvicorn on loopback, SQLite file); seeded rollouts of each arm with the
+3. the imitation ceiling of those demonstrations (a true-state policy, ``demo/ceiling.py``);
+4. the monitor service started for real (uvicorn on loopback, SQLite file); seeded rollouts of each arm with the
    real ``MonitorClient`` in the loop: z_hat at each decision, E_rgb(o_{t+k}) when the frame arrives, the outcome
    at the end. A held-out set of labelled rollouts calibrates the task; later rollouts are scored live against
    that calibration and raise alerts;
-4. failure prediction compared: every failure signal (ours, STAC, RND, PCA-kmeans, Mahalanobis, chance) on
-   several hundred more labelled rollouts per arm, natural and under faults with a known onset (``failure.py``);
-5. a Markdown report with PNG figures in the output folder and a printed summary.
+5. decision latency, JEPA against MIP;
+6. failure prediction compared: every failure signal (ours, STAC, RND, PCA-kmeans, Mahalanobis, chance) on
+   several hundred more labelled rollouts per arm, natural and under faults with a known onset
+   (``run_failure_study`` below, ``jepa-monitor compare``'s tables);
+7. (``--full``) the audits and checkpoint selection;
+8. a Markdown report with PNG figures in the output folder and a printed summary.
+
+The steps printed while it runs are these, numbered over the ones the mode runs (the default runs 7).
+The command line is ``jepa_policy/demo/cli.py``; ``--task Lift|Can`` runs ``demo/pick.py`` instead.
 
 Every number in the report is what this run measured. Reruns reuse demos and checkpoints unless ``--fresh``.
 """
 from __future__ import annotations
 
-import argparse
 import hashlib
 import json
 import multiprocessing
 import os
 import secrets
 import shutil
-import sys
 import time
 from concurrent.futures import ProcessPoolExecutor
 from contextlib import contextmanager
@@ -35,19 +40,16 @@ import torch
 from tqdm import tqdm
 
 from jepa_envs.datasets.hdf5 import load_dataset, write_dataset
-from jepa_envs.errors import USER_ERRORS, user_error
 from jepa_envs.tasks.pusht_expert import generate_demos
 from jepa_policy.audit import audit_checkpoint, gradient_audit, retrieval_audit
 from jepa_policy.bench import count_passes, time_calls
 from jepa_policy.checkpoint import load_checkpoint
-from jepa_policy.demo.ceiling import evaluate_state_policy, state_ceiling, train_state_policy
-from jepa_policy.demo.pick import TASKS as PICK_TASKS
-from jepa_policy.demo.pick import pick_config
-from jepa_policy.demo.pick import run as run_pick
+from jepa_policy.demo.ceiling import evaluate_state_policy, train_state_policy
 from jepa_policy.demo.report import write_report
 from jepa_policy.detectors import fit_detectors, load_detectors
 from jepa_policy.evaluate import env_kwargs_for, evaluate, make_pool
 from jepa_policy.policy import Policy
+from jepa_policy.progress import bars_disabled
 from jepa_policy.selection import select_checkpoint, wilson_ci
 from monitor_service.compare import compare as compare_signals
 from monitor_service.compare import episode_of
@@ -153,7 +155,7 @@ def make_demos(cfg: DemoConfig, out: Path, fresh: bool) -> Path:
         print(f"   reusing {path}")
         return path
     path.parent.mkdir(parents=True, exist_ok=True)
-    episodes, env_args = generate_demos(cfg.demos, seed=0, workers=os.cpu_count() or 1, progress=True,
+    episodes, env_args = generate_demos(cfg.demos, seed=0, workers=os.cpu_count() or 1, progress=not bars_disabled(),
                                         finish_threshold=cfg.finish_threshold)
     tmp = path.with_suffix(".tmp.hdf5")
     write_dataset(tmp, episodes, env_args)
@@ -244,7 +246,7 @@ def _file_digest(path: Path) -> str:
     return _digest([str(path.resolve()), st.st_size, st.st_mtime_ns])
 
 
-# ----------------------------------------------------------------------------- step 3: monitored rollouts
+# ----------------------------------------------------------------------------- step 4: monitored rollouts
 
 class Monitor:
     """The monitor service for real: uvicorn subprocess, SQLite file, admin/robot/operator keys."""
@@ -538,71 +540,6 @@ def run(cfg: DemoConfig, out: Path, fresh: bool = False) -> dict:
     return summary
 
 
-def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="jepa-demo", description=__doc__.split("\n\n")[0])
-    size = parser.add_mutually_exclusive_group()
-    size.add_argument("--quick", action="store_true", help="a minute or two: smaller everything, same code path")
-    size.add_argument("--full", action="store_true", help="a real study: three seeds per arm, paired comparison")
-    parser.add_argument("--task", default=TASK, choices=(TASK, *PICK_TASKS),
-                        help="PushT (default: the main job, about 6 minutes) or a robomimic pick task, Lift or Can "
-                             "(demonstrations, both arms, the true-state ceiling, 200 evaluation episodes each: about "
-                             "2 hours on 2 cores; docs/training.md)")
-    parser.add_argument("--out", default="demo_out", help="output folder (default: demo_out)")
-    parser.add_argument("--fresh", action="store_true", help="recompute demonstrations and checkpoints")
-    parser.add_argument("--workers", type=int, default=None,
-                        help="env-only rollout processes of the rollouts (default 0: PushT's env step is cheaper than "
-                             "a process round trip; `jepa-policy bench rollouts` measures it); results are identical "
-                             "for any number")
-    parser.add_argument("--steps", type=int, default=None,
-                        help="training steps per arm instead of the preset's (beyond the 15-minute budget: more "
-                             "steps, higher success); written to <out>/<mode>-steps<N>")
-    sub = parser.add_subparsers(dest="command", metavar="{ceiling}",
-                                help="optional: a study on its own instead of the main job")
-    p = sub.add_parser("ceiling", help="PushT imitation ceiling of a demo file: a true-state MLP trained and "
-                                       "rolled out with the image policies' chunking")
-    p.add_argument("--dataset", required=True, help="PushT demonstration file (jepa-envs make-demos)")
-    p.add_argument("--seed", type=int, default=0, help="training seed")
-    p.add_argument("--episodes", type=int, default=200, help="evaluation rollouts")
-    p.add_argument("--eval-seed", type=int, default=200_000, help="seed of the first evaluation rollout")
-    p.add_argument("--steps", type=int, default=4000, help="training steps of the state policy")
-    args = parser.parse_args(argv)
-    if args.command == "ceiling":
-        try:
-            result = state_ceiling(args.dataset, seed=args.seed, episodes=args.episodes, eval_seed=args.eval_seed,
-                                   steps=args.steps)
-        except USER_ERRORS as exc:
-            return user_error("jepa-demo ceiling", exc)
-        print(json.dumps(result))
-        return 0
-    mode = "quick" if args.quick else "full" if args.full else "default"
-    if args.task != TASK:
-        if args.full:
-            parser.error("--full is the PushT study (three seeds per arm); a pick task runs one seed per arm")
-        try:
-            pick_cfg = pick_config(args.task, mode, args.steps)
-            if args.workers is not None:
-                pick_cfg = replace(pick_cfg, workers=args.workers)
-            name = args.task + ("-quick" if mode == "quick" else "") + (f"-steps{args.steps}" if args.steps else "")
-            run_pick(pick_cfg, Path(args.out) / name, fresh=args.fresh)
-        except ValueError as exc:
-            parser.error(str(exc))
-        except USER_ERRORS as exc:
-            return user_error("jepa-demo", exc)
-        return 0
-    try:
-        cfg, name = demo_config(mode, args.steps)
-    except ValueError as e:
-        parser.error(str(e))
-    if args.workers is not None:
-        if args.workers < 0:
-            parser.error(f"--workers must be >= 0 (0: in this process), got {args.workers}")
-        cfg = replace(cfg, workers=args.workers)
-    try:
-        run(cfg, Path(args.out) / name, fresh=args.fresh)
-    except USER_ERRORS as exc:   # e.g. a checkpoint in the output folder that is refused unread
-        return user_error("jepa-demo", exc)
-    return 0
-
 
 
 
@@ -614,7 +551,3 @@ def demo_config(mode: str, steps: int | None = None) -> tuple[DemoConfig, str]:
     if steps < 1:
         raise ValueError(f"--steps must be a positive number of training steps, got {steps}")
     return replace(cfg, train_overrides={**cfg.train_overrides, "steps": steps}), f"{mode}-steps{steps}"
-
-
-if __name__ == "__main__":
-    sys.exit(main())

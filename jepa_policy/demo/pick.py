@@ -32,18 +32,22 @@ from pathlib import Path
 
 import gymnasium as gym
 import numpy as np
+import robosuite
 import torch
 from torch import nn
 from tqdm import tqdm
 
 from jepa_envs.datasets.hdf5 import demo_names, load_dataset, open_hdf5, write_dataset
+from jepa_envs.datasets.render_dataset import render_dataset
 from jepa_envs.tasks.outcomes import FAILURE_KINDS
 from jepa_envs.tasks.robosuite_expert import generate_demos
+from jepa_envs.tasks.rotations import rot6d_to_matrix
 from jepa_envs.tasks.spec import get_task_spec
 from jepa_policy.checkpoint import load_checkpoint
 from jepa_policy.dataset import window_indices
 from jepa_policy.evaluate import env_kwargs_for, evaluate, make_pool
 from jepa_policy.policy import Policy
+from jepa_policy.progress import bars_disabled
 from jepa_policy.selection import wilson_ci
 from jepa_policy.train import load_config, train
 
@@ -126,7 +130,8 @@ def make_demos(cfg: PickConfig, out: Path, fresh: bool, count: int, seed: int, n
         return path
     path.parent.mkdir(parents=True, exist_ok=True)
     episodes, env_args = generate_demos(cfg.task, count, seed=seed, image_size=_image_size(cfg),
-                                        workers=max(1, cfg.workers), progress=True, reflections=False)
+                                        workers=max(1, cfg.workers), progress=not bars_disabled(),
+                                        reflections=False)
     tmp = path.with_suffix(".tmp.hdf5")
     write_dataset(tmp, episodes, env_args)
     tmp.replace(path)
@@ -394,7 +399,6 @@ HUMAN_LIFT = "models/assets/demonstrations/lift/demo.hdf5"   # inside the robosu
 
 
 def human_demos_file() -> Path:
-    import robosuite
     return Path(robosuite.__file__).parent / HUMAN_LIFT
 
 
@@ -402,7 +406,6 @@ def action_errors(policy: Policy, dataset: Path, batch: int = 64) -> dict:
     """The policy's first predicted action against each recorded action of ``dataset`` (the window of its
     ``obs_steps`` newest frames, padded at an episode's start as in training): grip-site position error (cm),
     orientation error (degrees) and whether the gripper command has the recorded sign."""
-    from jepa_envs.tasks.rotations import rot6d_to_matrix
     demos = load_dataset(dataset, task=policy.spec.name, image_size=policy.spec.image_size, cache_dir=False)
     starts = np.concatenate([[0], demos.episode_ends[:-1]])
     start_of = np.repeat(starts, np.diff(np.concatenate([[0], demos.episode_ends])))
@@ -451,11 +454,10 @@ def human_check(cfg: PickConfig, out: Path, checkpoints: dict[str, Path], held_o
     """robosuite's shipped human Lift demonstrations, rendered as the policies see (render-dataset, the run's
     size, the reflection off): action errors on them beside held-out scripted demonstrations, and success from
     their initial states."""
-    from jepa_envs.datasets.render_dataset import render_dataset
     human = out / "data" / f"lift_human_{_image_size(cfg)}px.hdf5"
     if fresh or not human.exists():
         human.parent.mkdir(parents=True, exist_ok=True)
-        render_dataset(human_demos_file(), human, task="Lift", size=_image_size(cfg), progress=True,
+        render_dataset(human_demos_file(), human, task="Lift", size=_image_size(cfg), progress=not bars_disabled(),
                        reflections=False)
     result = {"human_file": str(human), "arms": {}}
     for arm, ckpt in checkpoints.items():

@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from jepa_policy.demo.ceiling import evaluate_state_policy, read_state_demos, state_features, train_state_policy
-from jepa_policy.demo.job import main
+from jepa_policy.demo.cli import main
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 

@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 from sklearn.metrics import roc_auc_score
 
+from jepa_policy.demo import cli as demo_cli
 from jepa_policy.demo import job as demo
 from jepa_policy.demo.report import EARLY_DECISIONS, early_score, paired_comparison, wilson_ci
 from jepa_policy.checkpoint import load_checkpoint
@@ -327,5 +328,5 @@ def test_steps_override_changes_only_the_training_steps(capsys):
     assert quick.train_overrides["steps"] == 7 and quick.train_overrides["eval_every"] == 15
     assert demo.demo_config("full") == (demo.MODES["full"], "full")
     with pytest.raises(SystemExit):
-        demo.main(["--steps", "0"])
+        demo_cli.main(["--steps", "0"])
     assert "--steps must be a positive number of training steps, got 0" in capsys.readouterr().err

@@ -227,3 +227,14 @@ def test_snapshots_without_evaluation_keep_the_ema_weights_for_a_later_curve(dem
         assert torch.equal(a, b)
     with pytest.raises(ValueError, match="needs keep_eval_checkpoints"):
         load_config("PushT", "quick", eval_every=3, eval_episodes=0, keep_eval_checkpoints=False)
+
+
+def test_tqdms_own_switch_silences_the_training_bar(demos, tmp_path, monkeypatch, capsys):
+    """jepa-demo --no-progress sets TQDM_DISABLE for the processes it spawns; the training bar, whose disable
+    is passed explicitly (so tqdm itself would ignore the variable), obeys it too."""
+    opts = dict(steps=2, log_every=1, warmup_steps=0, batch_size=4, progress=True)
+    train(load_config("PushT", "quick", out_dir=str(tmp_path / "on"), **opts), demos)
+    assert "PushT/jepa" in capsys.readouterr().err
+    monkeypatch.setenv("TQDM_DISABLE", "1")
+    train(load_config("PushT", "quick", out_dir=str(tmp_path / "off"), **opts), demos)
+    assert "PushT/jepa" not in capsys.readouterr().err
