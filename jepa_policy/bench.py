@@ -334,21 +334,28 @@ def rollouts_estimate(step_s: float, episodes: int, num_envs: int, max_steps: in
 
 def bench_rollouts(task: str = "PushT", workers: int | None = None, episodes: int = 8, num_envs: int = 4,
                    max_steps: int = 60, repeats: int = 2, preset: str = "cpu", image_size: int | None = None,
-                   progress: bool = False) -> dict:
+                   progress: bool = False, checkpoint: str | None = None, seed: int = 0) -> dict:
     """Episodes per minute of full rollouts (env steps and frames in the workers, a JEPA model acting on each
     round's batch in this process) with 1 worker and with ``workers`` workers, interleaved; persistent pools,
     so process start-up is reported apart. A randomly initialised model of the preset's shape acts: the
-    throughput of evaluation, not a success rate. Also checks that both pools give identical records.
+    throughput of evaluation, not a success rate; or, with ``checkpoint``, that trained policy in the env its
+    demonstrations were recorded in (its episodes end when they succeed: the throughput of its evaluation, with
+    its success rate). Also checks that both pools give identical records.
     ``progress``: print the plan, the estimated time and a progress bar (episodes) on stderr."""
     torch.set_num_threads(1)   # the policy's share; the workers get the rest of the cores
     workers = available_cores() if workers is None else workers
-    spec = get_task_spec(task)
-    cfg = load_config(task, preset)
-    size = image_size or cfg.image_size or spec.image_size
-    spec = spec.with_image_size(size)
-    model = _ema_model(spec, "jepa", torch.device("cpu"), **{k: v for k, v in cfg.model.items()
-                                                            if k not in ("image_size",)})
-    policy = Policy(model, spec)
+    if checkpoint:
+        policy = Policy.from_checkpoint(checkpoint)
+        spec, task = policy.spec, policy.spec.name
+        size = spec.image_size
+    else:
+        spec = get_task_spec(task)
+        cfg = load_config(task, preset)
+        size = image_size or cfg.image_size or spec.image_size
+        spec = spec.with_image_size(size)
+        model = _ema_model(spec, "jepa", torch.device("cpu"), **{k: v for k, v in cfg.model.items()
+                                                                if k not in ("image_size",)})
+        policy = Policy(model, spec)
     counts = sorted({0, 1, workers})
     if progress:
         print(rollouts_plan(task, size, episodes, num_envs, max_steps, repeats, counts), file=sys.stderr, flush=True)
@@ -378,7 +385,7 @@ def bench_rollouts(task: str = "PushT", workers: int | None = None, episodes: in
                             done.add(event.episode)
                             bar.update(1)
                     t0 = time.perf_counter()
-                    report = evaluate(policy, episodes=episodes, seed=0, pool=pool, on_decision=episode_seen)
+                    report = evaluate(policy, episodes=episodes, seed=seed, pool=pool, on_decision=episode_seen)
                     seconds[n].append(time.perf_counter() - t0)
                     bar.update(episodes - len(done))   # episodes that ended before their first decision's event
                     records[n] = report["records"]
@@ -390,6 +397,9 @@ def bench_rollouts(task: str = "PushT", workers: int | None = None, episodes: in
             "workers": workers, "cores": available_cores(), "episodes_per_min": rate,
             "speedup": rate[workers] / rate[1], "in_process_ratio": rate[0] / rate[1], "startup_s": startup,
             "identical_records": all(r == records[1] for r in records.values()),
+            "checkpoint": checkpoint, "seed": seed,
+            "successes": sum(r["success"] for r in records[1]),
+            "mean_length": float(np.mean([r["length"] for r in records[1]])),
             "renderer": pools[workers].renderer,
             "load_avg": os.getloadavg()[0]}
 
@@ -402,7 +412,9 @@ def format_rollouts(result: dict) -> str:
             f"load {result['load_avg']:.1f} "
             f"on {result['cores']} cores): 1 worker {rates[1]:.1f} episodes/min, {w} workers {rates[w]:.1f} "
             f"episodes/min, speed-up {result['speedup']:.2f}x; in-process (no workers) {rates[0]:.1f} episodes/min; "
-            f"pool start-up {result['startup_s'][w]:.1f} s, once; records identical: {result['identical_records']}")
+            f"pool start-up {result['startup_s'][w]:.1f} s, once; records identical: {result['identical_records']}"
+            + (f"; {result['checkpoint']}: {result['successes']}/{result['episodes']} successes, mean length "
+               f"{result['mean_length']:.1f} steps" if result.get("checkpoint") else ""))
 
 
 def _random_checkpoint(task: str, preset: str, path) -> str:

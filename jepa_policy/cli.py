@@ -268,7 +268,7 @@ def cmd_bench_rollouts(args) -> int:
 
     result = bench_rollouts(args.task, workers=args.workers, episodes=args.episodes, num_envs=args.num_envs,
                             max_steps=args.max_steps, repeats=args.repeats, preset=args.preset,
-                            progress=not args.no_progress)
+                            progress=not args.no_progress, checkpoint=args.checkpoint, seed=args.seed)
     print(json.dumps(result, default=str) if args.json else format_rollouts(result))
     return 0
 
@@ -515,6 +515,10 @@ def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
     p.add_argument("--max-steps", type=int, default=60, help="episode step limit")
     p.add_argument("--repeats", type=int, default=2, help="timed evaluations per pool, interleaved")
     p.add_argument("--preset", default="cpu", help="model shapes of this preset")
+    p.add_argument("--checkpoint", default=None,
+                   help="roll out this trained policy (its task, image size and recorded env) instead of a random "
+                        "model: episodes end when they succeed, so the rate is its evaluation's")
+    p.add_argument("--seed", type=int, default=0, help="seed of the first episode (episode i: seed + i)")
     # --quiet stays while docs/rollouts.md still names it
     p.add_argument("--no-progress", "--quiet", dest="no_progress", action="store_true",
                    help="no plan, time estimate or progress bar on stderr")

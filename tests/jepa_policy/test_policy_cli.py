@@ -2,6 +2,8 @@
 import json
 import re
 
+import numpy as np
+
 import pytest
 
 from jepa_policy.cli import main
@@ -97,6 +99,14 @@ def test_train_eval_protocols_from_the_command_line(pusht_demo_file, tmp_path, c
     plain = [json.loads(line) for line in (tmp_path / "eval.jsonl").read_text().splitlines()]
     assert len(plain) == 2   # named, so that compare never pools two checkpoints' records as one policy
     assert {(r["arm"], r["checkpoint"]) for r in plain} == {("jepa", str(ckpt))}
+    # the trained policy's own rollouts timed: its task and size, the same episodes (seeds 3, 4) as eval ran
+    assert main(["bench", "rollouts", "--checkpoint", str(ckpt), "--workers", "1", "--episodes", "2",
+                 "--num-envs", "2", "--max-steps", "10", "--repeats", "1", "--seed", "3", "--json",
+                 "--no-progress"]) == 0
+    timed = json.loads(capsys.readouterr().out)
+    assert (timed["task"], timed["image_size"], timed["checkpoint"]) == ("PushT", 32, str(ckpt))   # quick: 32 px
+    assert timed["identical_records"] and timed["successes"] == sum(r["success"] for r in plain)
+    assert timed["mean_length"] == np.mean([r["length"] for r in plain])
     # faults only, one of them twice under labels: the records are tagged with the labels, no natural block
     assert main(["eval", "--checkpoint", str(ckpt), "--episodes", "2", "--seed", "3", "--max-steps", "10",
                  "--workers", "0", "--faults", "sensor_noise;sensor_noise:std=9,label=noisier", "--faults-only",
