@@ -38,7 +38,8 @@ the loop serves first), and sends the loop's answer back when it comes, serving 
 meanwhile. At most ``MAX_PENDING`` commands wait for the loop, of which only ``MAX_PENDING -
 RESERVED_FOR_OPERATOR`` may be unauthenticated: beyond that they are answered ``busy`` at once, so a flood of
 strangers' ``status`` never crowds the operator out. A ``clear_estop`` is forwarded with the latch's generation
-read when it arrived (``EStop.clear``): a press that arrives after it keeps the e-stop latched. ``handle`` is
+read the moment its message was read off the socket (``EStop.clear``): a press read after it, even an e-stop
+pressed later in the same turn, keeps the e-stop latched. ``handle`` is
 the same entry for callers inside the bridge's process (``RobotBridge.command``, trusted: no credential), whose
 commands wait in a queue the loop serves on the same turn (``serve_loop``).
 """
@@ -300,14 +301,16 @@ class OperatorChannel:
                     self._send(route, _OPERATOR_RATE_LIMITED)
                     continue
                 g[0] -= cost
-            later.append((frames[0], route, parts, mac))
+            # the latch's generation as this request is read: a clear_estop among them releases only the latch
+            # as it was then, not one pressed by an e-stop read after it in this same turn
+            later.append((frames[0], route, parts, mac, self.estop.generation))
         refused = dropped + too_long
-        for identity, route, parts, mac in later:
+        for identity, route, parts, mac, generation in later:
             if self._peer_over_rate(identity, now):   # this connection's own limit: told so, unread
                 refused += 1
                 self._send(route, _OPERATOR_RATE_LIMITED, mac)
                 continue
-            self._handle(route, *self._decode(parts, mac), mac, now)
+            self._handle(route, *self._decode(parts, mac), mac, now, generation)
         if refused:
             with self._lock:
                 for name, count in (("operator_dropped", dropped), ("operator_too_many_frames", too_long),
@@ -317,7 +320,8 @@ class OperatorChannel:
         return refused
 
     def _handle(self, route: list[bytes], message: dict | None, refusal: dict | None, mac: bytes | None,
-                now: float) -> None:
+                now: float, generation: int) -> None:
+        """One request of the turn, in the order read; ``generation`` is the latch's when it was read."""
         if refusal is not None:
             self._send(route, refusal, mac)
             return
@@ -351,8 +355,8 @@ class OperatorChannel:
         nonce = message.get("nonce") if kind == P.OP_STATUS else None
         meta = {"auth": authenticated, "mac": mac,
                 "nonce": nonce if type(nonce) is bytes and len(nonce) == NONCE_BYTES else None,
-                # the latch's generation when the clear arrived: a press read after this keeps the latch
-                "generation": self.estop.generation if kind == P.OP_CLEAR_ESTOP else None}
+                # the latch's generation when the clear was read: a press read after it keeps the latch
+                "generation": generation if kind == P.OP_CLEAR_ESTOP else None}
         self._pending[authenticated] += 1
         self._to_loop[authenticated].send_multipart([*route, msgpack.packb(meta), P.encode(message)])
 

@@ -174,3 +174,47 @@ def test_every_press_starts_a_new_generation_of_the_latch():
     assert estop.generation == seen + 1
     assert estop.clear(seen) is False and estop.latched
     assert estop.clear(estop.generation) is True and not estop.latched
+
+
+def test_a_clear_read_before_a_press_in_the_same_turn_keeps_the_latch(robot):
+    """The operator thread reads a signed clear_estop and then an e-stop in one turn (one DEALER connection, so the
+    ROUTER reads them in that order; the turn is held until both are queued). The press is answered held at once
+    and must stay latched: before, the clear's generation was read only after the turn's e-stops were pressed, so
+    it released this later press (hostile round 3: 30 of 30 trials with a 5 ms turn delay)."""
+    import msgpack
+    import zmq
+
+    from jepa_robot.operator import CHALLENGE_FRAME, ESTOP_FRAME, read_operator_secret, request_mac
+    from robot_testkit import raw_socket
+
+    bridge = robot.bridge()
+    op = robot.operator(bridge)
+    op.estop()
+    channel = bridge._operator
+    serve_turn, hold, go = channel._serve_requests, threading.Event(), threading.Event()
+
+    def held_turn():   # the real turn, started only once both messages wait on the socket
+        if hold.is_set():
+            go.wait(5)
+        return serve_turn()
+    channel._serve_requests = held_turn
+    ctx = zmq.Context()
+    sock = raw_socket(ctx, zmq.DEALER, bridge.operator_endpoint)
+    try:
+        sock.send_multipart([b"", CHALLENGE_FRAME])
+        challenge = msgpack.unpackb(sock.recv_multipart()[1], raw=False)["challenge"]
+        body = msgpack.packb({"v": 4, "type": "clear_estop", "challenge": challenge}, use_bin_type=True)
+        hold.set()
+        time.sleep(0.05)   # the challenge's turn has ended
+        sock.send_multipart([b"", request_mac(read_operator_secret(), body), body])
+        sock.send_multipart([b"", ESTOP_FRAME])
+        time.sleep(0.2)   # both reach the ROUTER's queue for this connection, in this order
+        go.set()
+        press = msgpack.unpackb(sock.recv_multipart()[1], raw=False)
+        clear = msgpack.unpackb(sock.recv_multipart()[1], raw=False)
+    finally:
+        sock.close(linger=0)
+        ctx.term()
+    assert press["status"]["held"] is True
+    assert clear["type"] == "error" and clear["code"] == "pressed_since_clear", clear
+    assert bridge.estop.latched
