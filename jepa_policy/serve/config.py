@@ -26,6 +26,7 @@ class ServeConfig:
     max_batch: int = 16
     max_queue: int = 64
     max_connections: int = 32
+    idle_evict_s: float = 5.0           # at the cap, a connection idle longer than this makes room for a new one
     monitor_url: str | None = None
     monitor_key: str | None = None
     task_id: str | None = None          # the monitor's task name (default: the checkpoint's task)
@@ -55,6 +56,8 @@ def check_config(config: ServeConfig) -> None:
                          "of the monitor service)")
     if config.max_batch < 1 or config.max_queue < 1 or config.max_connections < 1:
         raise ValueError("--max-batch, --max-queue and --max-connections must be >= 1")
+    if not (isinstance(config.idle_evict_s, (int, float)) and 0 < config.idle_evict_s < float("inf")):
+        raise ValueError(f"idle_evict_s must be a number of seconds > 0, not {config.idle_evict_s!r}")
 
 
 def read_secret(flag: str, value: str | None, file: str | None, env: str) -> str | None:

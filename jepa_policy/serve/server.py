@@ -20,13 +20,16 @@ anything, and a robot whose own requests are accepted is never slowed by another
   (1008).
 
 A connection is *trusted* from its first accepted request until one is refused: it is never paused, and at the
-connection cap an untrusted connection (the longest-refused first, then the oldest) is closed (1013) to let a new
-one in rather than refusing the new one's handshake. A robot whose one frame is wrong hears of it at once; a
-client that sends junk in a loop, reconnecting or not, from one address or many, shares a few refusals a second
-with every other. Requests the server itself fails on (a bug, a MemoryError) are paced the same way, answered in
-one line and logged as one JSON line with the traceback as a field; so are the event loop's own errors (an
-``accept()`` out of descriptors is an ``accept_failed`` line, at most one a second, with the count of failures it
-stands for).
+connection cap an untrusted connection (the longest-refused first, then the oldest) is closed to let a new one in
+rather than refusing the new one's handshake; when every connection is trusted, the one idle longest is closed
+instead if it sent nothing for more than ``ServeConfig.idle_evict_s`` (5 s; a robot mid-episode sends a request
+every ~0.1 s), so connections that were served once and then sit idle cannot lock new robots out. HTTP 503 only
+when every connection is trusted and active within that bound. A robot whose one frame is wrong hears of it at
+once; a client that sends junk in a loop, reconnecting or not, from one address or many, shares a few refusals a
+second with every other. Requests the server itself fails on (a bug, a MemoryError) are paced the same way,
+answered in one line and logged as one JSON line with the traceback as a field; so are the event loop's own errors
+(an ``accept()`` out of descriptors is an ``accept_failed`` line, at most one a second, with the count of failures
+it stands for).
 
 The monitor's state is bounded: a session keeps at most ``MAX_PENDING`` predictions waiting for their target
 frame (one whose target step passed unseen is dropped), and the alert state of an episode is kept only while a
@@ -181,7 +184,8 @@ class PolicyServer:
         self.decoder = ThreadPoolExecutor(max_workers=2, thread_name_prefix="jepa-serve-decode")
         self.connections = 0
         self._accept_failures, self._accept_logged = 0, -math.inf   # accept() errors not yet logged
-        # admitted connections -> (trusted: a request accepted and none refused since, last refused, opened)
+        # admitted connections -> (trusted: a request accepted and none refused since, last refused, opened,
+        # last active: its last request came or its last answer went)
         self._admitted: dict[ServerConnection, list] = {}
         self.port: int | None = None
         self.ready = threading.Event()
@@ -239,21 +243,35 @@ class PolicyServer:
         self._admitted = {c: state for c, state in self._admitted.items() if not c.transport.is_closing()}
         if len(self._admitted) >= self.config.max_connections:
             untrusted = [(state[1], -state[2], c) for c, state in self._admitted.items() if not state[0]]
-            if not untrusted:
+            now = time.monotonic()
+            idle = [(now - state[3], c) for c, state in self._admitted.items()
+                    if now - state[3] > self.config.idle_evict_s]
+            if not untrusted and idle:
+                # a trusted connection that sent nothing for longer than a robot mid-episode ever waits (it sends a
+                # request every ~0.1 s): the one idle longest makes room, so idle connections cannot lock robots out
+                seconds, victim = max(idle, key=lambda item: item[0])
+                self.events.emit("evicted", peer=_peer(victim), connections=len(self._admitted),
+                                 limit=self.config.max_connections,
+                                 problem=f"idle {seconds:.1f} s (trusted, but no request for more than "
+                                         f"{self.config.idle_evict_s:g} s)")
+                del self._admitted[victim]
+                victim.transport.abort()
+            elif not untrusted:
                 self.events.emit("refused", peer=peer, status=503, connections=len(self._admitted),
                                  limit=self.config.max_connections)
                 return connection.respond(http.HTTPStatus.SERVICE_UNAVAILABLE,
                                           f"the server has {len(self._admitted)} connections, its limit "
-                                          "(--max-connections), each serving a robot; retry later, or raise the "
-                                          "limit\n")
-            # the connection refused most recently (else the oldest not yet served) makes room for this one
-            victim = max(untrusted, key=lambda item: (item[0], item[1]))[2]
-            self.events.emit("evicted", peer=_peer(victim), connections=len(self._admitted),
-                             limit=self.config.max_connections, problem="no request of it was accepted yet, or its "
-                                                                        "last one was refused")
-            del self._admitted[victim]
-            victim.transport.abort()
-        self._admitted[connection] = [False, -math.inf, time.monotonic()]
+                                          "(--max-connections), each serving a robot (a request within the last "
+                                          f"{self.config.idle_evict_s:g} s); retry later, or raise the limit\n")
+            else:   # the connection refused most recently (else the oldest not yet served) makes room for this one
+                victim = max(untrusted, key=lambda item: (item[0], item[1]))[2]
+                self.events.emit("evicted", peer=_peer(victim), connections=len(self._admitted),
+                                 limit=self.config.max_connections, problem="no request of it was accepted yet, or "
+                                                                            "its last one was refused")
+                del self._admitted[victim]
+                victim.transport.abort()
+        opened = time.monotonic()
+        self._admitted[connection] = [False, -math.inf, opened, opened]
         return None
 
     async def _handler(self, ws: ServerConnection) -> None:
@@ -267,17 +285,20 @@ class PolicyServer:
             await ws.send(pack(self.metadata))
             async for message in ws:
                 start = time.monotonic()
+                self._active(ws, math.inf)   # in flight: not idle until it is answered
                 session.requests += 1
                 try:
                     reply = await self._answer(session, message)
                 except ServerBusy as exc:
                     self.events.emit("busy", peer=session.peer, session=session.id, queue=self.batcher.queue.qsize())
                     await ws.send(f"jepa-policy serve: {exc}")
+                    self._active(ws, time.monotonic())
                     continue
                 except RequestError as exc:
                     self.events.emit("rejected", peer=session.peer, session=session.id, problem=str(exc)[:300])
                     await ws.send(f"jepa-policy serve: {exc}")
                     await self._pace(ws, session, len(message))
+                    self._active(ws, time.monotonic())
                     continue
                 except Exception as exc:   # a bug of ours (or MemoryError): one line back, one JSON line logged
                     self.events.emit("error", peer=session.peer, session=session.id,
@@ -286,6 +307,7 @@ class PolicyServer:
                     await ws.send(f"jepa-policy serve: the server failed on this request ({type(exc).__name__}); "
                                   "a bug of the server: report it with the server's log")
                     await self._pace(ws, session, len(message))
+                    self._active(ws, time.monotonic())
                     continue
                 session.refused_in_row = 0
                 if ws in self._admitted:
@@ -293,6 +315,7 @@ class PolicyServer:
                 reply["server_timing"]["prev_total_ms"] = session.prev_total_ms
                 await ws.send(pack(reply))
                 session.prev_total_ms = (time.monotonic() - start) * 1e3
+                self._active(ws, time.monotonic())
         except websockets.ConnectionClosed:
             pass   # a client that leaves mid-request: its result is dropped, nothing else changes
         finally:
@@ -303,6 +326,12 @@ class PolicyServer:
                              seconds=round(time.monotonic() - opened, 3),
                              close_sent=sent.code if sent else None, close_received=received.code if received else None,
                              reason=(sent and sent.reason) or (received and received.reason) or None)
+
+    def _active(self, ws: ServerConnection, now: float) -> None:
+        """The connection sent a request or was answered: it is not idle (eviction at the cap)."""
+        state = self._admitted.get(ws)
+        if state is not None:
+            state[3] = now
 
     def _named_scores(self, session: Session, actions: np.ndarray, embedding: dict[str, float]) -> dict[str, float]:
         """The decision's named failure scores the config sends (``monitor_scores``: () none, None all): STAC

@@ -497,6 +497,35 @@ def test_at_the_connection_cap_an_untrusted_connection_makes_room(serve, events)
         ws.close()
 
 
+def test_idle_trusted_connections_make_room_at_the_cap(serve, events):
+    """Two connections that were each served once and then sit idle past ``idle_evict_s`` no longer lock a new robot
+    out (before: HTTP 503 for as long as they stayed open, hostile round 3): the one idle longest is closed; one
+    that sent a request within the bound is kept, and with every connection recent a newcomer still gets 503."""
+    server = serve(max_connections=2, idle_evict_s=0.5)
+    first, _ = client(server)
+    second, _ = client(server)
+    for ws in (first, second):
+        ws.send(pack(GOOD))
+        assert unpack(ws.recv(timeout=30))["actions"].shape == (8, 2)
+    time.sleep(0.8)
+    second.send(pack(GOOD))   # second stays active; first has been idle 0.8 s
+    assert unpack(second.recv(timeout=30))["actions"].shape == (8, 2)
+    robot, _ = client(server)
+    robot.send(pack(GOOD))
+    assert unpack(robot.recv(timeout=30))["actions"].shape == (8, 2)
+    with pytest.raises(websockets.ConnectionClosed):
+        first.recv(timeout=10)
+    for ws in (second, robot):   # both served just now
+        ws.send(pack(GOOD))
+        assert unpack(ws.recv(timeout=30))["actions"].shape == (8, 2)
+    with pytest.raises(websockets.InvalidStatus, match="503"):
+        client(server)
+    evicted = [e for e in events() if e["event"] == "evicted"]
+    assert len(evicted) == 1 and evicted[0]["problem"].startswith("idle "), evicted
+    for ws in (robot, second):
+        ws.close()
+
+
 def test_a_server_failure_is_paced_answered_in_one_line_and_logged_as_one_json_line(serve, events, monkeypatch):
     import jepa_policy.serve.server as server_module
 
