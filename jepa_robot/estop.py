@@ -30,6 +30,7 @@ from __future__ import annotations
 import json
 import logging
 import os
+import stat
 import threading
 import time
 from contextlib import contextmanager
@@ -160,6 +161,16 @@ class EStop:
         every record takes (a sibling written, then renamed over the file), keeping what the file held."""
         if self.state_file is None:
             return
+        try:
+            mode = os.stat(self.state_file).st_mode
+        except OSError:   # none yet (or not reachable): the probe below finds out
+            mode = None
+        if mode is not None and not stat.S_ISREG(mode) and not stat.S_ISDIR(mode):
+            # a device, a FIFO or a socket: every record would replace it with a regular file (as root: /dev/null,
+            # a serial port), so it is refused, as the credential file is
+            raise OSError(f"the e-stop state file {self.state_file} is not a regular file (a device, a FIFO or a "
+                          "socket) and would be replaced by one; pass a file path in a folder this user owns "
+                          "(e.g. /var/lib/jepa-robot/bridge-state.json)")
         probe = self.state_file.with_name(self.state_file.name + ".tmp")
         try:
             if self.state_file.is_dir():

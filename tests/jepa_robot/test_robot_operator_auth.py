@@ -276,6 +276,27 @@ def test_a_state_file_that_cannot_be_replaced_is_refused(tmp_path):
     assert state.read_text() == '{"running": false, "estop": false}' and not (tmp_path / "state.json.tmp").exists()
 
 
+def test_a_state_file_that_is_not_a_regular_file_is_refused_and_left_alone(tmp_path):
+    """A FIFO (serve) or a character device (supervise; made with mknod in tmp_path, the numbers of /dev/null) as
+    --state-file: before, the bridge started and replaced it with a regular file (as root, the system's /dev/null,
+    hostile round 3). Now one line, exit 2, and the node is still there."""
+    fifo = tmp_path / "state.fifo"
+    os.mkfifo(fifo)
+    cases = [(["serve"], fifo, stat.S_ISFIFO)]
+    device = tmp_path / "fakenull"
+    try:
+        os.mknod(device, 0o666 | stat.S_IFCHR, os.makedev(1, 3))
+        cases.append((["supervise"], device, stat.S_ISCHR))
+    except (PermissionError, OSError):   # not root: the FIFO case alone
+        pass
+    for command, node, kind in cases:
+        out = subprocess.run([*BRIDGE, *command, "--state-file", str(node), "--backend", "sim", "--task", "PushT",
+                              "--no-prompt"], capture_output=True, text=True, timeout=20)   # before: served on
+        assert out.returncode == 2 and len(out.stderr.strip().splitlines()) == 1, out
+        assert "is not a regular file" in out.stderr, out.stderr
+        assert kind(os.lstat(node).st_mode), f"{node} was replaced"
+
+
 def test_another_users_state_file_in_a_sticky_folder_is_refused(request):
     """Another user's state file in a sticky folder such as /tmp: the check's sibling can be written, the file not
     replaced (the bridge's own user, here nobody, against root's file)."""
