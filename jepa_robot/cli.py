@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import math
 import sys
 import time
 import tomllib
@@ -232,6 +233,7 @@ def _curve(folder: str | None) -> dict:
     return {"curve_secret_key": str(secret), "curve_authorized_dir": str(authorized)}
 
 
+MAX_IMAGE_SIZE = 1024   # --image-size: a camera side in pixels (three 1024x1024 frames are ~9 MiB a step)
 EXIT_REFUSED = 2   # serve refused its set-up before touching the robot (the supervisor does not restart it)
 EXIT_PORT_BUSY = 3   # a port serve must bind is held by another process (the supervisor retries, latched)
 
@@ -297,6 +299,12 @@ def _build_bridge(args):
     from jepa_robot.endpoints import network_bind_problem, operator_bind_problem
 
     curve = _curve(args.curve_keys)
+    if args.image_size is not None and not 1 <= args.image_size <= MAX_IMAGE_SIZE:
+        raise SetupRefused(f"--image-size {args.image_size}: give a side in pixels from 1 to {MAX_IMAGE_SIZE} (the "
+                           "tasks are trained at 84-256)")
+    if not (math.isfinite(args.max_rss_mb) and args.max_rss_mb >= 0):
+        raise SetupRefused(f"--max-rss-mb {args.max_rss_mb:g}: give the memory guard's bound in MiB, a finite "
+                           "number >= 0 (0: no guard)")
 
     def config_for(control: str, operator: str, record_dir: str | None, curve: dict) -> BridgeConfig:
         config = BridgeConfig(control, operator, record_dir, args.chunk_budget, args.observe_only,

@@ -194,7 +194,15 @@ class FrameHistory:
 def load_episode(manifest_path: str | Path) -> tuple[dict, dict[str, np.ndarray]]:
     """Read a saved episode back: (manifest, arrays) with arrays keyed like the HDF5 file (obs/<key> ...)."""
     manifest_path = Path(manifest_path)
-    manifest = json.loads(manifest_path.read_text())
+    try:
+        manifest = json.loads(manifest_path.read_bytes())
+    except (ValueError, RecursionError) as exc:   # bad JSON or UTF-8; nested too deep for the parser
+        why = "nested too deeply" if isinstance(exc, RecursionError) else f"not valid JSON ({str(exc)[:120]})"
+        raise ValueError(f"episode manifest {manifest_path} is {why}; pass the .json a bridge wrote with "
+                         "--record-dir") from None
+    if not isinstance(manifest, dict) or not isinstance(manifest.get("arrays"), str):
+        raise ValueError(f"episode manifest {manifest_path} is not one a bridge wrote (no 'arrays' file named); pass "
+                         "the .json a bridge wrote with --record-dir")
     arrays: dict[str, np.ndarray] = {}
     with h5py.File(manifest_path.parent / manifest["arrays"], "r") as f:
         f.visititems(lambda name, obj: arrays.__setitem__(name, obj[()]) if isinstance(obj, h5py.Dataset) else None)

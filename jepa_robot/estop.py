@@ -38,6 +38,7 @@ from pathlib import Path
 from typing import Callable, Iterator
 
 log = logging.getLogger(__name__)
+MAX_STATE_BYTES = 64 * 1024   # a state file's record is ~200 bytes; a bigger file is unreadable (start latched)
 
 # a press waits this long at most for an action inside ``backend.apply`` (a driver's apply sets a target and
 # returns at once, a simulator's steps for milliseconds); past it (a hung driver call) the stop goes out
@@ -150,9 +151,13 @@ class EStop:
         if self.state_file is None or not self.state_file.is_file():
             return {}
         try:
-            state = json.loads(self.state_file.read_text())
-        except (OSError, ValueError):   # unreadable: assume the worst, the robot starts latched
-            return {"running": True}
+            with self.state_file.open("rb") as f:
+                text = f.read(MAX_STATE_BYTES + 1)
+            if len(text) > MAX_STATE_BYTES:   # a record is ~200 bytes: this is not one
+                return {"running": True}
+            state = json.loads(text)
+        except Exception:   # unreadable in any way (OSError, bad JSON or UTF-8, RecursionError from deep nesting,
+            return {"running": True}   # MemoryError): assume the worst, the robot starts latched
         return state if isinstance(state, dict) else {"running": True}
 
     def check_state_file(self) -> None:

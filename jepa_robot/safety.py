@@ -232,7 +232,13 @@ def config_errors(exc: ValidationError, prefix: str = "safety.") -> list[str]:
             lines += reason.splitlines()
             continue
         lines.append(f"{prefix}{name}: {reason}" + ("" if isinstance(given, dict) else f" (got {given!r:.60})"))
+    if len(lines) > MAX_ERROR_LINES:   # thousands of unknown keys: a bounded answer, not one line each
+        lines = lines[:MAX_ERROR_LINES] + [f"... and {len(lines) - MAX_ERROR_LINES} more problems of the same "
+                                           "config (fix the ones above first)"]
     return lines
+
+
+MAX_ERROR_LINES = 10   # lines of config_errors shown; the rest are counted in one line
 
 
 _TYPE_TAGS = {"float", "int", "str", "bool", "list", "none", "function-after", "function-before"}

@@ -126,3 +126,47 @@ def test_a_file_no_reader_can_take_is_one_line_everywhere(tmp_path, name):
         lines = out.stderr.strip().splitlines()
         assert out.returncode == EXIT_REFUSED and "Traceback" not in out.stderr, out
         assert len(lines) == (1 if command == ["serve"] else 2) and "restart" not in out.stderr, lines
+
+
+SETUP_REFUSALS = {   # serve's arguments (after --no-prompt), what its one error line must say (hostile round 3)
+    "an image side of 100,000 px (a 27.9 GiB array)": (["--backend", "sim", "--task", "PushT", "--image-size",
+                                                         "100000"], "--image-size 100000: give a side"),
+    "--max-rss-mb nan (the guard silently off)": (["--backend", "sim", "--task", "PushT", "--max-rss-mb", "nan"],
+                                                  "--max-rss-mb nan: give"),
+    "--max-rss-mb -1": (["--backend", "sim", "--task", "PushT", "--max-rss-mb", "-1"], "--max-rss-mb -1: give"),
+    "--max-rss-mb inf": (["--backend", "sim", "--task", "PushT", "--max-rss-mb", "inf"], "--max-rss-mb inf: give"),
+    "a replay manifest nested 200,000 deep": (["--backend", "replay", "--episode", "{deep}"], "nested too deeply"),
+}
+
+
+@pytest.mark.parametrize("name", list(SETUP_REFUSALS))
+def test_set_up_values_that_crashed_serve_are_one_line(tmp_path, capsys, name):
+    """Each of these made serve exit 1 with a traceback (a RecursionError, numpy's _ArrayMemoryError) or start with
+    the memory guard off; now one line, exit 2, before any backend is built."""
+    deep = tmp_path / "deep.json"
+    deep.write_text("[" * 200_000)
+    args, says = SETUP_REFUSALS[name]
+    code = bridge_main(["serve", "--no-prompt", "--state-file", str(tmp_path / "state.json"),
+                        *[a.replace("{deep}", str(deep)) for a in args]])
+    err = capsys.readouterr().err
+    assert code == EXIT_REFUSED and len(err.strip().splitlines()) == 1 and says in err, err
+
+
+def test_thousands_of_unknown_keys_give_a_bounded_answer(tmp_path, capsys):
+    """A [safety] table of 20,000 unknown keys printed 20,000 error lines; now the first 10 and a count."""
+    setup = tmp_path / "safety.toml"
+    setup.write_text("[safety]\n" + "".join(f"k{i} = 1\n" for i in range(20_000)))
+    code = bridge_main(["serve", "--no-prompt", "--backend", "sim", "--task", "PushT", "--config", str(setup)])
+    lines = capsys.readouterr().err.strip().splitlines()
+    assert code == EXIT_REFUSED and len(lines) == 11 and "and 19990 more" in lines[-1], lines[:3] + lines[-2:]
+
+
+def test_a_state_file_no_parser_can_read_starts_latched(tmp_path):
+    """A state file nested 200,000 deep raised RecursionError at every start (a crash loop under supervise); it is
+    unreadable, so the bridge starts latched, as documented."""
+    from jepa_robot.estop import EStop
+    for content in ("[" * 200_000, "{" * 5_000 + "}" * 5_000, "x" * 100_000, b"\xff\xfe"):
+        state = tmp_path / "state.json"
+        state.write_bytes(content if isinstance(content, bytes) else content.encode())
+        estop = EStop(lambda: None, str(state))
+        assert estop.restore() is not None and estop.latched, content[:20]
