@@ -42,11 +42,11 @@ CLIS = {
     "jepa-policy": _main("jepa_policy.cli"),
     "jepa-monitor": _main("monitor_service.cli"),
     "jepa-robot-bridge": _main("jepa_robot.cli"),   # what jepa_robot.operator_cli hands everything to
-    "jepa-demo": _main("jepa_policy.demo.job"),
+    "jepa-demo": _main("jepa_policy.demo.cli"),
 }
 MODULES = {"jepa_envs.cli": "jepa-envs", "jepa_policy.cli": "jepa-policy", "monitor_service.cli": "jepa-monitor",
            "jepa_robot.cli": "jepa-robot-bridge", "jepa_robot.operator_cli": "jepa-robot-bridge",
-           "jepa_policy.demo.job": "jepa-demo"}
+           "jepa_policy.demo.cli": "jepa-demo"}
 SHELL = {"|", "||", "&", "&&", ";", ">", ">>", "<", "2>&1", ")", "("}
 # placeholders the documents write in capitals where the parser wants a number
 NUMBERS = {"ID": "3", "N": "4", "K": "4", "S": "4", "P": "8765"}
