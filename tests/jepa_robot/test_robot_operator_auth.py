@@ -122,6 +122,19 @@ def test_the_exact_estop_frames_are_what_the_operator_client_sends(robot, ctx):
 # ----------------------------------------------------------------------------- floods
 
 
+def _status_once_answered(op: OperatorClient, within_s: float = 2.0) -> dict:
+    """``status`` asked until the shared budget answers it (the flood's last frames may still spend this second's
+    budget: an unauthenticated ``status`` is then refused ``rate_limited``, by design, not silenced)."""
+    end = time.monotonic() + within_s
+    while True:
+        try:
+            return op.status()
+        except OperatorError as exc:
+            if exc.code not in ("rate_limited", "busy") or time.monotonic() > end:
+                raise
+            time.sleep(0.05)
+
+
 @pytest.mark.parametrize("role, seconds", [("estopjunk", 3.0), ("estopjunk64", 2.0)])
 def test_no_flood_silences_the_operator(robot, role, seconds):
     """E-stop-like junk from one socket, then from 64: every ``status`` during the flood is answered (a result,
@@ -134,7 +147,7 @@ def test_no_flood_silences_the_operator(robot, role, seconds):
     assert "silence" not in open_answers and set(open_answers) <= {"result", "rate_limited"}, r
     assert set(operator_answers) == {"result"}, r
     assert r["after_flood_first_answer_ms"] is not None and r["after_flood_first_answer_ms"] < 1000, r
-    counters = robot.operator(bridge).status()["counters"]
+    counters = _status_once_answered(robot.operator(bridge))["counters"]
     assert counters.get("operator_dropped", 0) + counters.get("operator_rate_limited", 0) > 0, "it was a flood"
     assert robot.operator(bridge).estop()["held"]
 
