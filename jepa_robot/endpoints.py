@@ -18,7 +18,6 @@ import zmq.auth
 from zmq.auth.thread import ThreadAuthenticator
 
 from jepa_robot import protocol as P
-from jepa_robot.guard import DEFAULT_MAX_RSS_MB
 
 
 HANDSHAKE_IVL_MS = 2000       # a connection's ZMTP handshake must end within this (libzmq's default: 30 s)
@@ -40,7 +39,10 @@ class BridgeConfig:
     operator_secret_file: str | None = None          # the operator credential (None: operator_secret_file's default)
     start_latched: str | None = None                 # start with the e-stop latched, for this reason (supervisor)
     rt_priority: int | None = None                   # SCHED_FIFO priority of the e-stop path (``realtime_path``)
-    max_rss_mb: float | None = DEFAULT_MAX_RSS_MB    # the memory guard's bound (``guard.py``); None: no guard
+    # the memory guard's bound (``guard.py``); None: no guard. serve's --max-rss-mb sets it (2048 MiB by default):
+    # the bridge's process is its own there, while a bridge embedded in a larger process (tests, a notebook)
+    # would measure its host's memory and latch at once
+    max_rss_mb: float | None = None
 
 
 def is_loopback(endpoint: str) -> bool:

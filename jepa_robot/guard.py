@@ -1,6 +1,6 @@
 """The bridge's resources under a flood: its open connections against its descriptor limit, and its memory.
 
-Two floods no budget of the sockets can stop (issue 45, second hostile round):
+Two floods no budget of the sockets can stop:
 
 * **Descriptors.** Every connection to either socket holds a descriptor of the bridge's process, whether it sends
   anything or not. At the process's limit (``RLIMIT_NOFILE``; systemd's default soft limit is 1,024) libzmq can
@@ -14,7 +14,9 @@ resynchronised every second with ``/proc/self/fd``) and reads the process's resi
 ``POLL_MS`` apart). When the descriptors in use pass ``FD_FRACTION`` of the limit, or the memory passes
 ``max_rss_mb``, it latches the e-stop with a reason that names the cause: a bridge that may lose its e-stop channel
 (or its process) stops the robot, fail-safe. Each trip is counted (``connection_guard``, ``memory_guard``) and
-logged, and the guard arms again once the use is back under ``REARM`` of its bound. It never releases the latch:
+logged, and the guard arms again once the use is back under ``REARM`` of its bound; memory, which a process seldom
+gives back, also trips again each time it grows by ``MEMORY_STEP`` of its bound past the last trip's reading (so
+a second flood after the operator's clear latches again, before the kernel's OOM kill). It never releases the latch:
 after the flood, ``status`` and ``clear-estop`` work again and the operator clears it.
 
 The guard also hands the control socket's disconnects to the event loop (a socket has one monitor), which needs
@@ -40,6 +42,9 @@ log = logging.getLogger(__name__)
 DEFAULT_MAX_RSS_MB = 2048.0   # the bridge's resident memory at which the guard latches the e-stop (--max-rss-mb)
 FD_FRACTION = 0.75     # descriptors in use, of the limit, at which the e-stop latches
 REARM = 0.6            # ... and below which (of either bound) the guard may trip again
+MEMORY_STEP = 0.25     # memory only: above its bound, each growth by this share of the bound past the last trip's
+                       # reading trips again (a process seldom returns freed memory: after a flood the resident
+                       # memory may never fall back under REARM, and a second flood would find the guard disarmed)
 POLL_MS = 50
 RESYNC_S = 1.0         # the monitors' count checked against /proc/self/fd this often
 _EVENTS = zmq.EVENT_ACCEPTED | zmq.EVENT_DISCONNECTED
@@ -85,6 +90,7 @@ class ResourceGuard:
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self._armed = {"descriptors": True, "memory": True}
+        self._memory_mark: float | None = None   # the resident memory at the last memory trip (MEMORY_STEP)
         self._forward = forward
         prefix = f"inproc://robot-bridge-guard-{next(_ids)}"
         self._monitors: dict[zmq.Socket, str] = {}
@@ -186,14 +192,17 @@ class ResourceGuard:
         if self.max_rss_mb is None or self.rss_mb is None:
             return
         if self.rss_mb >= self.max_rss_mb:
-            if self._armed["memory"]:
+            mark = self._memory_mark
+            if self._armed["memory"] or (mark is not None and self.rss_mb >= mark + MEMORY_STEP * self.max_rss_mb):
                 self._armed["memory"] = False
+                self._memory_mark = self.rss_mb
                 self._trip("memory_guard", f"the bridge's memory ({self.rss_mb:.0f} MiB resident) passed its bound "
                                            f"({self.max_rss_mb:.0f} MiB, --max-rss-mb): a flood of oversized "
                                            "messages could end its process, so the robot holds (fail-safe); find the "
                                            "process that sends them (ss -tnp), stop it, then clear-estop")
         elif self.rss_mb < REARM * self.max_rss_mb:
             self._armed["memory"] = True
+            self._memory_mark = None
 
     def _trip(self, counter: str, reason: str) -> None:
         self._count(counter)

@@ -1,4 +1,4 @@
-"""Floods no socket budget can stop: descriptors and memory (issue 45, second hostile round).
+"""Floods no socket budget can stop: descriptors and memory.
 
 About 1,100 idle local connections (no byte sent) used up a bridge's descriptors at systemd's default limit of
 1,024: libzmq then looped on accept() and every e-stop timed out (H2). One multipart message of 25,000 frames of
@@ -101,3 +101,33 @@ def test_a_multipart_memory_bomb_is_read_frame_by_frame_and_the_memory_guard_lat
             assert op.status()["estop"] is False
     finally:
         bridge.close()
+
+
+def test_memory_that_never_falls_back_still_trips_the_guard_again(monkeypatch):
+    """After a flood the process keeps most of the memory it took (no REARM), yet a second flood after the
+    operator's clear must latch again: every growth by MEMORY_STEP of the bound past the last trip's reading trips.
+    The resident-memory reading is injected (the memory bomb above measures the real one); the guard, its check
+    and the e-stop latch are the bridge's own."""
+    from jepa_robot import guard as G
+    from jepa_robot.estop import EStop
+
+    readings = [0.0]   # the guard reads once when it is built
+    monkeypatch.setattr(G, "resident_mb", lambda: readings[-1])
+    ctx = zmq.Context()
+    estop = EStop(lambda: None)
+    g = G.ResourceGuard(ctx, {}, estop, max_rss_mb=600.0)   # not started: its checks are called here
+    trips, latched = [], []
+    for rss, clear_first in ((100, False), (610, False), (867, False), (900, True), (1000, False), (1020, False),
+                             (1100, True), (1655, False), (300, True), (610, False)):
+        if clear_first and estop.latched:
+            assert estop.clear(estop.generation)
+        readings.append(float(rss))
+        g.check(time.monotonic())
+        trips.append(g.counters["memory_guard"])
+        latched.append(estop.latched)
+    # 610 passes the bound; 867 >= 610 + 150 (0.25 x 600); after the clear 900 and 1000 stay under 867 + 150 and
+    # 1020 passes it; after the next clear 1655 >= 1020 + 150; 300 < 360 re-arms; 610 passes the bound again
+    assert trips == [0, 1, 2, 2, 2, 3, 3, 4, 4, 5]
+    assert latched == [False, True, True, False, False, True, False, True, False, True]
+    g.stop()
+    ctx.term()
