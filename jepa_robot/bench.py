@@ -182,7 +182,7 @@ def run_bench(args) -> int:
               f"operator entry point {light['p50_ms']:.0f} / {light['p90_ms']:.0f} ms, full command line "
               f"{full['p50_ms']:.0f} / {full['p90_ms']:.0f} ms (x{full['p50_ms'] / light['p50_ms']:.1f}); "
               f"bare python {estop['bare_python']['p50_ms']:.0f} ms")
-    if args.json:
-        with open(args.json, "w") as f:
+    if args.out:
+        with open(args.out, "w") as f:
             json.dump(result, f, indent=2)
     return 0

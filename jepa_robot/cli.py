@@ -20,6 +20,8 @@ also work here. The policy side runs elsewhere: ``jepa-policy robot --address tc
 from __future__ import annotations
 
 import argparse
+from importlib.metadata import PackageNotFoundError
+from importlib.metadata import version as installed_version
 import logging
 import math
 import sys
@@ -34,9 +36,18 @@ from jepa_robot.operator_cli import OPERATOR_COMMANDS, run_operator_command
 SUBCOMMANDS = ("serve", "supervise", "bench", "check", "observe", "keys") + OPERATOR_COMMANDS
 
 
+def _package_version() -> str:
+    """This install's version, for --version."""
+    try:
+        return installed_version("jepa-policy-toolkit")
+    except PackageNotFoundError:
+        return "unknown (not installed: pip install -e . in the checkout)"
+
+
 def _parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="jepa-robot-bridge", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--version", action="version", version=f"%(prog)s {_package_version()}")
     sub = parser.add_subparsers(dest="command")
     serve = sub.add_parser("serve", help="run the robot bridge (default)")
     serve.add_argument("--backend", choices=("sim", "arx5", "replay"), default="sim")
@@ -124,11 +135,11 @@ def _parser() -> argparse.ArgumentParser:
     bench.add_argument("--chunks", type=int, default=40)
     bench.add_argument("--max-seconds", type=float, default=120.0)
     bench.add_argument("--estop-runs", type=int, default=10, help="time the e-stop command this many times")
-    bench.add_argument("--json", help="also write the numbers to this file")
+    bench.add_argument("--out", metavar="FILE", help="also write the numbers to this file (JSON)")
     bench.add_argument("--load", metavar="SCENARIOS",
                        help="instead: the bridge under local load, comma-separated from flood, operators, "
                             "operators+flood, big, flood-elsewhere, many-strangers, operator-flood, aborts (e-stop "
-                            "latency, controller chunk rate, bridge aborts; issue 35)")
+                            "latency, controller chunk rate, bridge aborts)")
     bench.add_argument("--trials", type=int, default=20, help="--load: e-stops per scenario")
     bench.add_argument("--window", type=float, default=4.0,
                        help="--load: seconds the controller's chunk rate is counted alone, then under the load")
@@ -610,7 +621,7 @@ def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     if argv and argv[0] in OPERATOR_COMMANDS:
         return run_operator_command(argv)
-    if not argv or argv[0] not in SUBCOMMANDS + ("-h", "--help"):
+    if not argv or argv[0] not in SUBCOMMANDS + ("-h", "--help", "--version"):
         argv = ["serve", *argv]
     if argv[0] == "supervise":
         args, serve_args = _parser().parse_known_args(argv)

@@ -1,4 +1,4 @@
-"""``jepa-robot-bridge bench --load``: the bridge under local load (issue 35), every party in a process of its own.
+"""``jepa-robot-bridge bench --load``: the bridge under local load, every party in a process of its own.
 
 A simulated PushT bridge (``serve --backend sim``, link liveness on: the default link timeout of one control
 period) serves a policy process that runs action chunks back to back, as fast as the simulator allows (the
@@ -261,7 +261,7 @@ def run_controller(address: str) -> None:
     env.close()
 
 
-# 60 bytes that contain "estop" but are no e-stop: once decoded for free and charged to nothing (issue 45)
+# 60 bytes that contain "estop" but are no e-stop: once decoded for free and charged to nothing
 ESTOP_LIKE_JUNK = b"\x81\xa4type\xa5estop" + b"\xc1" * 48
 
 
@@ -692,8 +692,8 @@ def run_load_bench(args) -> int:
               f"errors {r['controller_errors']}; load process {r['load']}", flush=True)
         if r["abort"]:
             print(f"  {r['abort']}")
-    if args.json:
-        with open(args.json, "w") as f:
+    if args.out:
+        with open(args.out, "w") as f:
             json.dump(results, f, indent=2)
     return 0
 

@@ -65,7 +65,7 @@ def test_serve_argument_errors(capsys):
 
 def test_bench_prints_numbers(capsys, tmp_path):
     out_json = tmp_path / "bench.json"
-    assert main(["bench", "--steps", "20", "--chunks", "4", "--estop-runs", "2", "--json", str(out_json)]) == 0
+    assert main(["bench", "--steps", "20", "--chunks", "4", "--estop-runs", "2", "--out", str(out_json)]) == 0
     text = capsys.readouterr().out
     assert "3 camera(s) of 128x128" in text and "overhead per chunk" in text and "operator entry point" in text
     result = json.loads(out_json.read_text())
