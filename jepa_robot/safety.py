@@ -22,7 +22,7 @@ class InvalidAction(ValueError):
 # beyond these a rule is switched off in all but name: a watchdog that waits an hour is no watchdog
 MAX_COMMAND_DEADLINE_S = 600.0
 MAX_LINK_SECONDS = 600.0
-# ... and below these the bridge cannot keep them: pings every microsecond wedge its loop (issue 35, F4)
+# ... and below these the bridge cannot keep them: pings every microsecond wedge its loop
 MIN_HEARTBEAT_S = 0.001
 MIN_LINK_TIMEOUT_S = 0.005
 MIN_COMMAND_DEADLINE_S = 0.01

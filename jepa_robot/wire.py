@@ -9,7 +9,7 @@ the session's (a *stranger*) is limited before any byte is decoded: a message ab
 costs the bridge a receive and a send, never a decode. All strangers together get ``STRANGERS_BYTES_RATE`` bytes
 decoded a second (bursts of ``STRANGERS_BYTES_BURST``, about half a millisecond of decoding): beyond it a
 stranger's message is dropped unread and unanswered (``strangers_dropped``), so 300 connections buy no more than
-one (issue 35, F2: 300 connections of 16,000-byte slow-to-decode arrays, each within its own limit, used to
+one (300 connections of 16,000-byte slow-to-decode arrays, each within its own limit, used to
 keep the loop decoding and the link's echoes waiting). The session's own link connection (the echo of the
 bridge's pings) is never decoded at all: its arrival is what counts.
 

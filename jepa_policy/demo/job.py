@@ -98,7 +98,7 @@ class DemoConfig:
     failure_bootstrap: int = 2000
 
 
-# the failure-prediction step of the default and full modes: >= 300 labelled episodes per arm (issue 38)
+# the failure-prediction step of the default and full modes: >= 300 labelled episodes per arm
 FAILURE_BUDGET = {"failure_episodes": 320, "failure_fault_episodes": 40,
                   "failure_faults": ("block_displaced", "action_latency", "background_tint")}
 
@@ -390,7 +390,7 @@ def rollout_frames(policy, seed: int, count: int = 5) -> list[tuple[str, np.ndar
 # ----------------------------------------------------------------------------- the job
 
 # ----------------------------------------------------------------------------- step 6: failure prediction compared
-# (issue 38) enough labelled episodes to tell a failure signal from chance, and every signal compared on them.
+# enough labelled episodes to tell a failure signal from chance, and every signal compared on them.
 # Per arm of the first training seed: the embedding detectors fitted into <out>/failure/ (not beside the
 # checkpoint, so the other steps act exactly as before); natural rollouts on a seed block of their own and rollouts
 # per fault on the first of those seeds (each with a natural twin up to its onset); every decision carries NMSE,

@@ -16,6 +16,9 @@
 Seeds: demonstrations from 0 (and their retries), held-out demonstrations from ``HELD_OUT_SEED``, evaluation
 from ``EVAL_SEED``, the curve from ``CURVE_SEED``: no block overlaps another, and nothing is tuned on them.
 Reruns reuse the demonstrations and finished training runs unless ``fresh``.
+
+One module of about 650 lines on purpose: the six steps above, in their order, each a few functions that only
+this job calls (``demo/job.py`` is PushT's job, ``demo/ceiling.py`` PushT's ceiling).
 """
 from __future__ import annotations
 

@@ -35,7 +35,7 @@ def wait_for(predicate, timeout_s: float = 5.0, every_s: float = 0.01):
 
 
 class Impostor:
-    """A process squatting the operator port (issue 45, H1): answers like a bridge (a challenge of the right size,
+    """A process squatting the operator port: answers like a bridge (a challenge of the right size,
     ``held: true`` to an e-stop, a status saying latched) and keeps every frame it is sent."""
 
     def __init__(self, address: str = "tcp://127.0.0.1:*"):

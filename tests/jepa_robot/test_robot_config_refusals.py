@@ -1,4 +1,4 @@
-"""No configuration value switches a safety rule off (issue 35, part 4): ``check`` and ``serve`` refuse each one
+"""No configuration value switches a safety rule off: ``check`` and ``serve`` refuse each one
 with a one-line reason naming the field, before any hardware moves.
 
 A NaN compares false with everything (``jump > nan`` never fires), an infinite deadline never expires, and a
@@ -26,7 +26,7 @@ SWITCHES_OFF = [
     ("heartbeat_interval_s = nan", "safety.heartbeat_interval_s: Input should be a finite number"),
     ("heartbeat_interval_s = 0.0", "safety.heartbeat_interval_s: must be > 0"),
     ("heartbeat_interval_s = 0.5", "heartbeat_interval_s (0.5s) must be at most half the link timeout"),
-    # values so small the bridge cannot keep them: pings every nanosecond wedged its loop (issue 35, F4)
+    # values so small the bridge cannot keep them: pings every nanosecond wedged its loop
     ("heartbeat_interval_s = 1e-9", "safety.heartbeat_interval_s: must be at least 0.001 seconds"),
     ("link_timeout_s = 1e-8", "safety.link_timeout_s: must be at least 0.005 seconds"),
     ("command_deadline_s = 1e-7", "safety.command_deadline_s: must be at least 0.01 seconds"),
@@ -128,7 +128,7 @@ def test_a_file_no_reader_can_take_is_one_line_everywhere(tmp_path, name):
         assert len(lines) == (1 if command == ["serve"] else 2) and "restart" not in out.stderr, lines
 
 
-SETUP_REFUSALS = {   # serve's arguments (after --no-prompt), what its one error line must say (hostile round 3)
+SETUP_REFUSALS = {   # serve's arguments (after --no-prompt), what its one error line must say
     "an image side of 100,000 px (a 27.9 GiB array)": (["--backend", "sim", "--task", "PushT", "--image-size",
                                                          "100000"], "--image-size 100000: give a side"),
     "--max-rss-mb nan (the guard silently off)": (["--backend", "sim", "--task", "PushT", "--max-rss-mb", "nan"],

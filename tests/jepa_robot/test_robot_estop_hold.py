@@ -180,7 +180,7 @@ def test_a_clear_read_before_a_press_in_the_same_turn_keeps_the_latch(robot):
     """The operator thread reads a signed clear_estop and then an e-stop in one turn (one DEALER connection, so the
     ROUTER reads them in that order; the turn is held until both are queued). The press is answered held at once
     and must stay latched: before, the clear's generation was read only after the turn's e-stops were pressed, so
-    it released this later press (hostile round 3: 30 of 30 trials with a 5 ms turn delay)."""
+    it released this later press."""
     import msgpack
     import zmq
 

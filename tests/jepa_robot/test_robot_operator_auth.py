@@ -1,7 +1,7 @@
 """Anyone on the robot computer may stop the robot; only the operator may release it, home it, confirm or shut
 down; no local process can silence the operator socket; a supervisor never restarts a bridge unlatched.
 
-Each was a finding of an independent hostile check (issue 45): junk frames that contain ``estop`` drove the
+Each was a finding of an independent hostile check: junk frames that contain ``estop`` drove the
 operator thread's decode budget negative and left ``status`` unanswered for 25 s after a 5 s flood; any local
 process's ``clear_estop`` released the latch; ``serve --operator-bind tcp://0.0.0.0:P`` was accepted; a
 supervisor with a state file it could not write restarted the bridge unlatched; set-up errors exited 1 with a

@@ -1,7 +1,7 @@
 """The operator credential never leaves the bridge's and the operator's processes, and every answer an operator with
 the credential gets is proven to come from the bridge (protocol v4: challenge and response).
 
-Each test was a finding of the second hostile round of issue 45: the operator client sent the credential in clear
+Each test was a finding of a hostile check: the operator client sent the credential in clear
 to whatever held the operator port, so a local user who squatted it while the bridge was down (a crash restart)
 stole it, released the e-stop and shut the bridge down, and meanwhile answered e-stops ``held: true`` with no
 bridge at all (H1); the squatted port made the supervisor give up for good (H1); an e-stop carrying a frame
