@@ -116,25 +116,35 @@ def parse_request(msg, schema: RequestSchema) -> Parsed:
 
 
 MAX_EPISODE_ID = 128
-# what a reader cannot see: whitespace, control and format characters (zero-width spaces and joiners, BOMs)
-_INVISIBLE = ("Cc", "Cf", "Zs", "Zl", "Zp")
+# characters no id may hold: control, format (zero-width spaces and joiners, BOMs, bidi overrides that make two
+# ids look alike), line and paragraph separators, private-use, surrogates and unassigned code points
+_FORBIDDEN = ("Cc", "Cf", "Zl", "Zp", "Co", "Cs", "Cn")
+# characters a reader sees nothing of: combining marks with no base, and the blank letters (Hangul fillers,
+# the braille blank)
+_MARKS = ("Mn", "Me", "Mc")
+_BLANK = frozenset("\u115f\u1160\u3164\uffa0\u2800")
 
 
 def _episode_id(episode) -> str | None:
-    """The request's episode id as text; a bool, an id nobody could read (empty once whitespace, control and
-    zero-width characters are left out) or one longer than MAX_EPISODE_ID characters is refused, never cut (two
-    long ids with one prefix would be one episode)."""
+    """The request's episode id as text. Refused, never cut or cleaned: a bool; an id with a control, format or
+    other invisible code point (two ids that look alike would be two episodes); one with nothing a reader can see
+    (spaces, combining marks, blank letters only); one longer than MAX_EPISODE_ID characters (two long ids with
+    one prefix would be one episode)."""
     if episode is None:
         return None
     if isinstance(episode, bool):
         raise RequestError(f"'episode' is {episode}, a bool; send an id (str or int), or leave the field out")
     text = str(episode)
-    if not any(not ch.isspace() and unicodedata.category(ch) not in _INVISIBLE for ch in text):
-        raise RequestError("'episode' is empty (or only whitespace, control or zero-width characters); send an id "
-                           "a reader can see (a new id starts an episode) or leave the field out to stay in the "
-                           "current one")
     if len(text) > MAX_EPISODE_ID:
         raise RequestError(f"'episode' has {len(text)} characters; send an id of at most {MAX_EPISODE_ID}")
+    bad = next((ch for ch in text if unicodedata.category(ch) in _FORBIDDEN), None)
+    if bad is not None:
+        raise RequestError(f"'episode' contains U+{ord(bad):04X}, a control or invisible character; send an id "
+                           "of visible characters (and spaces)")
+    if not any(not ch.isspace() and ch not in _BLANK and unicodedata.category(ch) not in _MARKS for ch in text):
+        raise RequestError("'episode' is empty (or only whitespace, combining marks or blank letters); send an id "
+                           "a reader can see (a new id starts an episode) or leave the field out to stay in the "
+                           "current one")
     return text
 
 

@@ -393,13 +393,17 @@ def test_an_episode_id_nobody_can_read_a_bool_or_a_long_one_is_refused(unpaced, 
     to 128 characters (two long ids with one prefix were one episode): each is refused now, in one line."""
     server = serve()
     ws, _ = client(server)
-    for bad, problem in (("", "'episode' is empty"), ("   ", "'episode' is empty"), ("\u200b", "'episode' is empty"),
-                         ("\x00", "'episode' is empty"), ("\u200b\u200d\ufeff \t\n\x7f", "'episode' is empty"),
+    for bad, problem in (("", "'episode' is empty"), ("   ", "'episode' is empty"), ("\u200b", "contains U+200B"),
+                         ("\x00", "contains U+0000"), ("\u200b\u200d\ufeff \t\n\x7f", "contains U+200B"),
+                         ("\u202ex", "contains U+202E"), ("a\u200bb", "contains U+200B"),
+                         ("\u3164", "'episode' is empty"), ("\u115f", "'episode' is empty"),
+                         ("\uffa0", "'episode' is empty"), ("\u2800", "'episode' is empty"),
+                         ("\u0301", "'episode' is empty"), (" \u0301 \u3164", "'episode' is empty"),
                          (True, "a bool"), (False, "a bool"), ("x" * 129, "has 129 characters")):
         ws.send(pack({**GOOD, "episode": bad}))
         reply = ws.recv()
         assert isinstance(reply, str) and problem in reply and "\n" not in reply, (bad, reply)
-    for good in ("x" * 128, 7, "épisode-1"):
+    for good in ("x" * 128, 7, "épisode-1", "run 3 \u03b1", "e\u0301pisode"):
         ws.send(pack({**GOOD, "episode": good}))
         assert unpack(ws.recv())["episode"] == str(good)
     ws.send(pack({**GOOD, "episode": "e1"}))
