@@ -3,6 +3,8 @@ and whether bars are wanted at all (``TQDM_DISABLE``, which ``jepa-demo --no-pro
 from __future__ import annotations
 
 import os
+import time
+from contextlib import contextmanager
 
 
 def bars_disabled() -> bool:
@@ -37,3 +39,23 @@ class EpisodeProgress:
 
     def __getattr__(self, name):
         return getattr(self._pool, name)
+
+
+class Timer:
+    """Wall time of each named step of a job (jepa-demo's PushT and pick jobs), printed as it goes."""
+
+    def __init__(self):
+        self.steps: dict[str, float] = {}
+        self.start = time.perf_counter()
+
+    @contextmanager
+    def step(self, name: str):
+        print(f"\n== {name}", flush=True)
+        t0 = time.perf_counter()
+        yield
+        self.steps[name] = time.perf_counter() - t0
+        print(f"   {name}: {self.steps[name]:.1f} s", flush=True)
+
+    @property
+    def total(self) -> float:
+        return time.perf_counter() - self.start

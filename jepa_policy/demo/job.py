@@ -29,7 +29,6 @@ import secrets
 import shutil
 import time
 from concurrent.futures import ProcessPoolExecutor
-from contextlib import contextmanager
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
@@ -49,7 +48,7 @@ from jepa_policy.demo.report import write_report
 from jepa_policy.detectors import fit_detectors, load_detectors
 from jepa_policy.evaluate import env_kwargs_for, evaluate, make_pool
 from jepa_policy.policy import Policy
-from jepa_policy.progress import bars_disabled
+from jepa_policy.progress import Timer, bars_disabled
 from jepa_policy.selection import select_checkpoint, wilson_ci
 from monitor_service.compare import compare as compare_signals
 from monitor_service.compare import episode_of
@@ -120,26 +119,6 @@ MODES = {
 ARMS = ("jepa", "mip")
 ROBOT = "pusht-sim"
 CALIB_SEED, LIVE_SEED = 10_000, 20_000  # rollout seeds never overlap the demonstrations' seeds (0, 1, ...)
-
-
-class Timer:
-    """Wall time of each named step, printed at the end."""
-
-    def __init__(self):
-        self.steps: dict[str, float] = {}
-        self.start = time.perf_counter()
-
-    @contextmanager
-    def step(self, name: str):
-        print(f"\n== {name}", flush=True)
-        t0 = time.perf_counter()
-        yield
-        self.steps[name] = time.perf_counter() - t0
-        print(f"   {name}: {self.steps[name]:.1f} s", flush=True)
-
-    @property
-    def total(self) -> float:
-        return time.perf_counter() - self.start
 
 
 def _digest(data) -> str:

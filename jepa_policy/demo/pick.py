@@ -29,7 +29,6 @@ import os
 import shutil
 import time
 from concurrent.futures import ProcessPoolExecutor
-from contextlib import contextmanager
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
@@ -50,7 +49,7 @@ from jepa_policy.checkpoint import load_checkpoint
 from jepa_policy.dataset import window_indices
 from jepa_policy.evaluate import env_kwargs_for, evaluate, make_pool
 from jepa_policy.policy import Policy
-from jepa_policy.progress import bars_disabled
+from jepa_policy.progress import Timer, bars_disabled
 from jepa_policy.selection import wilson_ci
 from jepa_policy.train import load_config, train
 
@@ -102,21 +101,6 @@ def pick_config(task: str, mode: str = "default", steps: int | None = None) -> P
             raise ValueError(f"--steps must be a positive number of training steps, got {steps}")
         cfg = replace(cfg, train_overrides={**cfg.train_overrides, "steps": steps})
     return cfg
-
-
-class Timer:
-    """Wall time of each named step."""
-
-    def __init__(self):
-        self.steps: dict[str, float] = {}
-
-    @contextmanager
-    def step(self, name: str):
-        print(f"\n== {name}", flush=True)
-        t0 = time.perf_counter()
-        yield
-        self.steps[name] = time.perf_counter() - t0
-        print(f"   {name}: {self.steps[name]:.1f} s", flush=True)
 
 
 # ----------------------------------------------------------------------------- 1. demonstrations
@@ -591,7 +575,7 @@ def _samples_per_s(run_dir: Path) -> float:
 def run(cfg: PickConfig, out: Path, fresh: bool = False) -> dict:
     """The whole pick job into ``out``; returns the summary (also ``summary.json``)."""
     out.mkdir(parents=True, exist_ok=True)
-    timer, started = Timer(), time.perf_counter()
+    timer = Timer()
     load_before = " ".join(f"{x:.1f}" for x in os.getloadavg())
     with timer.step("1/6 scripted demonstrations"):
         dataset = make_demos(cfg, out, fresh, cfg.demos, 0, "train")
@@ -635,7 +619,7 @@ def run(cfg: PickConfig, out: Path, fresh: bool = False) -> dict:
                                      "checkpoint": str(ckpt)} for arm, ckpt in checkpoints.items()}},
             "ceiling": {**fit, **rate(ceiling_records)},
             "final": final, "curve": curve, "human": human, "timer": timer.steps,
-            "wall_s": time.perf_counter() - started,
+            "wall_s": timer.total,
         }
         plot_curves(curve, final, summary["ceiling"], run_dirs, out / "curves.png")
         save_frames(frames, out / "frames.png")
