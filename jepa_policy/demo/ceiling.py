@@ -60,12 +60,16 @@ def read_state_demos(path: str | Path) -> tuple[np.ndarray, np.ndarray, np.ndarr
 
 
 class StatePolicy(nn.Module):
-    """The MLP with its input standardisation and [-1, 1] action scaling as buffers."""
+    """The MLP with its input standardisation and [-1, 1] action scaling as buffers. ``featurize`` turns a batch of
+    state histories into features of ``state_dim`` per step (PushT's: the block angle as cos and sin; the pick
+    job's true states are features as they are)."""
 
-    def __init__(self, obs_steps: int, horizon: int, action_dim: int, width: int = 512):
+    def __init__(self, obs_steps: int, horizon: int, action_dim: int, width: int = 512,
+                 state_dim: int = STATE_DIM + 1, featurize=state_features):
         super().__init__()
         self.obs_steps, self.horizon, self.action_dim = obs_steps, horizon, action_dim
-        d_in = obs_steps * (STATE_DIM + 1)
+        self.featurize = featurize
+        d_in = obs_steps * state_dim
         self.net = nn.Sequential(nn.Linear(d_in, width), nn.ReLU(), nn.Linear(width, width), nn.ReLU(),
                                  nn.Linear(width, width), nn.ReLU(), nn.Linear(width, horizon * action_dim))
         self.register_buffer("x_mean", torch.zeros(d_in))
@@ -74,8 +78,8 @@ class StatePolicy(nn.Module):
         self.register_buffer("a_high", torch.ones(action_dim))
 
     def features(self, state_history: np.ndarray) -> torch.Tensor:
-        """(B, obs_steps, 5) states -> standardised (B, obs_steps * 6) inputs."""
-        x = torch.as_tensor(state_features(state_history).reshape(len(state_history), -1), dtype=torch.float32)
+        """(B, obs_steps, d) states -> standardised (B, obs_steps * state_dim) inputs."""
+        x = torch.as_tensor(self.featurize(state_history).reshape(len(state_history), -1), dtype=torch.float32)
         return (x - self.x_mean) / self.x_std
 
     def scale(self, actions: torch.Tensor) -> torch.Tensor:
@@ -87,7 +91,7 @@ class StatePolicy(nn.Module):
 
     @torch.no_grad()
     def act(self, state_history: np.ndarray) -> np.ndarray:
-        """(obs_steps, 5) states, oldest first -> (horizon, action_dim) actions in env units."""
+        """(obs_steps, d) states, oldest first -> (horizon, action_dim) actions in env units."""
         chunk = self(self.features(state_history[None]))[0]
         return ((chunk + 1) / 2 * (self.a_high - self.a_low) + self.a_low).numpy()
 

@@ -36,7 +36,6 @@ import gymnasium as gym
 import numpy as np
 import robosuite
 import torch
-from torch import nn
 from tqdm import tqdm
 
 from jepa_envs.datasets.hdf5 import demo_names, load_dataset, open_hdf5, write_dataset
@@ -46,6 +45,7 @@ from jepa_envs.tasks.robosuite_expert import generate_demos
 from jepa_envs.tasks.rotations import rot6d_to_matrix
 from jepa_envs.tasks.spec import get_task_spec
 from jepa_policy.checkpoint import load_checkpoint
+from jepa_policy.demo.ceiling import StatePolicy
 from jepa_policy.dataset import window_indices
 from jepa_policy.evaluate import env_kwargs_for, evaluate, make_pool
 from jepa_policy.policy import Policy
@@ -199,35 +199,6 @@ class PickStates:
         return self.now(obs)
 
 
-class StatePolicy(nn.Module):
-    """A 3 x 512 MLP from the standardised true states of the ``obs_steps`` newest steps to a chunk of
-    ``horizon`` actions in [-1, 1] units (min-max of the demonstrations' actions)."""
-
-    def __init__(self, state_dim: int, obs_steps: int, horizon: int, action_dim: int, width: int = 512):
-        super().__init__()
-        self.obs_steps, self.horizon, self.action_dim = obs_steps, horizon, action_dim
-        d_in = obs_steps * state_dim
-        self.net = nn.Sequential(nn.Linear(d_in, width), nn.ReLU(), nn.Linear(width, width), nn.ReLU(),
-                                 nn.Linear(width, width), nn.ReLU(), nn.Linear(width, horizon * action_dim))
-        self.register_buffer("x_mean", torch.zeros(d_in))
-        self.register_buffer("x_std", torch.ones(d_in))
-        self.register_buffer("a_low", -torch.ones(action_dim))
-        self.register_buffer("a_high", torch.ones(action_dim))
-
-    def standardise(self, history: np.ndarray) -> torch.Tensor:
-        x = torch.as_tensor(np.asarray(history).reshape(len(history), -1), dtype=torch.float32)
-        return (x - self.x_mean) / self.x_std
-
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
-        return self.net(x).view(-1, self.horizon, self.action_dim)
-
-    @torch.no_grad()
-    def act(self, history: np.ndarray) -> np.ndarray:
-        """(obs_steps, state_dim), oldest first -> (horizon, action_dim) actions in env units."""
-        chunk = self(self.standardise(history[None]))[0]
-        return ((chunk + 1) / 2 * (self.a_high - self.a_low) + self.a_low).numpy()
-
-
 def demo_states(task: str, path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(true states (N, d), actions (N, A), episode ends) of a pick demonstration file, the states read back
     from its recorded MuJoCo states."""
@@ -257,14 +228,15 @@ def train_state_policy(task: str, path: Path, steps: int, seed: int, batch_size:
     states, actions, ends = demo_states(task, path)
     idx = window_indices(ends, spec.obs_steps, spec.horizon, future_k=0)
     torch.manual_seed(seed)
-    policy = StatePolicy(states.shape[1], spec.obs_steps, spec.horizon, actions.shape[1])
+    policy = StatePolicy(spec.obs_steps, spec.horizon, actions.shape[1], state_dim=states.shape[1],
+                         featurize=np.asarray)   # the true state as it is
     raw = states[idx.obs].reshape(len(idx.obs), -1)
     policy.x_mean.copy_(torch.as_tensor(raw.mean(0), dtype=torch.float32))
     policy.x_std.copy_(torch.as_tensor(raw.std(0) + 1e-6, dtype=torch.float32))
     policy.a_low.copy_(torch.as_tensor(actions.min(0)))
     policy.a_high.copy_(torch.as_tensor(np.maximum(actions.max(0), actions.min(0) + 1e-6)))
-    x = policy.standardise(states[idx.obs])
-    y = (torch.as_tensor(actions[idx.action]) - policy.a_low) / (policy.a_high - policy.a_low) * 2 - 1
+    x = policy.features(states[idx.obs])
+    y = policy.scale(torch.as_tensor(actions[idx.action]))
     opt = torch.optim.AdamW(policy.parameters(), lr=lr, weight_decay=1e-6)
     warm = max(1, min(warmup, steps))
     schedule = torch.optim.lr_scheduler.LambdaLR(
