@@ -22,6 +22,7 @@ this job calls (``demo/job.py`` is PushT's job, ``demo/ceiling.py`` PushT's ceil
 """
 from __future__ import annotations
 
+import gzip
 import json
 import math
 import multiprocessing
@@ -297,7 +298,9 @@ def rate(records: list[dict]) -> dict:
 
 
 def evaluate_checkpoint(checkpoint: Path, episodes: int, seed: int, cfg: PickConfig, tags: dict,
-                        desc: str) -> list[dict]:
+                        desc: str, keep_latents: bool = False) -> list[dict]:
+    """Records of ``episodes`` rollouts from ``seed`` on, each with its decisions (NMSE, the detectors' scores
+    and, with ``keep_latents``, the predicted and realized future latents the monitor takes)."""
     policy = Policy.from_checkpoint(checkpoint)
     pool = make_pool(policy, min(cfg.num_envs, episodes), workers=cfg.workers, max_steps=cfg.max_steps)
     records = []
@@ -305,7 +308,8 @@ def evaluate_checkpoint(checkpoint: Path, episodes: int, seed: int, cfg: PickCon
         with tqdm(total=episodes, desc=desc, unit="ep") as bar:
             for start in range(0, episodes, cfg.num_envs):
                 n = min(cfg.num_envs, episodes - start)
-                report = evaluate(policy, episodes=n, seed=seed + start, num_envs=n, pool=pool, tags=tags)
+                report = evaluate(policy, episodes=n, seed=seed + start, num_envs=n, pool=pool, tags=tags,
+                                  keep_latents=keep_latents)
                 records += report["records"]
                 bar.update(n)
     finally:
@@ -562,7 +566,7 @@ def run(cfg: PickConfig, out: Path, fresh: bool = False) -> dict:
         final = {}
         for arm, ckpt in checkpoints.items():
             recs = evaluate_checkpoint(ckpt, cfg.eval_episodes, EVAL_SEED, cfg, {"arm": arm, "phase": "final"},
-                                       f"{arm} final")
+                                       f"{arm} final", keep_latents=True)
             records += recs
             final[arm.upper()] = rate(recs)
         final["true-state ceiling"] = rate(ceiling_records)
@@ -599,6 +603,10 @@ def run(cfg: PickConfig, out: Path, fresh: bool = False) -> dict:
         with (out / "records.jsonl").open("w") as f:
             for r in records:
                 f.write(json.dumps({k: v for k, v in r.items() if k != "decisions"}) + "\n")
+        with gzip.open(out / "decisions.jsonl.gz", "wt") as f:   # the monitor's input: latents per decision
+            for r in records:
+                if "decisions" in r:
+                    f.write(json.dumps(r) + "\n")
         (out / "report.md").write_text(render_report(summary))
     print(f"\n{cfg.task}: " + "; ".join(f"{label} {_pct(r)}" for label, r in final.items()), flush=True)
     print(f"report: {out / 'report.md'}  ({summary['wall_s'] / 60:.1f} min)", flush=True)
