@@ -1,7 +1,7 @@
 """``jepa-policy``: train, eval, fit-detectors, describe, bench (latency, train, serve, rollouts), audit, protocols,
 robot, serve.
 
-One module, over 600 lines, because each command's run sits beside its flags and nothing else is in it: every
+One module of about 630 lines on purpose: each command's run sits beside its flags and nothing else is in it: every
 import of the work is inside the command that does it, so ``--help`` loads none of it."""
 from __future__ import annotations
 
@@ -101,7 +101,8 @@ def cmd_eval(args) -> int:
         report = _evaluate_on_bar(bar, policy, None, episodes=args.episodes, seed=args.seed,
                                   num_envs=args.num_envs, max_steps=args.max_steps, video_dir=args.video,
                                   out=args.out, workers=args.workers, save_rollouts=args.save_rollouts,
-                                  residual_calibration=calibration, tags=_record_tags(args, policy))
+                                  residual_calibration=calibration, tags=_record_tags(args, policy),
+                                  keep_latents=args.keep_latents)
     summary = {k: v for k, v in report.items() if k != "records"}
     from jepa_policy.published import PUBLISHED_TASKS, published_metrics
 
@@ -192,7 +193,7 @@ def _eval_regimes(args, policy, calibration) -> int:
             t0 = time.perf_counter()
             report = _evaluate_on_bar(bar, policy, fault, episodes=episodes, seed=args.seed, num_envs=args.num_envs,
                                       max_steps=args.max_steps, workers=args.workers,
-                                      residual_calibration=calibration,
+                                      residual_calibration=calibration, keep_latents=args.keep_latents,
                                       tags={"regime": label, **_record_tags(args, policy)})
             records += report["records"]
             summary["regimes"][label] = {"episodes": episodes, "success_rate": report["success_rate"],
@@ -422,6 +423,10 @@ def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
     p.add_argument("--max-steps", type=int, default=None, help="episode step limit (default: the task's)")
     p.add_argument("--video", default=None, help="directory for one GIF per episode")
     p.add_argument("--out", default=None, help="JSONL file of per-episode records")
+    p.add_argument("--keep-latents", action="store_true",
+                   help="each scored decision in --out also holds its predicted, current and realized future "
+                        "latents (z_hat, z_now, z_real: what a robot sends the monitor; `jepa-monitor replay` "
+                        "streams them to a service)")
     p.add_argument("--save-rollouts", default=None, metavar="FILE.hdf5",
                    help="also write every episode (all frames, actions, rewards, outcome) as robomimic-layout HDF5, "
                         "e.g. for `jepa-envs lerobot export` (outcomes become next.success)")

@@ -184,7 +184,9 @@ def evaluate(policy, episodes: int, seed: int, num_envs: int = 4, max_steps: int
     times); the report lists each rerun. Per-decision events (``on_decision``) are delivered once their round
     has completed, so a rerun never delivers an event twice. Only the frames the policy uses are rendered
     (``policy.images_needed``) unless videos are written. Returns the report (success rate, mean NMSE,
-    per-episode records); ``out`` also writes the records as JSONL; ``tags``: fields added to every record.
+    per-episode records); ``out`` also writes the records as JSONL; ``tags``: fields added to every record;
+    ``keep_latents``: each scored decision also holds its z_hat, z_now and z_real (lists: what a robot sends the
+    monitor).
 
     Across machines (torchrun): ``shard=(rank, world)``, by default that of an initialised torch.distributed
     process group, gives rank r the rounds r, r + world, ...; every rank's records are gathered, so every rank
@@ -369,7 +371,7 @@ def _run_round(envs, policy, ids, seed, video_dir, on_decision, keep_latents, st
                     if white is not None:
                         rec["nmse_white"] = float(white[j])
                     if keep_latents:
-                        rec.update(z_hat=d.z_hat[j].tolist(), z_real=z_real[j].tolist())
+                        rec.update(z_hat=d.z_hat[j].tolist(), z_now=z_now[j].tolist(), z_real=z_real[j].tolist())
                     decisions[j].append(rec)
                     if on_decision:
                         on_decision(DecisionEvent("realized", ids[j], seeds[j], d.step, d.target_step,

@@ -8,6 +8,9 @@ Determinism. The model's own randomness (crop windows, second-step noise) is dra
 which is re-seeded for every shard of every step from (seed, step, shard). A resumed run therefore repeats
 the uninterrupted run exactly, and a step split over W DDP ranks x A accumulation shards computes the same
 shards whatever W and A are (shard s of a global batch holds its positions s::(W*A)).
+
+One module of about 650 lines on purpose: the training story reads top to bottom in one file, as a CleanRL
+script does; the model, the data and the evaluation are modules of their own.
 """
 from __future__ import annotations
 

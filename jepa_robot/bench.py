@@ -17,6 +17,7 @@ import sys
 import time
 
 import numpy as np
+from tqdm import tqdm
 
 import jepa_envs  # noqa: F401  (registers the simulation tasks the sim backend builds)
 from jepa_robot.backends.sim import SimBackend
@@ -41,7 +42,8 @@ def bench_actions(backend, count: int) -> np.ndarray:
     return actions
 
 
-def _time_in_process(backend, actions: np.ndarray, steps: int, chunks: int, n: int, deadline: float):
+def _time_in_process(backend, actions: np.ndarray, steps: int, chunks: int, n: int, deadline: float,
+                     tick=lambda: None):
     step_s, chunk_s = [], []
     backend.reset(seed=0)
     for i in range(steps):
@@ -50,6 +52,7 @@ def _time_in_process(backend, actions: np.ndarray, steps: int, chunks: int, n: i
         t0 = time.perf_counter()
         result = backend.apply(actions[i % len(actions)])
         step_s.append(time.perf_counter() - t0)
+        tick()
         if result.terminated or result.truncated:
             backend.reset(seed=i)
     backend.reset(seed=0)
@@ -62,12 +65,13 @@ def _time_in_process(backend, actions: np.ndarray, steps: int, chunks: int, n: i
             result = backend.apply(actions[(c * n + j) % len(actions)])
             done = done or result.terminated or result.truncated
         chunk_s.append(time.perf_counter() - t0)
+        tick()
         if done:
             backend.reset(seed=c)
     return step_s, chunk_s
 
 
-def _time_bridge(env, actions: np.ndarray, steps: int, chunks: int, n: int, deadline: float):
+def _time_bridge(env, actions: np.ndarray, steps: int, chunks: int, n: int, deadline: float, tick=lambda: None):
     step_s, chunk_s = [], []
     env.reset(seed=0)
     for i in range(steps):
@@ -76,6 +80,7 @@ def _time_bridge(env, actions: np.ndarray, steps: int, chunks: int, n: int, dead
         t0 = time.perf_counter()
         _, _, terminated, truncated, _ = env.step(actions[i % len(actions)])
         step_s.append(time.perf_counter() - t0)
+        tick()
         if terminated or truncated:
             env.reset(seed=i)
     env.reset(seed=0)
@@ -86,12 +91,13 @@ def _time_bridge(env, actions: np.ndarray, steps: int, chunks: int, n: int, dead
         t0 = time.perf_counter()
         _, _, terminated, truncated, _ = env.step_chunk(chunk)
         chunk_s.append(time.perf_counter() - t0)
+        tick()
         if terminated or truncated:
             env.reset(seed=c)
     return step_s, chunk_s
 
 
-def time_estop_commands(operator: str, runs: int) -> dict:
+def time_estop_commands(operator: str, runs: int, tick=lambda: None) -> dict:
     """Process start to exit of ``estop`` through each entry point, interleaved (same load for both)."""
     commands = {"operator_cli": [sys.executable, "-m", "jepa_robot.operator_cli", "estop", "--operator", operator],
                 "full_cli": [sys.executable, "-m", "jepa_robot.cli", "estop", "--operator", operator],
@@ -102,6 +108,7 @@ def time_estop_commands(operator: str, runs: int) -> dict:
             t0 = time.perf_counter()
             subprocess.run(command, check=True, capture_output=True)
             samples[name].append(time.perf_counter() - t0)
+        tick()
     out = {"runs": runs}
     for name, values in samples.items():
         x = np.asarray(values, np.float64) * 1e3
@@ -113,6 +120,10 @@ def time_estop_commands(operator: str, runs: int) -> dict:
 def run_bench(args) -> int:
     """Run the benchmark described in the module docstring and print its numbers."""
     deadline = time.monotonic() + args.max_seconds
+    # steps and chunks in process and over the bridge, then the e-stop commands (a phase cut short by its
+    # deadline leaves the bar short)
+    bar = tqdm(total=2 * (args.steps + args.chunks) + args.estop_runs, desc="robot bench", unit="op",
+               disable=args.no_progress, file=sys.stderr)
     backend = SimBackend(args.task, image_size=args.image_size, camera_replicas=args.cameras)
     try:
         n = backend.task_spec.n_action_steps
@@ -120,7 +131,7 @@ def run_bench(args) -> int:
         obs, _ = backend.reset(seed=0)
         payload = sum(v.nbytes for v in obs.values())
         in_step, in_chunk = _time_in_process(backend, actions, args.steps, args.chunks, n,
-                                             time.monotonic() + args.max_seconds / 3)
+                                             time.monotonic() + args.max_seconds / 3, bar.update)
     finally:
         backend.close()
     server = subprocess.Popen(
@@ -136,16 +147,17 @@ def run_bench(args) -> int:
         operator = banner.rsplit("operator socket ", 1)[1].strip()
         env = RealRobotEnv(task=args.task, address=control, client_name="bench")
         try:
-            br_step, br_chunk = _time_bridge(env, actions, args.steps, args.chunks, n, deadline)
+            br_step, br_chunk = _time_bridge(env, actions, args.steps, args.chunks, n, deadline, bar.update)
         finally:
             env.close()
-        estop = time_estop_commands(operator, args.estop_runs)
+        estop = time_estop_commands(operator, args.estop_runs, bar.update)
         with OperatorClient(operator) as op:
             op.clear_estop()
             status = op.status()
             op.shutdown()
         server.wait(timeout=30)
     finally:
+        bar.close()
         if server.poll() is None:
             server.kill()
             server.wait()

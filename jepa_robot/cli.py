@@ -16,6 +16,9 @@
 The console script answers the operator commands without importing this module (``jepa_robot.operator_cli``); they
 also work here. The policy side runs elsewhere: ``jepa-policy robot --address tcp://robot-pc:5555
 --checkpoint ckpt.pt``.
+
+One module of about 650 lines on purpose: each command's run sits beside its flags, and every import of the
+work is inside the command that does it, so ``--help`` and the operator commands load none of the bridge.
 """
 from __future__ import annotations
 
@@ -136,6 +139,7 @@ def _parser() -> argparse.ArgumentParser:
     bench.add_argument("--max-seconds", type=float, default=120.0)
     bench.add_argument("--estop-runs", type=int, default=10, help="time the e-stop command this many times")
     bench.add_argument("--out", metavar="FILE", help="also write the numbers to this file (JSON)")
+    bench.add_argument("--no-progress", action="store_true", help="no progress bar on stderr (for logs)")
     bench.add_argument("--load", metavar="SCENARIOS",
                        help="instead: the bridge under local load, comma-separated from flood, operators, "
                             "operators+flood, big, flood-elsewhere, many-strangers, operator-flood, aborts (e-stop "

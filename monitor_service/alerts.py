@@ -59,6 +59,8 @@ def alert_payload(alert: Alert) -> dict:
         "state": alert.state,
         "acknowledged_by": alert.acknowledged_by,
         "beyond_calibration": alert.beyond_calibration,
+        "no_promise": bool(alert.no_promise),
+        "note": alert.note,
         "signals": alert.signals,
         "raised_at": alert.raised_at.isoformat() + "Z",
     }

@@ -22,12 +22,14 @@ from monitor_service.signals import (RATIO, SERVICE_SIGNALS, DetectorSpec, Signa
                                      cross_fit_detector)
 
 ASSUMPTIONS = (
-    "The false-alert guarantee P(a successful episode raises any alert) <= alpha holds in each length regime of "
-    "the calibration (rule.regimes: episodes of lo..hi scored decisions) for new episodes exchangeable with that "
-    "regime's held-out successes: the same task, checkpoint and robot set-up, scored with the same window, "
-    "debounce and hysteresis. It is finite-sample split conformal over whole episodes, averaged over the "
-    "calibration draw; not a per-episode failure probability. Decisions beyond rule.calibrated_decisions are "
-    "flagged beyond_calibration: no guarantee covers them."
+    "The false-alert guarantee P(a successful episode raises any alert) <= alpha holds in each promised length "
+    "bin of the calibration (rule.regimes with promise true: episodes of lo..hi scored decisions) for new "
+    "episodes exchangeable with that bin's held-out successes: the same task, checkpoint and robot set-up, scored "
+    "with the same window, debounce and hysteresis. It is finite-sample split conformal over whole episodes, "
+    "averaged over the calibration draw; not a per-episode failure probability. A bin with fewer held-out "
+    "successes than alpha needs (rule.unpromised_lengths) carries no promise, and an alert on an episode that can "
+    "still end there says so (no_promise, and its note names the bin and its count). Decisions beyond "
+    "rule.calibrated_decisions are flagged beyond_calibration: no guarantee covers them."
 )
 
 

@@ -1,4 +1,5 @@
-"""``jepa-monitor``: serve, db, keys, tasks, calibrate, report, bench."""
+"""``jepa-monitor``: serve, db, keys, tasks, calibrate, study, compare, ceiling, report, replay, tasks-study,
+bench."""
 from __future__ import annotations
 
 import argparse
@@ -9,7 +10,7 @@ import tempfile
 from importlib.metadata import PackageNotFoundError, version
 from pathlib import Path
 
-from monitor_service import compare_cli
+from monitor_service.offline import compare_cli
 
 
 def _settings(args, database: str | None = None):
@@ -29,6 +30,17 @@ def _settings(args, database: str | None = None):
     if database is not None:
         db.check_database_url(settings.database_url, create=database == "create")
     return settings
+
+
+def _share(text: str) -> float:
+    """A share in (0, 1), for argparse."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a share between 0 and 1, e.g. 0.75, got {text!r}") from None
+    if not 0.0 < value < 1.0:
+        raise argparse.ArgumentTypeError(f"expected a share strictly between 0 and 1, e.g. 0.75, got {value}")
+    return value
 
 
 def _sessionmaker(args):
@@ -146,7 +158,7 @@ def cmd_tasks(args) -> int:
 
 def cmd_calibrate(args) -> int:
     from monitor_service.service import calibrate_task
-    from monitor_service.study import study_table
+    from monitor_service.offline.study import study_table
 
     settings, make_session = _sessionmaker(args)
     row = calibrate_task(
@@ -212,7 +224,7 @@ def cmd_report(args) -> int:
 
 def cmd_study(args) -> int:
     from monitor_service.rules import RuleParams
-    from monitor_service.study import (length_check, length_table, load_episodes, run_study, study_table,
+    from monitor_service.offline.study import (length_check, length_table, load_episodes, run_study, study_table,
                                        synthetic_study)
 
     settings = _settings(args)
@@ -223,7 +235,8 @@ def cmd_study(args) -> int:
         if args.records or args.synthetic:
             raise ValueError("--length-check runs on its own synthetic episodes; drop the records file / --synthetic")
         check = length_check(args.draws, args.fresh, args.successes, params=params, seed=args.seed,
-                             alphas=(args.alpha,) if args.alpha else (0.05, 0.2), progress=not args.no_progress)
+                             alphas=(args.alpha,) if args.alpha else (0.05, 0.2), progress=not args.no_progress,
+                             short_share=args.short_share)
         print(json.dumps(check, indent=2) if args.json else length_table(check))
         return 0
     if args.synthetic:
@@ -231,11 +244,11 @@ def cmd_study(args) -> int:
             raise ValueError("give either a records file or --synthetic N, not both")
         n_success, n_failure = (int(x) for x in args.episodes.split(","))
         result = synthetic_study(args.synthetic, n_success, n_failure, params, alpha, args.folds, args.seed)
-        source = f"synthetic task, {args.synthetic} decisions per episode (monitor_service/synthetic.py)"
+        source = f"synthetic task, {args.synthetic} decisions per episode (monitor_service/offline/synthetic.py)"
     else:
         if not args.records:
             raise ValueError("give a records file (JSONL) or --synthetic N")
-        where = dict(w.split("=", 1) for w in args.where or [])
+        where = _where(args.where)
         episodes, skipped = load_episodes(args.records, where)
         if not episodes:
             raise ValueError(f"{args.records} holds no labelled episode with a scored decision ({skipped})")
@@ -266,6 +279,81 @@ def cmd_bench(args) -> int:
         Path(args.out).write_text(json.dumps(results, indent=2))
     if args.json:
         print(json.dumps(results, indent=2))
+    return 0
+
+
+def _where(items: list[str] | None) -> dict[str, str]:
+    """``--where FIELD=VALUE`` options as a dict; ValueError naming a malformed one."""
+    out = {}
+    for item in items or []:
+        field, sep, value = item.partition("=")
+        if not sep or not field:
+            raise ValueError(f"--where {item!r}: give FIELD=VALUE, e.g. --where arm=jepa")
+        out[field] = value
+    return out
+
+
+def _held_out(text: str) -> float:
+    """``--held-out``: a count of episodes (N) or a share of them (0 < P < 1), for argparse."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a count (e.g. 100) or a share (e.g. 0.5), got {text!r}") from None
+    if value < 0 or (value >= 1 and value != int(value)):
+        raise argparse.ArgumentTypeError(f"expected a count >= 0 or a share between 0 and 1, got {text}")
+    return value
+
+
+def cmd_replay(args) -> int:
+    from monitor_service.offline.replay import read_records, replay
+
+    where = _where(args.where)
+    records = read_records(args.records, where)
+    if not records:
+        raise ValueError(f"{args.records}: no episode records" + (f" with {where}" if where else ""))
+    key = args.api_key or os.environ.get("JEPA_MONITOR_API_KEY")
+    if not key:
+        raise ValueError("give the robot key the records are sent with: --api-key KEY or JEPA_MONITOR_API_KEY "
+                         "(`jepa-monitor keys create --name NAME --role robot --robot ROBOT`)")
+    held = round(args.held_out * len(records)) if 0 < args.held_out < 1 else int(args.held_out)
+    signals = tuple(x for x in (args.signals or "").split(",") if x)
+    summary = replay(records, args.url, key, args.task, held, robot=args.robot, prefix=args.prefix,
+                     checkpoint=args.checkpoint, group=args.group, signals=signals, progress=not args.no_progress)
+    out = summary.to_dict()
+    if args.json:
+        print(json.dumps(out))
+    else:
+        print(f"{args.task}: {out['episodes']} episodes ({out['held_out']} held out for calibration, "
+              f"{out['episodes'] - out['held_out']} live), {out['decisions']} decisions, {out['targets']} realized "
+              f"latents sent to {args.url}; {len(out['rejected'])} refused, {out['dropped']} dropped")
+        for line in out["rejected"][:10]:
+            print(f"  refused: {line}")
+    return 1 if out["rejected"] or out["dropped"] else 0
+
+
+def cmd_tasks_study(args) -> int:
+    from monitor_service.offline.tasks import run_tasks_study, tasks_figure, tasks_table
+
+    files = {}
+    for item in args.task:
+        task, sep, path = item.partition("=")
+        if not sep or not task or not path:
+            raise ValueError(f"--task {item!r}: give TASK=RECORDS, e.g. --task Lift=demo_out/Lift/decisions.jsonl.gz")
+        files[task] = path
+    compare_cli.check_out(args.out, (".json", ".md", ".png"))
+    study = run_tasks_study(files, _where(args.where), args.held_out, args.alpha, args.rule,
+                            progress=not args.no_progress)
+    table = tasks_table(study)
+    figures = [tasks_figure(study, path) for path in args.out if path.endswith(".png")]
+    for t in study["tasks"].values():
+        t.pop("_peaks", None)
+    for path in args.out:
+        if path.endswith(".json"):
+            Path(path).write_text(json.dumps(study, indent=2))
+        elif path.endswith(".md"):
+            Path(path).write_text(table + "".join(f"\n\n![peak running-median NMSE per task]({p.name})"
+                                                  for p in figures) + "\n")
+    print(json.dumps(study, indent=2) if args.json else table)
     return 0
 
 
@@ -353,6 +441,9 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--draws", type=int, default=200, help="--length-check: calibrations (default 200)")
     s.add_argument("--fresh", type=int, default=200, help="--length-check: fresh successes per calibration")
     s.add_argument("--successes", type=int, default=100, help="--length-check: successes per calibration")
+    s.add_argument("--short-share", type=_share, metavar="P",
+                   help="--length-check: this share of the calibration's successes 5-20 decisions long, the rest "
+                        "21-150 (mostly short successes, e.g. 0.75; default: all uniform in 5-150)")
     s.add_argument("--folds", type=int, default=5, help="cross-fitting folds within each checkpoint")
     s.add_argument("--seed", type=int, default=0, help="seed of the folds and the band split")
     s.add_argument("--json", action="store_true", help="print every figure as JSON")
@@ -365,6 +456,45 @@ def build_parser() -> argparse.ArgumentParser:
     s = sub.add_parser("report", help="per-task calibrations (pooled figure only as a warning)")
     s.add_argument("--json", action="store_true")
     s.set_defaults(func=cmd_report)
+
+    s = sub.add_parser("replay", help="recorded rollouts (`jepa-policy eval --keep-latents --out FILE`) into a "
+                                      "running service over its HTTP API, as a robot sends them: the first ones "
+                                      "as held-out labelled episodes, the rest live")
+    s.add_argument("records", help="episode records with latents (JSONL, or .jsonl.gz)")
+    s.add_argument("--task", required=True, help="the registered task they belong to")
+    s.add_argument("--url", default="http://127.0.0.1:8765", help="the service (default http://127.0.0.1:8765)")
+    s.add_argument("--api-key", help="a robot key (default: JEPA_MONITOR_API_KEY)")
+    s.add_argument("--held-out", type=_held_out, default=0.5, metavar="N|P",
+                   help="the first N episodes (or share P of them) are sent as held-out labelled rollouts for "
+                        "calibration, the rest live (default 0.5)")
+    s.add_argument("--where", action="append", metavar="FIELD=VALUE",
+                   help="keep only records with this field value, e.g. --where arm=jepa (repeatable)")
+    s.add_argument("--prefix", default="", help="prepended to every episode id (e.g. the task's name)")
+    s.add_argument("--robot", help="the robot named in the records (default: the key's)")
+    s.add_argument("--checkpoint", help="the checkpoint they came from (a calibration per checkpoint)")
+    s.add_argument("--group", help="the episodes' group (leave-one-group-out figures)")
+    s.add_argument("--signals", metavar="A,B", help="named scores to send with each decision (the task must "
+                                                    "register them), e.g. stac")
+    s.add_argument("--json", action="store_true", help="print the summary as JSON")
+    s.add_argument("--no-progress", action="store_true", help="no progress bar on stderr (for logs)")
+    s.set_defaults(func=cmd_replay)
+
+    s = sub.add_parser("tasks-study", help="several tasks in one service over HTTP: each calibrated on its own "
+                                           "held-out rollouts and alerted on live, beside one pooled threshold")
+    s.add_argument("--task", action="append", required=True, metavar="TASK=RECORDS",
+                   help="a task and its records with latents (`jepa-policy eval --keep-latents --out`, a pick "
+                        "job's decisions.jsonl.gz); repeatable")
+    s.add_argument("--where", action="append", metavar="FIELD=VALUE", help="keep only records with this field value")
+    s.add_argument("--held-out", type=_share, default=0.5, metavar="P",
+                   help="share of each file's episodes (its first ones) held out for calibration (default 0.5)")
+    s.add_argument("--alpha", type=_share, default=0.1, help="the rule's false-alert rate (default 0.1)")
+    s.add_argument("--rule", choices=["running", "band"], default="running", help="alert rule (default running)")
+    s.add_argument("--out", action="append", default=[], metavar="FILE.json|FILE.md|FILE.png",
+                   help="also write the figures as JSON (.json), the tables as Markdown (.md) or each task's "
+                        "peak NMSE against both thresholds (.png); repeatable")
+    s.add_argument("--json", action="store_true", help="print the figures as JSON")
+    s.add_argument("--no-progress", action="store_true", help="no progress bars on stderr (for logs)")
+    s.set_defaults(func=cmd_tasks_study)
 
     s = sub.add_parser("bench", help="ingest throughput and latency against real servers, beside the framework's floor")
     s.add_argument("--dim", type=int, default=1024, help="latent dimension (default 1024: two 512-d cameras)")

@@ -153,6 +153,8 @@ class Alert(Base):
     resolution: Mapped[str | None] = mapped_column(String(16), nullable=True)   # failure (true) or success (false)
     beyond_calibration: Mapped[bool] = mapped_column(Boolean, default=False, server_default=false())
     signals: Mapped[str] = mapped_column(String(512), default="nmse", server_default="nmse")
+    # the episode could still end at a length the calibration holds too few successes of to promise alpha
+    no_promise: Mapped[bool] = mapped_column(Boolean, default=False, server_default=false())
 
 
 class WebhookDelivery(Base):

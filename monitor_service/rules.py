@@ -17,14 +17,20 @@ above their own T(i). For a whole episode let A = max_i min_{d consecutive} (r_i
 ``running``): the smallest lambda at which it would never have alerted (-inf with fewer than d values).
 
 The successes are split once (seeded): one half fits the band (``band``) and the shape, the other half gives the
-conformal quantiles. Those are grouped into *length regimes* by their number of scored decisions (edges 20, 40,
-80, 160, ...; a regime with fewer successes than alpha needs is merged with the next, the last into the one
-before). In each regime B, lambda_B is the split-conformal quantile of A (the r-th smallest, r =
-ceil((n_B + 1)(1 - alpha))), and lambda = max_B lambda_B. A new successful episode whose length falls in regime
-B and that is exchangeable with B's calibration successes then raises *any* alert with probability <= alpha,
-finite-sample, in every regime at once (the shape makes the regimes' lambdas close, so little is lost to the
-max). Decisions beyond the longest calibrated episode (``calibrated_decisions``) keep the last threshold but
-are flagged: no guarantee covers them. Assumptions: the same task, checkpoint and set-up; window, debounce, band
+conformal quantiles. Those are grouped into *length regimes* by their number of scored decisions: the bins an
+operator sees (edges 20, 40, 80, 160, ...), one regime per bin from the first to the one holding the longest
+calibrated episode. A bin holding at least alpha's minimum of conformal successes (``min_conformal_episodes``:
+9 at 0.1, 4 at 0.2) is *promised*: lambda_B is the split-conformal quantile of A over its own successes (the
+r-th smallest, r = ceil((n_B + 1)(1 - alpha))). lambda = max_B lambda_B. A new successful episode whose length
+falls in a promised bin B and that is exchangeable with B's calibration successes then raises *any* alert with
+probability <= alpha, finite-sample, in every promised bin at once (the shape makes the bins' lambdas close, so
+little is lost to the max). A bin with fewer successes (none, or too few for a finite quantile at alpha) carries
+*no promise*: it is never merged into a neighbour (that made the neighbour's threshold, set by shorter episodes,
+stand for lengths it did not cover: with 15 of 200 successes at 81-150 decisions, fresh ones alerted at 0.17-0.34
+at alpha 0.1); its lengths are judged at the largest promised level (or, when no bin has enough, the quantile
+of all successes together, a promise only on average over their lengths), and an alert raised there says so
+(``unpromised``). Decisions beyond the longest calibrated episode (``calibrated_decisions``) keep the last
+threshold and are flagged likewise. Assumptions: the same task, checkpoint and set-up; window, debounce, band
 and shape belong to the calibrated rule (change them and recalibrate).
 
 Detection figures are cross-fitted: every held-out episode is judged by a rule calibrated without it.
@@ -46,7 +52,6 @@ BAND_SCALE_FLOOR = 0.1       # per-step scale >= this fraction of the pooled sca
 LOG_FLOOR = 1e-12            # NMSE is >= 0; log of an exact match is floored
 SHAPE_MIN_EPISODES = 3       # fitting successes that must reach a decision index for the shape to move there
 LENGTH_EDGES = (20, 40, 80, 160, 320, 640, 1280, 2560)   # length regimes, in scored decisions (doubling)
-REGIME_MIN_SUCCESSES = 20    # conformal successes per length regime at least (fewer: merged with the next)
 
 
 @dataclass(frozen=True)
@@ -302,38 +307,30 @@ class Regime:
     lo: int
     hi: int
     n: int
-    rank: int
+    rank: int               # 0: no promise (too few successes for a finite quantile)
     level: float
+    promise: bool = True    # a fresh success of these lengths alerts with probability <= alpha
 
     def to_dict(self) -> dict:
         return asdict(self)
 
 
 def length_regimes(lengths: list[int], alpha: float, edges: tuple[int, ...] = LENGTH_EDGES,
-                   min_episodes: int = REGIME_MIN_SUCCESSES) -> list[tuple[int, int, np.ndarray]]:
-    """Group episodes by length into (lo, hi, indices): the bins between ``edges``, each merged with the next
-    until it holds ``min_episodes`` (and at least enough for a finite quantile at ``alpha``); the remainder joins
-    the last group. The top group ends at the longest episode. A regime's quantile from few episodes is noisy and
-    the threshold takes the largest of them, so tiny regimes cost detection for little gain."""
+                   min_episodes: int | None = None) -> list[tuple[int, int, np.ndarray, bool]]:
+    """Group episodes by length into (lo, hi, indices, promised): one group per bin between ``edges``, from the
+    first bin to the one holding the longest episode (which ends the top group), empty bins included; a group is
+    promised when it holds at least alpha's minimum for a finite conformal quantile (or ``min_episodes``, if
+    larger). Bins are never merged: a merged regime's quantile is set by its commoner lengths and promises nothing
+    for its scarce ones."""
     lengths = np.asarray(lengths, dtype=np.int64)
-    need = max(min_conformal_episodes(alpha), min_episodes)
+    need = max(min_conformal_episodes(alpha), min_episodes or 0)
     bins = np.searchsorted(np.asarray(edges), lengths, side="left")
-    bounds = [0, *edges]
-    groups, start, members = [], 0, []
-    for b in range(len(edges) + 1):
-        members += np.flatnonzero(bins == b).tolist()
-        if len(members) >= need:
-            groups.append([start, b, members])
-            start, members = b + 1, []
-    if members:
-        if not groups:   # fewer than min_episodes in all: one regime (calibrate_rule checked alpha's minimum)
-            groups.append([0, len(edges), members])
-        else:
-            groups[-1][1], groups[-1][2] = len(edges), groups[-1][2] + members
+    bounds, longest = [0, *edges], int(lengths.max())
     out = []
-    for first, last, idx in groups:
-        hi = bounds[last + 1] if last < len(edges) else int(lengths.max())
-        out.append((bounds[first] + 1, min(hi, int(lengths.max())), np.sort(np.asarray(idx, dtype=np.int64))))
+    for b in range(int(bins.max()) + 1):
+        idx = np.flatnonzero(bins == b)
+        hi = min(edges[b], longest) if b < len(edges) else longest
+        out.append((bounds[b] + 1, hi, idx, idx.size >= need))
     return out
 
 
@@ -353,6 +350,29 @@ class CalibratedRule:
     def calibrated_decisions(self) -> int:
         """The longest calibrated episode's scored decisions; later indices hold the last threshold, unguaranteed."""
         return int(self.shape.size)
+
+    @property
+    def promise_minimum(self) -> int:
+        """Conformal successes a length bin needs for a promise at this alpha."""
+        return min_conformal_episodes(self.alpha)
+
+    def unpromised(self, index: int) -> str:
+        """What no false-alert promise covers about an alert at decision ``index`` (0-based: the episode has index
+        + 1 scored decisions so far), or "" when one covers it whatever length the episode ends at. The promise is
+        per final length: the alert is covered if the episode ends in a promised bin, so this names the bins
+        without one that it can still end in (beyond the calibrated decisions is ``beyond_calibration``'s)."""
+        open_ = [r for r in self.regimes if not r.promise and r.hi >= index + 1]
+        if not open_:
+            return ""
+        return ("no false-alert promise if the episode ends at "
+                + ", ".join(f"{r.lo}-{r.hi} ({r.n} calibration successes)" for r in open_)
+                + f" scored decisions: a promise at alpha={self.alpha} needs {self.promise_minimum} successes of the "
+                  f"lengths; record more held-out successes that long and recalibrate")
+
+    def unpromised_lengths(self) -> list[dict]:
+        """The length bins (scored decisions) that carry no promise, with the calibration successes they had."""
+        return [{"lo": r.lo, "hi": r.hi, "successes": r.n, "needed": self.promise_minimum}
+                for r in self.regimes if not r.promise]
 
     def levels(self) -> np.ndarray:
         """lambda(i) for the calibrated indices: the largest lambda_B of the regimes an episode that has reached
@@ -382,7 +402,8 @@ class CalibratedRule:
         return {"params": self.params.to_dict(), "alpha": self.alpha, "level": self.level,
                 "threshold": self.threshold, "shape": self.shape.tolist(),
                 "band": None if self.band is None else self.band.to_dict(),
-                "regimes": [r.to_dict() for r in self.regimes], "calibrated_decisions": self.calibrated_decisions,
+                "regimes": [r.to_dict() for r in self.regimes], "unpromised_lengths": self.unpromised_lengths(),
+                "calibrated_decisions": self.calibrated_decisions,
                 "n_successes": self.n_successes, "n_conformal": self.n_conformal, "note": self.note}
 
     @classmethod
@@ -400,12 +421,13 @@ class CalibratedRule:
     def judge(self, episode: EpisodeScores) -> dict:
         """Whether the episode alerts, and when (``alert_timing``)."""
         r = self.running(episode)
-        return alert_timing(episode, first_alert(r, self.thresholds(r.size), self.params.debounce),
-                            self.calibrated_decisions)
+        index = first_alert(r, self.thresholds(r.size), self.params.debounce)
+        return {**alert_timing(episode, index, self.calibrated_decisions),
+                "unpromised": "" if index is None else self.unpromised(index)}
 
 
 def calibrate_rule(successes: list[EpisodeScores], params: RuleParams, alpha: float, seed: int = 0,
-                   edges: tuple[int, ...] = LENGTH_EDGES, regime_min: int = REGIME_MIN_SUCCESSES) -> CalibratedRule:
+                   edges: tuple[int, ...] = LENGTH_EDGES, regime_min: int | None = None) -> CalibratedRule:
     """The threshold curve of ``params`` at false-alert rate ``alpha`` in every length regime, from held-out
     successful episodes (module docstring).
 
@@ -432,20 +454,32 @@ def calibrate_rule(successes: list[EpisodeScores], params: RuleParams, alpha: fl
     else:
         shape = fit_shape(fit_running, max(lengths), params.kind)
     stats = np.array([alert_statistic(excess(params, r, shape[: r.size]), params.debounce) for r in conf_running])
-    regimes = []
-    for lo, hi, idx in length_regimes(lengths, alpha, edges, regime_min):
-        ordered = np.sort(stats[idx])
-        rank = conformal_rank(idx.size, alpha)
-        regimes.append(Regime(lo, hi, int(idx.size), rank, float(ordered[rank - 1])))
+    groups = length_regimes(lengths, alpha, edges, regime_min)
+    levels = {}
+    for lo, hi, idx, promised in groups:
+        if promised:
+            rank = conformal_rank(idx.size, alpha)
+            levels[lo] = (rank, float(np.sort(stats[idx])[rank - 1]))
+    if levels:
+        base = max(level for _, level in levels.values())
+    else:   # no bin holds enough: all successes together, a promise only on average over their lengths
+        base = float(np.sort(stats)[conformal_rank(stats.size, alpha) - 1])
+    regimes = [Regime(lo, hi, int(idx.size), *levels.get(lo, (0, base)), promise=lo in levels)
+               for lo, hi, idx, _ in groups]
     level = max(r.level for r in regimes)
-    if not math.isfinite(min(r.level for r in regimes)):
+    if not math.isfinite(level):
         raise ValueError(
             f"most successful episodes have fewer than {params.debounce} scored decisions, too few to be judged by a "
             f"rule with debounce {params.debounce}; lower the debounce or record longer episodes")
-    note = (f"lambda(i) = max over the {len(regimes)} length regime(s) still open at index i of the "
-            f"ceil((n+1)(1-alpha))-th smallest alert "
-            f"statistic ({', '.join(f'{r.lo}-{r.hi} decisions: {r.n}' for r in regimes)} successes); "
-            + (f"band and shape fitted on the other {len(fit)}" if fit else "nothing fitted"))
+    promised = [r for r in regimes if r.promise]
+    unpromised = [r for r in regimes if not r.promise]
+    note = (f"lambda(i) = max over the {len(promised)} promised length bin(s) still open at index i of the "
+            f"ceil((n+1)(1-alpha))-th smallest alert statistic ("
+            + (", ".join(f"{r.lo}-{r.hi} decisions: {r.n}" for r in promised) or "none") + " successes)"
+            + (f"; no promise at {', '.join(f'{r.lo}-{r.hi} decisions ({r.n} successes)' for r in unpromised)}: "
+               f"alpha={alpha} needs {min_conformal_episodes(alpha)} per bin"
+               + ("" if promised else ", so the level is the quantile of all lengths together") if unpromised else "")
+            + "; " + (f"band and shape fitted on the other {len(fit)}" if fit else "nothing fitted"))
     return CalibratedRule(params, alpha, level, shape, band, regimes, n, len(conf_idx), note)
 
 

@@ -382,6 +382,9 @@ class AlertOut(BaseModel):
         description="the outcome that resolved it: failure (a true alert) or success (a false alert)")
     beyond_calibration: bool = Field(description="raised beyond the calibrated decisions (no guarantee there)")
     signals: str = Field(description="the signal(s) whose calibrated rule raised it, comma-separated")
+    no_promise: bool = Field(False, description="the episode could still end at a length whose false-alert rate "
+                                                "the calibration does not promise (too few held-out successes that "
+                                                "long); the note names the lengths and counts")
 
 
 class AckIn(_Strict):

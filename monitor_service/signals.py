@@ -173,9 +173,10 @@ class CalibratedDetector:
 
     def judge(self, episode: SignalEpisode) -> dict:
         """Whether the episode alerts, at which decision step, which signals raised it, whether beyond the
-        calibrated length, the env step at which it was known and the lead before the episode's end."""
+        calibrated length, which lengths it could still end at carry no promise (``rules.CalibratedRule.
+        unpromised``), the env step at which it was known and the lead before the episode's end."""
         flags = self.flags(episode)
-        hit = None   # (step, known_at, signals, beyond)
+        hit = None   # (step, known_at, signals, beyond, index, unpromised)
         if self.spec.combination == "fiper":
             if len(flags) == 2:
                 (a, fa), (b, fb) = flags.items()
@@ -183,20 +184,22 @@ class CalibratedDetector:
                 for j in np.flatnonzero(fb.over):
                     i = over_a.get(int(fb.steps[j]))
                     if i is not None:
+                        why = {self.rules[a].unpromised(i), self.rules[b].unpromised(int(j))} - {""}
                         hit = (int(fb.steps[j]), int(max(fa.known_at[i], fb.known_at[j])), [a, b],
-                               i >= fa.calibrated or j >= fb.calibrated, int(j))
+                               i >= fa.calibrated or j >= fb.calibrated, int(j), "; ".join(sorted(why)))
                         break
         else:
             for name, f in flags.items():
                 i = np.flatnonzero(f.over)
                 if i.size and (hit is None or f.steps[i[0]] < hit[0]):
-                    hit = (int(f.steps[i[0]]), int(f.known_at[i[0]]), [name], bool(i[0] >= f.calibrated), int(i[0]))
+                    hit = (int(f.steps[i[0]]), int(f.known_at[i[0]]), [name], bool(i[0] >= f.calibrated), int(i[0]),
+                           self.rules[name].unpromised(int(i[0])))
         if hit is None:
             return {"alerted": False, "step": None, "decision_index": None, "known_at": None, "signals": [],
-                    "beyond_calibration": False, "lead": None}
-        step, known, signals, beyond, index = hit
+                    "beyond_calibration": False, "unpromised": "", "lead": None}
+        step, known, signals, beyond, index, unpromised = hit
         return {"alerted": True, "step": step, "decision_index": index, "known_at": known, "signals": signals,
-                "beyond_calibration": beyond,
+                "beyond_calibration": beyond, "unpromised": unpromised,
                 "lead": None if episode.end_step is None else int(episode.end_step) - known}
 
 

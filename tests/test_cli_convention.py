@@ -101,9 +101,10 @@ LONG_RUNNING = {
     "jepa-policy train", "jepa-policy eval", "jepa-policy fit-detectors", "jepa-policy audit", "jepa-policy protocols",
     "jepa-policy robot", "jepa-policy bench latency", "jepa-policy bench train", "jepa-policy bench serve",
     "jepa-policy bench rollouts", "jepa-monitor study", "jepa-monitor compare", "jepa-monitor ceiling",
-    "jepa-monitor bench", "jepa-robot-bridge bench", "jepa-demo", "jepa-demo ceiling"}
+    "jepa-monitor bench", "jepa-monitor replay", "jepa-monitor tasks-study", "jepa-robot-bridge bench", "jepa-demo",
+    "jepa-demo ceiling"}
 # breaches in files their owners are editing now (each must still be one: a fixed breach fails the test below)
-EXEMPT = {("jepa-robot-bridge bench", "--no-progress"): "jepa_robot/cli.py"}
+EXEMPT: dict[tuple[str, str], str] = {}   # (command path, option): the file that owes the fix
 
 
 def convention_problems(parsers: dict[str, argparse.ArgumentParser], long_running=LONG_RUNNING

@@ -50,9 +50,9 @@ from jepa_policy.evaluate import env_kwargs_for, evaluate, make_pool
 from jepa_policy.policy import Policy
 from jepa_policy.progress import Timer, bars_disabled
 from jepa_policy.selection import select_checkpoint, wilson_ci
-from monitor_service.compare import compare as compare_signals
-from monitor_service.compare import episode_of
-from monitor_service.compare import markdown as compare_markdown
+from monitor_service.offline.compare import compare as compare_signals
+from monitor_service.offline.compare import episode_of
+from monitor_service.offline.compare import markdown as compare_markdown
 from jepa_policy.train import load_config, train
 from monitor_service.client import MonitorClient
 from monitor_service.server import provision, start_server

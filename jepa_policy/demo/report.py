@@ -12,10 +12,10 @@ import numpy as np
 from scipy import stats
 
 from jepa_envs.datasets.hdf5 import demo_names
-from jepa_policy.compare_figures import delay_figure, roc_figure
+from monitor_service.offline.figures import delay_figure, roc_figure
 from jepa_policy.selection import wilson_ci
-from monitor_service.compare import CONTROLS, best_rows, ranking_table
-from monitor_service.study import study_episode_records
+from monitor_service.offline.compare import CONTROLS, best_rows, ranking_table
+from monitor_service.offline.study import study_episode_records
 
 EARLY_DECISIONS = 5          # paper Sec. 4.10: median NMSE of the first five decisions
 MIN_CLASS_FOR_AUROC = 10     # below this many held-out successes (or failures) the AUROC is flagged as uninformative

@@ -150,8 +150,9 @@ class Alerting:
         for s in detector.spec.signals:
             events += self._step_signal(ep, state, s, detector.rules[s])
         events.sort(key=lambda e: e[0])   # decision step order across signals (stable within a signal)
-        for step, signal, over, under, value, threshold, beyond in events:
-            self._judge(cur, req, ep, state, detector, cal_id, step, signal, over, under, value, threshold, beyond)
+        for step, signal, over, under, value, threshold, beyond, unpromised in events:
+            self._judge(cur, req, ep, state, detector, cal_id, step, signal, over, under, value, threshold, beyond,
+                        unpromised)
         first = detector.spec.signals[0]
         st = state.get(first, {})
         ep.last_evaluated_step = st.get("last", ep.last_evaluated_step)
@@ -198,7 +199,8 @@ class Alerting:
             beyond = i >= rule.calibrated_decisions
             ep.beyond_calibration = ep.beyond_calibration or beyond
             st["flags"][str(int(steps[j]))] = over
-            out.append((int(steps[j]), signal, over, under, value, threshold, beyond))
+            out.append((int(steps[j]), signal, over, under, value, threshold, beyond,
+                        rule.unpromised(i) if over else ""))
         if len(st["flags"]) > FLAGS_KEPT:
             st["flags"] = dict(sorted(st["flags"].items(), key=lambda kv: int(kv[0]))[-FLAGS_KEPT:])
         state[signal] = st
@@ -206,8 +208,9 @@ class Alerting:
 
     def _judge(self, cur, req: Request, ep: EpisodeState, state: dict, detector: CalibratedDetector,
                cal_id: int, step: int, signal: str, over: bool, under: bool, value: float, threshold: float,
-               beyond: bool) -> None:
-        """The detector's raise or clear after one signal's value at ``step``."""
+               beyond: bool, unpromised: str = "") -> None:
+        """The detector's raise or clear after one signal's value at ``step``; ``unpromised``: which lengths the
+        episode can still end at carry no false-alert promise (``rules.CalibratedRule.unpromised``)."""
         spec = detector.spec
         if ep.open_alert_id is None:
             if not over:
@@ -220,9 +223,10 @@ class Alerting:
                 raised_by = list(spec.signals)
             note = f"{spec.name}: {'+'.join(raised_by)} over the threshold" + (
                 f"; beyond the {detector.rules[signal].calibrated_decisions} calibrated decisions of {signal}: no "
-                "false-alert guarantee covers it" if beyond else "")
+                "false-alert guarantee covers it" if beyond else "") + (f"; {unpromised}" if unpromised else "")
             ep.open_alert_id = statements.insert_alert(self.sql, cur, ep, cal_id, step, value, threshold, note, beyond,
-                                                       self.settings.webhook_urls, ",".join(raised_by))
+                                                       self.settings.webhook_urls, ",".join(raised_by),
+                                                       no_promise=bool(unpromised))
             req.alerts_raised.append(ep.open_alert_id)
             req.observations.append(("alert", ep.task, ep.robot, 1.0))
             req.signal_observations += [("alert", ep.task, ep.robot, s, 1.0) for s in raised_by]

@@ -188,13 +188,17 @@ def idempotent_answer(sql: Sql, cur, key_id: int, key: str) -> tuple[str, int, d
 # ---------------------------------------------------------------------------------------------------- writing
 
 def insert_alert(sql: Sql, cur, ep: EpisodeState, cal_id: int, step: int, value: float, threshold: float,
-                 note: str, beyond: bool, webhook_urls: list[str], signals: str = "nmse") -> int:
-    """A raised alert (and a pending delivery per webhook URL); returns its id."""
+                 note: str, beyond: bool, webhook_urls: list[str], signals: str = "nmse",
+                 no_promise: bool = False) -> int:
+    """A raised alert (and a pending delivery per webhook URL); returns its id. ``no_promise``: the episode can
+    still end at a length whose false-alert rate the calibration does not promise (the note says which)."""
     now = sql.time(utcnow())
     cur.execute(sql.q(
         "INSERT INTO alerts (episode_id, task, robot, step, score, threshold, calibration_id, state, note, "
-        "raised_at, beyond_calibration, signals) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?) RETURNING id"),
-        (ep.id, ep.task, ep.robot, step, value, threshold, cal_id, "open", note[:512], now, beyond, signals))
+        "raised_at, beyond_calibration, signals, no_promise) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?) "
+        "RETURNING id"),
+        (ep.id, ep.task, ep.robot, step, value, threshold, cal_id, "open", note[:512], now, beyond, signals,
+         no_promise))
     alert_id = cur.fetchone()[0]
     if webhook_urls:
         cur.executemany(sql.q(

@@ -26,7 +26,7 @@ def alert_out(a: Alert) -> AlertOut:
         threshold=a.threshold, calibration_id=a.calibration_id, state=a.state, acknowledged_by=a.acknowledged_by,
         acknowledged_at=a.acknowledged_at, note=a.note, raised_at=a.raised_at, cleared_at=a.cleared_at,
         resolved_at=a.resolved_at, resolution=a.resolution, beyond_calibration=a.beyond_calibration,
-        signals=a.signals,
+        signals=a.signals, no_promise=bool(a.no_promise),
     )
 
 

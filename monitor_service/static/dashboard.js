@@ -145,12 +145,18 @@ async function refresh() {
     const over = live.filter((e) => e.risk_score !== null && e.risk_score > e.risk_threshold).length;
     const openAlerts = alerts.filter((a) => a.task === c.task && (a.state === "open" || a.state === "acknowledged")).length;
     const r = c.result;
-    const regimes = (r.rule.regimes || []).map((g) => `${g.lo}-${g.hi}`).join(", ");
+    // a length bin is promised (alpha there) unless the calibration held too few successes of that length
+    const bins = r.rule.regimes || [];
+    const promised = bins.filter((g) => g.promise !== false).map((g) => `${g.lo}-${g.hi}`).join(", ");
+    const unpromised = bins.filter((g) => g.promise === false).map((g) => `${g.lo}-${g.hi} (${g.n} successes)`).join(", ");
+    const promiseText = r.alpha === undefined ? "-" :
+      (promised ? `${r.alpha} in each of ${promised} decisions` : `${r.alpha} on average over all lengths only`) +
+      (unpromised ? `; no promise at ${unpromised}: too few held-out successes that long` : "");
     tbody.append(h("tr", { "data-task": c.task },
       h("td", {}, c.task), h("td", {}, `${fmt(r.auroc)} [${fmt(r.auroc_ci_low)}, ${fmt(r.auroc_ci_high)}]`),
       h("td", {}, fmt(r.average_precision)), h("td", {}, fmt(r.permutation_p, 4)),
       h("td", { class: "detector" }, `${detectorName(r)}, ${c.rule}: up to ${fmt(c.threshold, 4)}`),
-      h("td", { class: "regimes" }, r.alpha === undefined ? "-" : `${r.alpha} in each of ${regimes} decisions`),
+      h("td", { class: unpromised ? "regimes no-promise" : "regimes" }, promiseText),
       h("td", {}, String(live.length)), h("td", { class: over ? "risk-high" : "" }, String(over)),
       h("td", {}, String(openAlerts))));
     const box = h("div", { class: "chart" });
@@ -172,7 +178,8 @@ async function refresh() {
     abody.append(h("tr", { class: a.state, "data-alert": a.id },
       h("td", {}, String(a.id)), h("td", {}, a.task), h("td", {}, a.robot), h("td", {}, a.episode_id),
       h("td", {}, String(a.step)), h("td", {}, `${fmt(a.score, 4)} / ${fmt(a.threshold, 4)}`),
-      h("td", { class: "state" }, stateText + (a.beyond_calibration ? " (beyond the calibrated length)" : "")),
+      h("td", { class: "state", title: a.note }, stateText + (a.beyond_calibration ? " (beyond the calibrated length)" : "") +
+        (a.no_promise ? " (no false-alert promise if the episode runs to a length without enough calibration)" : "")),
       h("td", {}, a.acknowledged_at ? a.acknowledged_by : "no"), h("td", {}, action)));
   }
 

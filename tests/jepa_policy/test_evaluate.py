@@ -170,6 +170,8 @@ def test_rollouts_give_consistent_per_decision_nmse_records(checkpoint, tmp_path
             if d["nmse"] is not None:
                 z_now = prediction[(r["seed"], d["step"])].z_now
                 assert d["nmse_persistence"] == pytest.approx(nmse(z_now, np.array(d["z_real"])), rel=1e-9)
+                # what a robot sends the monitor: the current latent too (its persistence baseline)
+                np.testing.assert_array_equal(np.array(d["z_now"]), z_now)
     # the hook saw every prediction and every realized target, with the same numbers as the records
     realized = [e for e in events if e.kind == "realized"]
     assert len([e for e in events if e.kind == "prediction"]) == sum(len(r["decisions"]) for r in records)

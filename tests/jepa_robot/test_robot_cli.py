@@ -66,8 +66,11 @@ def test_serve_argument_errors(capsys):
 def test_bench_prints_numbers(capsys, tmp_path):
     out_json = tmp_path / "bench.json"
     assert main(["bench", "--steps", "20", "--chunks", "4", "--estop-runs", "2", "--out", str(out_json)]) == 0
-    text = capsys.readouterr().out
+    captured = capsys.readouterr()
+    text = captured.out
     assert "3 camera(s) of 128x128" in text and "overhead per chunk" in text and "operator entry point" in text
+    # its bar on stderr: 2 x (20 steps + 4 chunks) + 2 e-stop runs, all done
+    assert "robot bench: 100%" in captured.err and "50/50" in captured.err
     result = json.loads(out_json.read_text())
     assert result["obs_payload_bytes"] == 3 * 128 * 128 * 3 + 2 * 4
     for where in ("in_process", "bridge"):

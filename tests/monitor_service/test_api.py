@@ -29,7 +29,7 @@ def _alerts_total(metrics: str) -> float:
 def test_health_and_readiness(client):
     assert client.get("/healthz").json()["status"] == "ok"
     r = client.get("/readyz")
-    assert r.status_code == 200 and r.json()["detail"] == "schema 0004"
+    assert r.status_code == 200 and r.json()["detail"] == "schema 0005"
     paths = client.get("/openapi.json").json()["paths"]
     assert "application/x-msgpack" in paths["/v1/batch"]["post"]["requestBody"]["content"]
 
@@ -303,7 +303,8 @@ def test_calibration_report_and_alerts_end_to_end(client, robot, operator, admin
         stat = sorted(alert_statistic(running_statistic(np.array(s.scalars(
             select(Decision.nmse).where(Decision.episode_id == i).order_by(Decision.step)).all()), 5), 2) for i in ids)
     assert cal["threshold"] == pytest.approx(stat[27]) and cal["rule"] == "running"
-    assert res["rule"]["regimes"] == [{"lo": 1, "hi": 6, "n": 30, "rank": 28, "level": pytest.approx(np.log(stat[27]))}]
+    assert res["rule"]["regimes"] == [{"lo": 1, "hi": 6, "n": 30, "rank": 28, "level": pytest.approx(np.log(stat[27])),
+                                         "promise": True}]
     assert res["rule"]["n_conformal"] == 30 and res["rule"]["calibrated_decisions"] == 6
     for kind in ("running", "band"):   # cross-fitted detection figures of both rules
         d = res["detection"][kind]

@@ -11,7 +11,7 @@ from sqlalchemy import select
 from monitor_service import rules
 from monitor_service.app import create_app
 from monitor_service.db import CalibrationRow, Episode
-from monitor_service.synthetic import synthetic_episodes
+from monitor_service.offline.synthetic import synthetic_episodes
 
 ADMIN_H = {"X-API-Key": ADMIN}
 

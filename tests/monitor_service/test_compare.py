@@ -10,7 +10,7 @@ import sys
 import numpy as np
 import pytest
 
-from monitor_service import compare as cmp
+from monitor_service.offline import compare as cmp
 from monitor_service.signals import DetectorSpec
 from monitor_service.cli import main as monitor_main
 
@@ -211,13 +211,13 @@ def test_the_command_writes_json_and_markdown_and_refuses_bad_input_in_one_line(
 
 
 def test_the_monitor_package_imports_no_plotting_library(tmp_path):
-    code = "import sys, monitor_service.compare, monitor_service.cli; sys.exit('matplotlib' in sys.modules)"
+    code = "import sys, monitor_service.offline.compare, monitor_service.cli; sys.exit('matplotlib' in sys.modules)"
     assert subprocess.run([sys.executable, "-c", code]).returncode == 0
 
 
 def test_figures_are_drawn_from_the_json_alone(tmp_path):
     pytest.importorskip("matplotlib")
-    from jepa_policy.compare_figures import main as figures_main
+    from monitor_service.offline.figures import main as figures_main
 
     rows = natural(stac=lambda failed, i, s, g: g.random() + 2 * failed)
     rows += faulted(range(10), "block_displaced", lambda i, s, g: 5 + g.random() if s > ONSET else g.random())

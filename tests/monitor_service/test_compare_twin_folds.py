@@ -5,7 +5,7 @@ of pure-noise signals ranked failures at a mean AUROC of 0.64 over 15 draws inst
 fold; with unique seeds the folds are unchanged."""
 import numpy as np
 
-from monitor_service import compare
+from monitor_service.offline import compare
 
 
 def record(seed, success, values):
@@ -55,7 +55,7 @@ def test_a_score_whose_episode_mean_overflows_leaves_the_stack_standing():
 
 def test_a_checkpoints_folds_do_not_depend_on_the_other_checkpoints_loaded_beside_it():
     """The folds (and so the stack) of one group are the same whether it is compared alone or beside others."""
-    from monitor_service.compare import Episode, assign_folds
+    from monitor_service.offline.compare import Episode, assign_folds
 
     def group(name, n):
         rng = np.random.default_rng(len(name))

@@ -38,6 +38,17 @@ def test_dashboard_shows_risk_roc_and_acknowledges(tmp_path):
             http.post("/v1/batch", json={"records": recs}, headers=robot).raise_for_status()
         http.post("/v1/calibrations", json={"task": "Square", "n_bootstrap": 200, "n_permutation": 200},
                   headers=A).raise_for_status()
+        # Can: its successes mostly 5 decisions long, 3 of 30: too few that long for a promise at alpha 0.1
+        http.put("/v1/tasks/Can", json={"latent_dim": DIM}, headers=A).raise_for_status()
+        for i in range(36):
+            fail = i % 4 == 0
+            recs, _ = episode_records(f"can{i}", "Can", rng, 0.6 if fail else 0.3, n_steps=30 if i >= 33 else 5,
+                                      success=not fail)
+            http.post("/v1/batch", json={"records": recs}, headers=robot).raise_for_status()
+        http.post("/v1/calibrations", json={"task": "Can", "rule": "running", "n_bootstrap": 200,
+                                            "n_permutation": 200}, headers=A).raise_for_status()
+        recs, _ = episode_records("can-bad", "Can", rng, 2.0, n_steps=8, held_out=False)
+        can_alert = http.post("/v1/batch", json={"records": recs}, headers=robot).json()["alerts_raised"][0]
         recs, _ = episode_records("live-bad", "Square", rng, 2.0, n_steps=8, held_out=False)
         alert_id = http.post("/v1/batch", json={"records": recs}, headers=robot).json()["alerts_raised"][0]
         # an episode that alerted and then failed: its alert is resolved by the outcome, nothing to acknowledge
@@ -74,7 +85,7 @@ def test_dashboard_shows_risk_roc_and_acknowledges(tmp_path):
                     assert loc.locator("text.xlabel").text_content() and loc.locator("text.ylabel").text_content()
                     title, outer = loc.locator("text.title").bounding_box(), loc.bounding_box()
                     assert title["x"] >= outer["x"] and title["x"] + title["width"] <= outer["x"] + outer["width"]
-                assert "median NMSE" in page.locator("svg.histogram text.xlabel").text_content()
+                assert "median NMSE" in page.locator("svg.histogram[data-task='Square'] text.xlabel").text_content()
                 # the key lives in this tab's sessionStorage only
                 assert page.evaluate("sessionStorage.getItem('jepaMonitorKey')") == op_key
                 assert page.evaluate("localStorage.getItem('jepaMonitorKey')") is None
@@ -85,6 +96,14 @@ def test_dashboard_shows_risk_roc_and_acknowledges(tmp_path):
                 assert done.locator("td.state").inner_text() == "resolved: failure"
                 assert done.locator("button.ack").count() == 0, "a resolved alert offers no Acknowledge"
                 assert "1 missing at 3" in page.locator("#episodes tr[data-episode='gappy'] td.gaps").inner_text()
+                # which lengths carry the false-alert promise, per task, and the alert that no promise covers
+                square = page.locator("#tasks tr[data-task='Square'] td.regimes")
+                assert square.inner_text().startswith("0.1 in each of 1-") and "no promise" not in square.inner_text()
+                can = page.locator("#tasks tr[data-task='Can'] td.regimes.no-promise")
+                assert "no promise at 21-" in can.inner_text() and "(3 successes)" in can.inner_text()
+                can_row = page.locator(f"#alerts tr[data-alert='{can_alert}'] td.state")
+                assert "no false-alert promise" in can_row.inner_text()
+                assert "21-" in can_row.get_attribute("title")   # the note names the lengths
                 row.locator("button.ack").click()
                 page.wait_for_selector(f"#alerts tr[data-alert='{alert_id}'] >> text=alice")
                 assert row.locator("td.state").inner_text() == "acknowledged" and row.locator("button.ack").count() == 0

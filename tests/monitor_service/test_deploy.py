@@ -102,35 +102,53 @@ def _image_requirements() -> list[str]:
 def test_the_image_installs_every_module_the_monitor_imports_and_no_torch():
     """The image installs the package without its base dependencies and then pyproject's monitor extra: every
     third-party module monitor_service imports (anywhere, lazily too) must come from a distribution on that
-    list, and nothing on it may pull torch or a simulator."""
+    list, but for the offline study's figures (monitor_service/offline), which may use the plot extra too; and
+    nothing on either may pull torch or a simulator."""
     import ast
     from importlib.metadata import packages_distributions, requires
 
     from packaging.requirements import Requirement
 
+    import tomllib
+
     wanted = {Requirement(line).name.lower().replace("_", "-") for line in _image_requirements()}
-    modules = set()
-    for path in (DEPLOY.parents[1] / "monitor_service").rglob("*.py"):
+    extras = tomllib.loads((DEPLOY.parents[1] / "pyproject.toml").read_text())["project"]["optional-dependencies"]
+    plot = {Requirement(line).name.lower().replace("_", "-") for line in extras["plot"]}
+    root = DEPLOY.parents[1] / "monitor_service"
+    modules, offline_modules = set(), set()
+    for path in root.rglob("*.py"):
+        found = offline_modules if path.relative_to(root).parts[0] == "offline" else modules
         for node in ast.walk(ast.parse(path.read_text())):
             if isinstance(node, ast.Import):
-                modules |= {a.name.split(".")[0] for a in node.names}
+                found |= {a.name.split(".")[0] for a in node.names}
             elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
-                modules.add(node.module.split(".")[0])
-    third_party = sorted(m for m in modules - set(sys.stdlib_module_names) if m != "monitor_service")
-    assert "orjson" in third_party and "fastapi" in third_party
+                found.add(node.module.split(".")[0])
+
+    def third_party(names):
+        return sorted(m for m in names - set(sys.stdlib_module_names) if m != "monitor_service")
+
+    assert "orjson" in third_party(modules) and "fastapi" in third_party(modules)
+    assert "matplotlib" in third_party(offline_modules) and "matplotlib" not in third_party(modules)
     dists = packages_distributions()
-    closure: set[str] = set()
-    todo = list(wanted)
-    while todo:   # everything the list pulls in, from the installed metadata
-        name = todo.pop()
-        if name in closure:
-            continue
-        closure.add(name)
-        for line in requires(name) or []:
-            req = Requirement(line)
-            if req.marker is None or req.marker.evaluate({"extra": ""}):
-                todo.append(req.name.lower().replace("_", "-"))
-    for module in third_party:
-        providers = {d.lower().replace("_", "-") for d in dists.get(module, [])}
-        assert providers & closure, f"monitor_service imports {module!r}, which the image does not install"
-    assert not {"torch", "robosuite", "mujoco", "gymnasium", "pymunk"} & closure
+
+    def closure_of(names: set[str]) -> set[str]:
+        closure: set[str] = set()
+        todo = list(names)
+        while todo:   # everything the list pulls in, from the installed metadata
+            name = todo.pop()
+            if name in closure:
+                continue
+            closure.add(name)
+            for line in requires(name) or []:
+                req = Requirement(line)
+                if req.marker is None or req.marker.evaluate({"extra": ""}):
+                    todo.append(req.name.lower().replace("_", "-"))
+        return closure
+
+    image, with_plot = closure_of(wanted), closure_of(wanted | plot)
+    for names, closure, where in ((modules, image, "the image does not install"),
+                                  (offline_modules, with_plot, "neither the image nor the plot extra installs")):
+        for module in third_party(names):
+            providers = {d.lower().replace("_", "-") for d in dists.get(module, [])}
+            assert providers & closure, f"monitor_service imports {module!r}, which {where}"
+    assert not {"torch", "robosuite", "mujoco", "gymnasium", "pymunk"} & with_plot

@@ -16,8 +16,8 @@ from scipy.stats import binomtest
 
 from monitor_service import rules
 from monitor_service.server import start_server
-from monitor_service.study import load_episodes
-from monitor_service.synthetic import mixed_length_episodes
+from monitor_service.offline.study import load_episodes
+from monitor_service.offline.synthetic import mixed_length_episodes
 
 RECORDS = Path(__file__).parent / "data" / "pusht_jepa_records.jsonl.gz"
 DIM = 8
@@ -79,7 +79,8 @@ def _as_decisions(scores: rules.EpisodeScores) -> list[dict]:
 def test_live_alerts_over_http_equal_the_offline_rule_at_every_length(tmp_path):
     """A real server: PushT calibrated on its calibration rollouts and a synthetic task on successes of 5-150
     decisions; every live episode's first alert (step, threshold, beyond the calibrated length or not) equals the
-    rule's offline judgement, and the episode's outcome resolves the alert as a true or a false one."""
+    rule's offline judgement, and says when no promise covers it (the lengths the episode can still end at that
+    held too few calibration successes), and the episode's outcome resolves the alert as a true or a false one."""
     from monitor_service.calibration import LabelledEpisode
 
     rng = np.random.default_rng(0)
@@ -102,19 +103,21 @@ def test_live_alerts_over_http_equal_the_offline_rule_at_every_length(tmp_path):
         _stream(http, robot, "PushT", calib, rng, True)
         _stream(http, robot, "Mixed", mixed, rng, True)
         rule_of = {}
-        for task, kind, alpha in (("PushT", "band", 0.2), ("Mixed", "running", 0.2)):
+        for task, kind, alpha in (("PushT", "band", 0.2), ("Mixed", "running", 0.1)):
             cal = http.post("/v1/calibrations", headers=admin, json={
                 "task": task, "rule": kind, "alpha": alpha, "n_bootstrap": 200, "n_permutation": 200})
             assert cal.status_code == 201, cal.text
             rule_of[task] = rules.CalibratedRule.from_dict(cal.json()["result"]["rule"])
         assert len(rule_of["Mixed"].regimes) >= 2   # the 5-150 successes give more than one length regime
+        # 60 successes of 5-150 decisions: too few short ones for a promise at alpha 0.1 (9 per bin)
+        assert rule_of["Mixed"].unpromised_lengths() and rule_of["Mixed"].regimes[-1].promise
         _stream(http, robot, "PushT", live, rng, False)
         _stream(http, robot, "Mixed", mixed_live, rng, False)
         alerts = http.get("/v1/alerts", params={"limit": 5000}, headers=operator).json()
         first = {}
         for a in sorted(alerts, key=lambda a: a["id"]):
             first.setdefault(a["episode_id"], a)
-        checked = {"alerted": 0, "beyond": 0}
+        checked = {"alerted": 0, "beyond": 0, "no_promise": 0}
         for task, episodes in (("PushT", live), ("Mixed", mixed_live)):
             rule = rule_of[task]
             for e in episodes:
@@ -128,11 +131,15 @@ def test_live_alerts_over_http_equal_the_offline_rule_at_every_length(tmp_path):
                 assert got["step"] == expected["step"], e.episode
                 assert got["threshold"] == pytest.approx(rule.threshold_at(expected["decision_index"]), rel=1e-9)
                 assert got["beyond_calibration"] == expected["beyond_calibration"]
+                # the alert says when the episode could still end at a length without a promise, and which
+                assert got["no_promise"] == bool(expected["unpromised"])
+                assert expected["unpromised"] in got["note"]
+                checked["no_promise"] += got["no_promise"]
                 # the outcome arrived after the alert: resolved, as a false alert on a success
                 assert got["state"] in ("resolved", "cleared")
                 if got["state"] == "resolved":
                     assert got["resolution"] == ("success" if e.success else "failure")
-        assert checked["alerted"] >= 10 and checked["beyond"] >= 1, checked
+        assert checked["alerted"] >= 10 and checked["beyond"] >= 1 and checked["no_promise"] >= 1, checked
         detail = http.get(f"/v1/episodes/{live[0].episode}", headers=operator).json()
         assert detail["calibrated_decisions"] == rule_of["PushT"].calibrated_decisions
 
@@ -151,4 +158,16 @@ def test_the_length_check_command_prints_its_figures_and_a_bar_on_stderr(capsys)
     assert "length check: 100%" in err and "6/6" in err          # 2 rule kinds x 1 alpha x 3 calibrations
     assert main([*argv, "--no-progress"]) == 0
     out, err = capsys.readouterr()
-    assert "false alerts of fresh successes; 3 calibrations" in out and err == ""
+    assert "false alerts of fresh successes in the bins the calibration promised" in out and err == ""
+    assert "3 calibrations on 20 successes, 20 fresh" in out
+    # mostly short calibration successes: 2 of 20 in 21-150, too few for a promise at 0.2 in any longer bin;
+    # the fresh successes there are counted apart and every one of their alerts says it has no promise
+    assert main([*argv, "--no-progress", "--json", "--short-share", "0.9"]) == 0
+    check = json.loads(capsys.readouterr().out)
+    assert check["short_share"] == 0.9
+    for bins in check["rules"].values():
+        assert bins[0]["unpromised_episodes"] == 0 and sum(b["unpromised_episodes"] for b in bins[1:]) > 0
+        assert all(b["unpromised_alerts_flagged"] == b["unpromised_alerts"] for b in bins)
+    with pytest.raises(SystemExit):
+        main([*argv, "--short-share", "1.5"])
+    assert "strictly between 0 and 1" in capsys.readouterr().err

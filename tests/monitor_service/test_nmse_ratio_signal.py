@@ -13,7 +13,8 @@ import pytest
 from monitor_testkit import ADMIN, DIM, make_settings, post_batch, records_for_nmse, register_task
 from scipy.stats import binomtest
 
-from monitor_service import compare, rules, scoring
+from monitor_service import rules, scoring
+from monitor_service.offline import compare
 from monitor_service.signals import CalibratedDetector, DetectorSpec, calibrate_detector
 from monitor_service.calibration import LabelledEpisode
 from monitor_service.cli import main as monitor_main

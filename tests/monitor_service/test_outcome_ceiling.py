@@ -1,6 +1,7 @@
-"""``jepa-monitor ceiling`` (monitor_service/outcome_ceiling.py): the AUROC over pairs of different seeds against a
-brute-force reference; the ceiling estimates on draws from a known distribution of per-seed failure probabilities
-against its exact ceiling; draws whose prefixes differ refused with the fix; the command end to end on record files."""
+"""``jepa-monitor ceiling`` (monitor_service/offline/outcome_ceiling.py): the AUROC over pairs of different seeds
+against a brute-force reference; the ceiling estimates on draws from a known distribution of per-seed failure
+probabilities against its exact ceiling; draws whose prefixes differ refused with the fix; the command end to end
+on record files."""
 from __future__ import annotations
 
 import json
@@ -8,9 +9,9 @@ import json
 import numpy as np
 import pytest
 
-from monitor_service import outcome_ceiling as cl
+from monitor_service.offline import outcome_ceiling as cl
 from monitor_service.cli import main
-from monitor_service.compare import episode_of
+from monitor_service.offline.compare import episode_of
 
 PREFIX = 10
 

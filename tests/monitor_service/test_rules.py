@@ -8,8 +8,8 @@ from scipy.stats import binom, binomtest
 
 from monitor_service import rules
 from monitor_service.alerts import AlertState, step_alert
-from monitor_service.study import EarlyScoreRule
-from monitor_service.synthetic import SyntheticTask, synthetic_episodes
+from monitor_service.offline.study import EarlyScoreRule
+from monitor_service.offline.synthetic import SyntheticTask, synthetic_episodes
 
 ALPHA = 0.1
 N_CAL = 20          # successes per calibration: running uses all 20, band fits on 10 and ranks 10
@@ -96,6 +96,58 @@ def test_fresh_successes_alert_at_most_alpha_in_every_length_bin(kind, shape, n_
         assert alerted[-1] >= binom.ppf(0.001, PAIRS_BY_LENGTH, alpha / 4), (alpha, alerted)
 
 
+SKEWED = {((5, 20), 150), ((21, 40), 20), ((41, 80), 15), ((81, 150), 15)}   # 75 % short, few long (as PushT's)
+SCARCE = {((5, 20), 150), ((21, 40), 30), ((41, 80), 15), ((81, 150), 5)}   # too few long successes for 0.1
+
+
+def successes_of(counts, rng: np.random.Generator) -> list[rules.EpisodeScores]:
+    """``counts`` {(lo, hi): n} successes of the known law of ``mixed_length_successes``, lengths uniform in
+    their bin."""
+    out = []
+    for (lo, hi), n in sorted(counts):
+        for length in rng.integers(lo, hi + 1, size=n):
+            steps = np.arange(length, dtype=np.int64) * 8
+            out.append(rules.EpisodeScores(steps, np.exp(rng.normal(-2.0, 0.5, length)), steps + 4, success=True))
+    return out
+
+
+@pytest.mark.parametrize("counts, kind, shape", [(SKEWED, "running", "flat"), (SCARCE, "running", "flat"),
+                                                 (SKEWED, "band", "running-max")])
+def test_skewed_calibration_keeps_the_promise_per_length_or_says_it_has_none(counts, kind, shape):
+    """Calibrations whose successes are mostly short. Per length bin, over independent (calibration, fresh
+    success) pairs: where the rule promises the bin, alerts on fresh successes of that length are
+    Binomial(promised pairs, p <= alpha) (the former rule merged the scarce long bin into a 21-150 regime and
+    alerted at 0.17-0.34 there at alpha 0.1); where it does not (too few calibration successes of those
+    lengths), every alert on such a success names that bin as unpromised."""
+    params = rules.RuleParams(kind, shape=shape)
+    for alpha in (0.1, 0.2):
+        promised_alerts = {b: [0, 0] for b in LENGTH_BINS}
+        unpromised_alerts = {b: [0, 0] for b in LENGTH_BINS}
+        for i in range(PAIRS_BY_LENGTH):
+            rng = np.random.default_rng([29, len(counts), hash(kind) % 1000, int(alpha * 10), i])
+            rule = rules.calibrate_rule(successes_of(counts, rng), params, alpha, seed=i)
+            if kind == "running" and counts is SKEWED:   # every bin holds >= 9 (0.1) or 4 (0.2): all promised
+                assert [(r.lo, r.promise) for r in rule.regimes] == [(1, True), (21, True), (41, True), (81, True)]
+            if kind == "running" and counts is SCARCE and alpha == 0.1:
+                assert [r.promise for r in rule.regimes] == [True, True, True, False] and \
+                    rule.unpromised_lengths()[0]["successes"] == 5
+            for (lo, hi), fresh in zip(LENGTH_BINS, one_per_bin(rng)):
+                regime = next(r for r in rule.regimes if r.lo == rules.length_bin(fresh.n_decisions)[0])
+                verdict = rule.judge(fresh)
+                tally = (promised_alerts if regime.promise else unpromised_alerts)[(lo, hi)]
+                tally[0] += verdict["alerted"]
+                tally[1] += 1
+                if verdict["alerted"] and not regime.promise:
+                    assert verdict["beyond_calibration"] or \
+                        f"{regime.lo}-{regime.hi} ({regime.n} calibration successes)" in verdict["unpromised"]
+        for (lo, hi), (k, n) in promised_alerts.items():
+            if n:
+                assert binomtest(k, n, alpha, alternative="greater").pvalue > 1e-3, (alpha, lo, hi, k, n)
+        if counts is SCARCE and kind == "running" and alpha == 0.1:
+            k, n = unpromised_alerts[(81, 150)]
+            assert n == PAIRS_BY_LENGTH and k > 0   # judged (at the largest promised level) and flagged, not promised
+
+
 def test_running_max_shape_against_a_direct_computation():
     """q(i) = the median over fitting successes reaching index i of their running maximum (held where fewer
     than 3 reach it, non-decreasing); lambda per regime = the conformal rank of max_i min over d of log(r/q)."""
@@ -126,13 +178,14 @@ def test_running_max_shape_against_a_direct_computation():
     assert np.allclose(rule.thresholds(longest), q * np.exp(levels))
 
 
-def test_length_regimes_merge_until_each_holds_enough_and_flag_beyond():
+def test_length_regimes_one_per_bin_promised_where_enough_and_flag_beyond():
     lengths = [3] * 25 + [30] * 9 + [60] * 22 + [200] * 3
-    # 1-20 holds 25; 21-40 (9) is too few for 20 and joins 41-80; 81-200 (3) joins the regime before it
-    assert [(lo, hi, idx.size) for lo, hi, idx in rules.length_regimes(lengths, 0.1)] == [(1, 20, 25), (21, 200, 34)]
-    # with 9 enough (alpha 0.1's minimum), 21-40 stands alone
-    assert [(lo, hi, idx.size) for lo, hi, idx in rules.length_regimes(lengths, 0.1, min_episodes=9)] == \
-        [(1, 20, 25), (21, 40, 9), (41, 200, 25)]
+    # every bin up to the longest episode is a regime of its own; 81-160 is empty and 161-200 holds 3 (alpha 0.1
+    # needs 9): neither promised, and never merged into 41-80 (whose quantile the 60-decision episodes set)
+    assert [(lo, hi, idx.size, ok) for lo, hi, idx, ok in rules.length_regimes(lengths, 0.1)] == \
+        [(1, 20, 25, True), (21, 40, 9, True), (41, 80, 22, True), (81, 160, 0, False), (161, 200, 3, False)]
+    # alpha 0.05 needs 19: 21-40 loses its promise too
+    assert [ok for *_, ok in rules.length_regimes(lengths, 0.05)] == [True, False, True, False, False]
     cal = synthetic_episodes(30, 0, 10, seed=1)
     rule = rules.calibrate_rule(cal, rules.RuleParams("running"), ALPHA)
     assert rule.calibrated_decisions == 10

@@ -1,5 +1,5 @@
 """``jepa-monitor compare``: its arguments (argparse only, so ``jepa-monitor --help`` stays quick) and its run;
-the comparison itself is ``monitor_service/compare.py``."""
+the comparison itself is ``monitor_service/offline/compare.py``."""
 from __future__ import annotations
 
 import argparse
@@ -36,14 +36,14 @@ def add_parser(sub) -> argparse.ArgumentParser:
     s.add_argument("--json", action="store_true", help="print every figure as JSON instead of the summary")
     s.add_argument("--out", action="append", default=[], metavar="FILE.json|FILE.md",
                    help="write every figure as JSON (.json, with the natural-failure ROC curves: python3 -m "
-                        "jepa_policy.compare_figures draws them) or the tables as Markdown (.md); repeatable")
+                        "monitor_service.offline.figures draws them) or the tables as Markdown (.md); repeatable")
     s.add_argument("--no-progress", action="store_true", help="no progress bar on stderr (for logs)")
     s.set_defaults(func=run)
     return s
 
 
 def run(args) -> int:
-    from monitor_service.compare import compare, load_records, markdown, parse_where, summary_text
+    from monitor_service.offline.compare import compare, load_records, markdown, parse_where, summary_text
 
     t0 = time.perf_counter()
     where = parse_where(args.where)
@@ -54,7 +54,7 @@ def run(args) -> int:
     views = tuple(v.strip() for v in args.views.split(",") if v.strip())
     if not views or set(views) - {"prefix", "whole"}:
         raise ValueError(f"--views takes prefix and/or whole, got {args.views!r}")
-    _check_out(args.out, (".json", ".md"))
+    check_out(args.out, (".json", ".md"))
     episodes = load_records(args.records, where)
     result = compare(episodes, alpha=args.alpha, folds=args.folds, prefix=args.prefix, seed=args.seed,
                      n_bootstrap=args.bootstrap, rule_names=tuple(r.strip() for r in args.rules.split(",")),
@@ -68,7 +68,7 @@ def run(args) -> int:
     return 0
 
 
-def _check_out(paths, suffixes: tuple[str, ...]) -> None:
+def check_out(paths, suffixes: tuple[str, ...]) -> None:
     """Every --out names a file of a known kind in an existing folder (checked before the work, not after it)."""
     for path in paths:
         if not path.endswith(suffixes):
@@ -103,8 +103,8 @@ def add_ceiling_parser(sub) -> argparse.ArgumentParser:
 
 
 def run_ceiling(args) -> int:
-    from monitor_service.outcome_ceiling import ceiling, summary_text
-    from monitor_service.compare import load_records, parse_where
+    from monitor_service.offline.outcome_ceiling import ceiling, summary_text
+    from monitor_service.offline.compare import load_records, parse_where
 
     t0 = time.perf_counter()
     where = parse_where(args.where)
@@ -113,7 +113,7 @@ def run_ceiling(args) -> int:
     if args.bootstrap < 0 or 0 < args.bootstrap < 100:
         raise ValueError(f"--bootstrap must be 0 (no intervals) or >= 100 resamples (a 95 % interval from fewer is "
                          f"noise), got {args.bootstrap}")
-    _check_out([args.out] if args.out else [], (".json",))
+    check_out([args.out] if args.out else [], (".json",))
     episodes = load_records(args.records, where)
     result = ceiling(episodes, prefix=args.prefix, n_bootstrap=args.bootstrap, seed=args.seed,
                      signals=[s.strip() for s in args.signals.split(",")] if args.signals else None,

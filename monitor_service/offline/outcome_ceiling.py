@@ -31,7 +31,7 @@ import numpy as np
 from scipy.stats import rankdata
 from tqdm import tqdm
 
-from monitor_service import compare as cmp
+from monitor_service.offline import compare as cmp
 
 NATURAL = "natural"
 

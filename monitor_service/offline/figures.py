@@ -1,8 +1,9 @@
 """Figures of a ``jepa-monitor compare --out FILE.json`` result: the natural-failure ROC curves (per checkpoint and
-view) and the median alert delay after a fault's onset (per single-signal detector and fault). Kept out of
-``monitor_service`` so the monitor's image needs no matplotlib.
+view) and the median alert delay after a fault's onset (per single-signal detector and fault). matplotlib is
+imported only when a figure is drawn: the monitor's image installs none (``pip install .[monitor,plot]`` for
+figures beside it).
 
-    python3 -m jepa_policy.compare_figures compare.json --out DIR
+    python3 -m monitor_service.offline.figures compare.json --out DIR
 """
 from __future__ import annotations
 
@@ -14,8 +15,13 @@ from pathlib import Path
 OURS, RANDOM = "nmse", "random"
 
 
-def _plt():
-    import matplotlib
+def pyplot():
+    """matplotlib's pyplot on the Agg backend; ImportError naming the extra when it is not installed."""
+    try:
+        import matplotlib
+    except ImportError:
+        raise ImportError("the offline study's figures need matplotlib: pip install 'jepa-policy-toolkit[plot]'"
+                          ) from None
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
     return plt
@@ -23,7 +29,7 @@ def _plt():
 
 def roc_figure(result: dict, path: Path) -> Path:
     """One panel per (checkpoint, view): every signal's ROC of natural failures against natural successes."""
-    plt = _plt()
+    plt = pyplot()
     groups = list(result["groups"])
     views = list(next(iter(result["groups"].values()))["views"])
     fig, axes = plt.subplots(len(groups), len(views), figsize=(4.6 * len(views), 4.2 * len(groups)), squeeze=False)
@@ -52,7 +58,7 @@ def roc_figure(result: dict, path: Path) -> Path:
 def delay_figure(result: dict, path: Path) -> Path | None:
     """Median alert delay after onset (decisions) of each single-signal detector (successes calibration, the
     first rule) on each fault, whole episodes; None when the result has no fault."""
-    plt = _plt()
+    plt = pyplot()
     fig, ax = plt.subplots(figsize=(10, 4.4))
     marks = "osD^v<>pPX*h"
     regimes, rule = [], None
@@ -88,7 +94,7 @@ def delay_figure(result: dict, path: Path) -> Path | None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="python3 -m jepa_policy.compare_figures", description=__doc__.split("\n\n")[0])
+    p = argparse.ArgumentParser(prog="python3 -m monitor_service.offline.figures", description=__doc__.split("\n\n")[0])
     p.add_argument("result", help="the JSON file of jepa-monitor compare --out FILE.json")
     p.add_argument("--out", required=True, help="folder for compare_roc.png and compare_delay.png")
     args = p.parse_args(argv)

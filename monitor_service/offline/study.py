@@ -24,7 +24,7 @@ from tqdm import tqdm
 from monitor_service import rules, scoring, stats
 from monitor_service.calibration import LabelledEpisode
 from monitor_service.encoding import jsonl_rows
-from monitor_service.synthetic import mixed_length_episodes, synthetic_episodes
+from monitor_service.offline.synthetic import mixed_length_episodes, synthetic_episodes
 
 OLD_RULE = "early-score threshold (former rule)"
 
@@ -161,13 +161,29 @@ def synthetic_study(decisions: int, successes: int, failures: int, params: rules
     return run_study(eps, params, alpha, folds, seed)
 
 
+SHORT_LENGTHS = (5, 20)   # --short-share: the calibration's short successes (the first length bin)
+
+
+def calibration_successes(n: int, lengths: tuple[int, int], short_share: float | None, seed: int) -> list:
+    """``n`` synthetic successes (``synthetic.mixed_length_episodes``), lengths uniform in ``lengths``; with
+    ``short_share``, that share of them 5-20 decisions long and the rest uniform in 21..``lengths[1]`` (mostly
+    short successes, as PushT's and every quick task's)."""
+    if short_share is None:
+        return mixed_length_episodes(n, 0, lengths, seed=seed)
+    short = round(n * short_share)
+    return (mixed_length_episodes(short, 0, SHORT_LENGTHS, seed=seed)
+            + mixed_length_episodes(n - short, 0, (SHORT_LENGTHS[1] + 1, lengths[1]), seed=seed + 10**6))
+
+
 def length_check(draws: int = 200, fresh: int = 200, successes: int = 100, lengths: tuple[int, int] = (5, 150),
                  alphas: tuple[float, ...] = (0.05, 0.2), params: rules.RuleParams = rules.RuleParams(),
-                 seed: int = 0, progress: bool = False) -> dict:
-    """False-alert rate of fresh successes per length bin, averaged over ``draws`` calibrations on ``successes``
-    fresh successes each (``synthetic.mixed_length_episodes``: NMSE independent of the decision index). The check
-    of docs/monitor.md's per-length promise; kinds running and band. ``progress``: a bar of the calibrations on
-    stderr."""
+                 seed: int = 0, progress: bool = False, short_share: float | None = None) -> dict:
+    """False-alert rate of fresh successes per length bin, over ``draws`` calibrations on ``successes`` fresh
+    successes each (``calibration_successes``: NMSE independent of the decision index; ``short_share``: that
+    share of them short), fresh successes uniform in ``lengths``. The check of docs/monitor.md's per-length
+    promise; kinds running and band. Per bin: the rate over the fresh successes whose bin the calibration
+    promised (``rate``, ``ci``), and over those it did not (``unpromised_*``), whose alerts must all say so.
+    ``progress``: a bar of the calibrations on stderr."""
     out = {}
     bar = tqdm(total=len(rules.RULE_KINDS) * len(alphas) * draws, desc="length check", unit="calibration",
                disable=not progress)
@@ -177,27 +193,56 @@ def length_check(draws: int = 200, fresh: int = 200, successes: int = 100, lengt
             judged = []
             for d in range(draws):
                 bar.update()
-                cal = mixed_length_episodes(successes, 0, lengths, seed=seed + 2 * d)
-                rule = rules.calibrate_rule(cal, p, alpha, seed=d)
-                judged += [{**rule.judge(e), "length": e.steps.size}
-                           for e in mixed_length_episodes(fresh, 0, lengths, seed=seed + 2 * d + 1)]
-            out[f"{kind}, alpha {alpha:g}"] = rules.by_length(judged)
+                rule = rules.calibrate_rule(calibration_successes(successes, lengths, short_share, seed + 2 * d),
+                                            p, alpha, seed=d)
+                promised = {r.lo: r.promise for r in rule.regimes}
+                for e in mixed_length_episodes(fresh, 0, lengths, seed=seed + 2 * d + 1):
+                    verdict = rule.judge(e)
+                    judged.append({**verdict, "length": e.steps.size,
+                                   "promised": promised.get(rules.length_bin(e.steps.size)[0], False),
+                                   # the alert says so, or the episode ran past the calibrated length (its
+                                   # beyond_calibration, which the service sets as it does)
+                                   "flagged": bool(verdict["unpromised"])
+                                   or e.steps.size > rule.calibrated_decisions})
+            kept = {b["lo"]: b for b in rules.by_length([j for j in judged if j["promised"]])}
+            bins = []
+            for b in rules.by_length(judged):
+                lone = [j for j in judged if not j["promised"] and rules.length_bin(j["length"])[0] == b["lo"]]
+                row = kept.get(b["lo"], {"lo": b["lo"], "hi": b["hi"], "alerts": 0, "episodes": 0, "rate": None,
+                                         "ci": None})
+                bins.append({**row, "unpromised_episodes": len(lone),
+                             "unpromised_alerts": sum(j["alerted"] for j in lone),
+                             "unpromised_alerts_flagged": sum(j["alerted"] and j["flagged"] for j in lone)})
+            out[f"{kind}, alpha {alpha:g}"] = bins
     bar.close()
     return {"draws": draws, "fresh_per_draw": fresh, "calibration_successes": successes, "lengths": list(lengths),
-            "shape": params.shape, "rules": out}
+            "short_share": short_share, "shape": params.shape, "rules": out}
 
 
 def length_table(check: dict) -> str:
-    """One row per rule and alpha: the false-alert rate in each length bin."""
+    """One row per rule and alpha: the false-alert rate in each length bin where the calibration promised it
+    (and, where it did not, the share of fresh successes of that length so judged and their alerts' rate)."""
     rows = next(iter(check["rules"].values()))
     labels = [f"{max(b['lo'], check['lengths'][0])}-{min(b['hi'], check['lengths'][1])} decisions" for b in rows]
-    head = "".join(f"{label:>20}" for label in labels)
+    head = "".join(f"{label:>24}" for label in labels)
     lines = [f"  {'rule, alpha':<22}{head}"]
     for name, bins in check["rules"].items():
-        lines.append(f"  {name:<22}" + "".join(f"{b['rate']:>20.3f}" for b in bins))
-    lines.append(f"  false alerts of fresh successes; {check['draws']} calibrations on "
-                 f"{check['calibration_successes']} successes, {check['fresh_per_draw']} fresh successes each; "
-                 f"threshold shape {check['shape']}")
+        cells = []
+        for b in bins:
+            cell = "-" if b["rate"] is None else f"{b['rate']:.3f}"
+            if b["unpromised_episodes"]:
+                n = b["unpromised_episodes"]
+                cell += (f" (np {n / (n + b['episodes']):.0%}: {b['unpromised_alerts'] / n:.2f}"
+                         + ("" if b["unpromised_alerts_flagged"] == b["unpromised_alerts"] else " UNFLAGGED") + ")")
+            cells.append(f"{cell:>24}")
+        lines.append(f"  {name:<22}" + "".join(cells))
+    mix = ("" if check.get("short_share") is None else
+           f" ({check['short_share']:.0%} of them {SHORT_LENGTHS[0]}-{SHORT_LENGTHS[1]} decisions long)")
+    lines.append(f"  false alerts of fresh successes in the bins the calibration promised; np: the share of fresh "
+                 f"successes whose bin it did not promise (too few calibration successes that long), and their "
+                 f"alert rate, every alert flagged as without promise; {check['draws']} calibrations on "
+                 f"{check['calibration_successes']} successes{mix}, {check['fresh_per_draw']} fresh successes "
+                 f"each; threshold shape {check['shape']}")
     return "\n".join(lines)
 
 
