@@ -142,7 +142,9 @@ def train_arm(task: str, preset: str, arm: str, seed: int, dataset: Path, run_di
     stamp = run_dir / "job_config.json"
     st = dataset.stat()
     wanted = {"train": tcfg.to_dict(), "dataset": [str(dataset.resolve()), st.st_size, st.st_mtime_ns]}
-    if ckpt.exists() and stamp.exists() and not fresh and json.loads(stamp.read_text()) == wanted:
+    stamped = json.loads(stamp.read_text()) if stamp.exists() else {}
+    stamped.pop("wall_s", None)   # the finished run's own wall time, not part of what it was asked for
+    if ckpt.exists() and stamp.exists() and not fresh and stamped == wanted:
         if int(load_checkpoint(ckpt)["step"]) == tcfg.steps:
             print(f"   reusing {ckpt}", flush=True)
             return ckpt

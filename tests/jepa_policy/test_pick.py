@@ -100,3 +100,22 @@ def test_action_errors_agree_with_scipy_on_a_known_offset(tmp_path):
     moved = Rotation.from_matrix(turn @ rot6d_to_matrix(actions[:, 3:9]))
     assert np.allclose((recorded.inv() * moved).magnitude(), np.radians(10))
     assert errors["gripper_agreement"] == pytest.approx(np.mean(np.arange(len(actions)) % 2 == 0))
+
+
+def test_a_finished_training_run_is_reused_and_a_changed_one_is_not(pusht_demo_file, tmp_path, one_thread,
+                                                                     capsys):
+    """A rerun of the job reuses an arm whose stamped config and data match (its wall time stamped beside them
+    once had it retrain every time: a killed and restarted Can job lost 16 minutes of training); a changed
+    config trains again."""
+    from jepa_policy.demo.pick import train_arm, training_wall_s
+
+    run = tmp_path / "mip"
+    overrides = {"steps": 2, "batch_size": 2, "eval_every": 0, "eval_episodes": 0, "ckpt_every": 100, "log_every": 1}
+    ckpt = train_arm("PushT", "quick", "mip", 0, pusht_demo_file, run, overrides, fresh=False)
+    first = (ckpt.stat().st_mtime_ns, training_wall_s(ckpt))
+    assert first[1] > 0
+    assert train_arm("PushT", "quick", "mip", 0, pusht_demo_file, run, overrides, fresh=False) == ckpt
+    assert "reusing" in capsys.readouterr().out
+    assert (ckpt.stat().st_mtime_ns, training_wall_s(ckpt)) == first   # untouched, its wall time kept
+    train_arm("PushT", "quick", "mip", 0, pusht_demo_file, run, {**overrides, "steps": 3}, fresh=False)
+    assert "reusing" not in capsys.readouterr().out and ckpt.stat().st_mtime_ns != first[0]
