@@ -94,6 +94,8 @@ def cmd_eval(args) -> int:
             raise FileNotFoundError(f"--residual-calibration {path} does not exist; write one with `jepa-policy eval "
                                     "--out calib.jsonl` on other seeds (e.g. --seed 300000)")
         calibration = [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
+    if args.keep_latents and not args.out:
+        raise ValueError("--keep-latents keeps the latents in --out's records; give --out FILE.jsonl")
     policy = Policy.from_checkpoint(args.checkpoint, device=resolve_device(args.device), ema=not args.no_ema)
     if args.faults:
         return _eval_regimes(args, policy, calibration)

@@ -236,7 +236,7 @@ def cmd_study(args) -> int:
             raise ValueError("--length-check runs on its own synthetic episodes; drop the records file / --synthetic")
         check = length_check(args.draws, args.fresh, args.successes, params=params, seed=args.seed,
                              alphas=(args.alpha,) if args.alpha else (0.05, 0.2), progress=not args.no_progress,
-                             short_share=args.short_share)
+                             short_share=args.short_share, promise_min=args.promise_min)
         print(json.dumps(check, indent=2) if args.json else length_table(check))
         return 0
     if args.synthetic:
@@ -311,14 +311,15 @@ def cmd_replay(args) -> int:
     records = read_records(args.records, where)
     if not records:
         raise ValueError(f"{args.records}: no episode records" + (f" with {where}" if where else ""))
-    key = args.api_key or os.environ.get("JEPA_MONITOR_API_KEY")
+    key = args.api_key or os.environ.get("JEPA_POLICY_MONITOR_KEY")
     if not key:
-        raise ValueError("give the robot key the records are sent with: --api-key KEY or JEPA_MONITOR_API_KEY "
+        raise ValueError("give the robot key the records are sent with: --api-key KEY or JEPA_POLICY_MONITOR_KEY "
                          "(`jepa-monitor keys create --name NAME --role robot --robot ROBOT`)")
     held = round(args.held_out * len(records)) if 0 < args.held_out < 1 else int(args.held_out)
     signals = tuple(x for x in (args.signals or "").split(",") if x)
     summary = replay(records, args.url, key, args.task, held, robot=args.robot, prefix=args.prefix,
-                     checkpoint=args.checkpoint, group=args.group, signals=signals, progress=not args.no_progress)
+                     checkpoint=args.checkpoint, group=args.group, signals=signals, progress=not args.no_progress,
+                     part=args.part)
     out = summary.to_dict()
     if args.json:
         print(json.dumps(out))
@@ -441,6 +442,10 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--draws", type=int, default=200, help="--length-check: calibrations (default 200)")
     s.add_argument("--fresh", type=int, default=200, help="--length-check: fresh successes per calibration")
     s.add_argument("--successes", type=int, default=100, help="--length-check: successes per calibration")
+    s.add_argument("--promise-min", type=int, default=1, metavar="N",
+                   help="--length-check: calibration successes a length bin needs for a promise besides alpha's "
+                        "own minimum (default 1, the service's: every bin that can carry it; e.g. 20 trades "
+                        "promised lengths for detection)")
     s.add_argument("--short-share", type=_share, metavar="P",
                    help="--length-check: this share of the calibration's successes 5-20 decisions long, the rest "
                         "21-150 (mostly short successes, e.g. 0.75; default: all uniform in 5-150)")
@@ -463,10 +468,12 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("records", help="episode records with latents (JSONL, or .jsonl.gz)")
     s.add_argument("--task", required=True, help="the registered task they belong to")
     s.add_argument("--url", default="http://127.0.0.1:8765", help="the service (default http://127.0.0.1:8765)")
-    s.add_argument("--api-key", help="a robot key (default: JEPA_MONITOR_API_KEY)")
+    s.add_argument("--api-key", help="a robot key (default: JEPA_POLICY_MONITOR_KEY)")
     s.add_argument("--held-out", type=_held_out, default=0.5, metavar="N|P",
                    help="the first N episodes (or share P of them) are sent as held-out labelled rollouts for "
                         "calibration, the rest live (default 0.5)")
+    s.add_argument("--part", choices=["all", "held-out", "live"], default="all",
+                   help="send only the held-out episodes (then calibrate), or only the live ones (default: all)")
     s.add_argument("--where", action="append", metavar="FIELD=VALUE",
                    help="keep only records with this field value, e.g. --where arm=jepa (repeatable)")
     s.add_argument("--prefix", default="", help="prepended to every episode id (e.g. the task's name)")
@@ -528,7 +535,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"jepa-monitor: warning: {warning}", file=sys.stderr)
     try:
         return args.func(args)
-    except (ValueError, LookupError, FileNotFoundError) as exc:
+    except (ValueError, LookupError, FileNotFoundError, RuntimeError) as exc:
         print(f"jepa-monitor: error: {_one_line(exc)}", file=sys.stderr)
         return 2
     except DBAPIError as exc:   # the database refused or could not be reached

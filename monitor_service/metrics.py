@@ -129,7 +129,8 @@ class DatabaseGauges:
                 if self.rule_params is not None:
                     params = (rule or {}).get("params", {})
                     made_for = (params.get("window"), params.get("debounce"), params.get("clear_ratio"))
-                    stale.add_metric(labels, float(made_for != self.rule_params or "shape" not in (rule or {})))
+                    stale.add_metric(labels, float(made_for != self.rule_params or "shape" not in (rule or {})
+                                                        or "unpromised_lengths" not in (rule or {})))
             live = Episode.held_out.is_(False)
             episodes = dict(session.execute(
                 select(Episode.task, func.count()).where(live).group_by(Episode.task)).all())

@@ -19,21 +19,26 @@ above their own T(i). For a whole episode let A = max_i min_{d consecutive} (r_i
 The successes are split once (seeded): one half fits the band (``band``) and the shape, the other half gives the
 conformal quantiles. Those are grouped into *length regimes* by their number of scored decisions: the bins an
 operator sees (edges 20, 40, 80, 160, ...), one regime per bin from the first to the one holding the longest
-calibrated episode. A bin holding at least alpha's minimum of conformal successes (``min_conformal_episodes``:
-9 at 0.1, 4 at 0.2) is *promised*: lambda_B is the split-conformal quantile of A over its own successes (the
-r-th smallest, r = ceil((n_B + 1)(1 - alpha))). lambda = max_B lambda_B. A new successful episode whose length
-falls in a promised bin B and that is exchangeable with B's calibration successes then raises *any* alert with
-probability <= alpha, finite-sample, in every promised bin at once (the shape makes the bins' lambdas close, so
-little is lost to the max). A bin with fewer successes (none, or too few for a finite quantile at alpha) carries
-*no promise*: it is never merged into a neighbour (that made the neighbour's threshold, set by shorter episodes,
-stand for lengths it did not cover: with 15 of 200 successes at 81-150 decisions, fresh ones alerted at 0.17-0.34
-at alpha 0.1); its lengths are judged at the largest promised level (or, when no bin has enough, the quantile
-of all successes together, a promise only on average over their lengths), and an alert raised there says so
-(``unpromised``). Decisions beyond the longest calibrated episode (``calibrated_decisions``) keep the last
-threshold and are flagged likewise. Assumptions: the same task, checkpoint and set-up; window, debounce, band
-and shape belong to the calibrated rule (change them and recalibrate).
+calibrated episode. A bin holding alpha's minimum of conformal successes (``min_conformal_episodes``: 9 at 0.1, 4 at
+0.2, 19 at 0.05; and ``regime_min`` if larger) is *promised*: lambda_B is the split-conformal quantile of A
+over its own successes (the r-th smallest, r = ceil((n_B + 1)(1 - alpha))). lambda = max_B lambda_B. A new
+successful episode whose length falls in a promised bin B and that is exchangeable with B's calibration successes
+then raises *any* alert with probability <= alpha, finite-sample, in every promised bin at once (the shape makes
+the bins' lambdas close, so little is lost to the max). A bin with fewer successes carries *no promise*
+(a larger ``regime_min`` keeps detection where a quantile of a handful of episodes would bind every earlier index,
+and leaves more lengths unpromised): it is never merged into a neighbour (that made the
+neighbour's threshold, set by shorter episodes, stand for lengths it did not cover: with 15 of 200 successes at
+81-150 decisions, fresh ones alerted at 0.17-0.34 at alpha 0.1); its lengths are judged at the largest promised
+level (or, when no bin has enough, the quantile of all successes together, a promise only on average over their
+lengths), and an alert raised there says so (``unpromised``). Decisions beyond the longest calibrated episode
+(``calibrated_decisions``) keep the last threshold and are flagged likewise. Assumptions: the same task, checkpoint
+and set-up; window, debounce, band and shape belong to the calibrated rule (change them and recalibrate).
 
 Detection figures are cross-fitted: every held-out episode is judged by a rule calibrated without it.
+
+One module of about 620 lines on purpose: the rule's pure pieces (band, running statistic, threshold curve, the
+calibration per length bin and its promise, cross-fitted figures) in the order a calibration uses them, one
+definition that the service, the offline study and the tests all import.
 """
 from __future__ import annotations
 
@@ -52,6 +57,12 @@ BAND_SCALE_FLOOR = 0.1       # per-step scale >= this fraction of the pooled sca
 LOG_FLOOR = 1e-12            # NMSE is >= 0; log of an exact match is floored
 SHAPE_MIN_EPISODES = 3       # fitting successes that must reach a decision index for the shape to move there
 LENGTH_EDGES = (20, 40, 80, 160, 320, 640, 1280, 2560)   # length regimes, in scored decisions (doubling)
+# conformal successes a length bin needs for a promise besides alpha's own minimum: none, so every bin that can
+# carry the promise does. A larger minimum (regime_min=20) keeps detection where a bin barely reaches alpha's
+# minimum (its quantile, binding every earlier index, is then the largest of a few: PushT at alpha 0.2 alerted on
+# 20/51 failures with a 4-success bin promised, 41/51 without), but leaves more lengths unpromised, where the band
+# rule's false alerts reached 0.35-0.88 (docs/monitor.md, "The promise")
+PROMISE_MIN_SUCCESSES = 1
 
 
 @dataclass(frozen=True)
@@ -345,6 +356,7 @@ class CalibratedRule:
     n_successes: int        # successes the calibration was given
     n_conformal: int        # of which the conformal quantiles used (the rest fit band and shape)
     note: str
+    promise_min: int = 1    # conformal successes a bin needed for a promise (besides alpha's minimum)
 
     @property
     def calibrated_decisions(self) -> int:
@@ -353,21 +365,43 @@ class CalibratedRule:
 
     @property
     def promise_minimum(self) -> int:
-        """Conformal successes a length bin needs for a promise at this alpha."""
-        return min_conformal_episodes(self.alpha)
+        """Conformal successes a length bin needed for a promise: alpha's minimum, and ``promise_min``."""
+        return max(min_conformal_episodes(self.alpha), self.promise_min)
+
+    def _regime_of(self, length: int) -> Regime | None:
+        """The regime of the length bin holding ``length`` scored decisions (the top regime covers its whole bin);
+        None above the top bin."""
+        lo = length_bin(length)[0]
+        return next((r for r in self.regimes if r.lo == lo), None)
+
+    def _end(self, regime: Regime) -> int:
+        """The longest length a regime covers: its bin's end (the top regime's too, beyond its longest success)."""
+        return length_bin(regime.lo)[1]
+
+    def _why(self, what: str) -> str:
+        promised = ", ".join(f"{r.lo}-{self._end(r)}" for r in self.regimes if r.promise) or "none"
+        return (f"no false-alert promise: {what} (promised lengths: {promised} scored decisions; a promise at "
+                f"alpha={self.alpha} needs {self.promise_minimum} held-out successes of a length bin)")
+
+    def unpromised_at_end(self, length: int) -> str:
+        """Why no false-alert promise covers the alerts of a successful episode that ended after ``length`` scored
+        decisions, or "" when one does (the promise is per final length: its bin must be promised)."""
+        regime = self._regime_of(length)
+        if regime is None:
+            return self._why(f"the episode ran to {length} scored decisions, longer than any calibration success")
+        if regime.promise:
+            return ""
+        return self._why(f"the episode ended at {length} scored decisions, a length with {regime.n} calibration "
+                         "successes")
 
     def unpromised(self, index: int) -> str:
-        """What no false-alert promise covers about an alert at decision ``index`` (0-based: the episode has index
-        + 1 scored decisions so far), or "" when one covers it whatever length the episode ends at. The promise is
-        per final length: the alert is covered if the episode ends in a promised bin, so this names the bins
-        without one that it can still end in (beyond the calibrated decisions is ``beyond_calibration``'s)."""
-        open_ = [r for r in self.regimes if not r.promise and r.hi >= index + 1]
-        if not open_:
+        """Why no false-alert promise can cover an alert raised at decision ``index`` (0-based: the episode has
+        index + 1 scored decisions so far) whatever length the episode ends at, or "" while it may still end in a
+        promised bin (whether it did is ``unpromised_at_end``'s, once its length is known)."""
+        length = index + 1
+        if any(r.promise and length <= self._end(r) for r in self.regimes):
             return ""
-        return ("no false-alert promise if the episode ends at "
-                + ", ".join(f"{r.lo}-{r.hi} ({r.n} calibration successes)" for r in open_)
-                + f" scored decisions: a promise at alpha={self.alpha} needs {self.promise_minimum} successes of the "
-                  f"lengths; record more held-out successes that long and recalibrate")
+        return self._why(f"the episode has run to {length} scored decisions, past every promised length")
 
     def unpromised_lengths(self) -> list[dict]:
         """The length bins (scored decisions) that carry no promise, with the calibration successes they had."""
@@ -404,7 +438,8 @@ class CalibratedRule:
                 "band": None if self.band is None else self.band.to_dict(),
                 "regimes": [r.to_dict() for r in self.regimes], "unpromised_lengths": self.unpromised_lengths(),
                 "calibrated_decisions": self.calibrated_decisions,
-                "n_successes": self.n_successes, "n_conformal": self.n_conformal, "note": self.note}
+                "n_successes": self.n_successes, "n_conformal": self.n_conformal, "note": self.note,
+                "promise_min": self.promise_min}
 
     @classmethod
     def from_dict(cls, data: dict) -> "CalibratedRule":
@@ -413,7 +448,7 @@ class CalibratedRule:
                    np.asarray(data["shape"], dtype=np.float64),
                    None if data.get("band") is None else Band.from_dict(data["band"]),
                    [Regime(**r) for r in data["regimes"]], int(data["n_successes"]), int(data["n_conformal"]),
-                   str(data.get("note", "")))
+                   str(data.get("note", "")), int(data.get("promise_min", 1)))
 
     def running(self, episode: EpisodeScores) -> np.ndarray:
         return running_statistic(decision_values(self.params, episode, self.band), self.params.window)
@@ -423,11 +458,11 @@ class CalibratedRule:
         r = self.running(episode)
         index = first_alert(r, self.thresholds(r.size), self.params.debounce)
         return {**alert_timing(episode, index, self.calibrated_decisions),
-                "unpromised": "" if index is None else self.unpromised(index)}
+                "unpromised": "" if index is None else self.unpromised_at_end(r.size)}
 
 
 def calibrate_rule(successes: list[EpisodeScores], params: RuleParams, alpha: float, seed: int = 0,
-                   edges: tuple[int, ...] = LENGTH_EDGES, regime_min: int | None = None) -> CalibratedRule:
+                   edges: tuple[int, ...] = LENGTH_EDGES, regime_min: int = PROMISE_MIN_SUCCESSES) -> CalibratedRule:
     """The threshold curve of ``params`` at false-alert rate ``alpha`` in every length regime, from held-out
     successful episodes (module docstring).
 
@@ -477,10 +512,10 @@ def calibrate_rule(successes: list[EpisodeScores], params: RuleParams, alpha: fl
             f"ceil((n+1)(1-alpha))-th smallest alert statistic ("
             + (", ".join(f"{r.lo}-{r.hi} decisions: {r.n}" for r in promised) or "none") + " successes)"
             + (f"; no promise at {', '.join(f'{r.lo}-{r.hi} decisions ({r.n} successes)' for r in unpromised)}: "
-               f"alpha={alpha} needs {min_conformal_episodes(alpha)} per bin"
+               f"a promise at alpha={alpha} needs {max(min_conformal_episodes(alpha), regime_min)} per bin"
                + ("" if promised else ", so the level is the quantile of all lengths together") if unpromised else "")
             + "; " + (f"band and shape fitted on the other {len(fit)}" if fit else "nothing fitted"))
-    return CalibratedRule(params, alpha, level, shape, band, regimes, n, len(conf_idx), note)
+    return CalibratedRule(params, alpha, level, shape, band, regimes, n, len(conf_idx), note, regime_min)
 
 
 # ----------------------------------------------------------------------------------------------------------
@@ -567,6 +602,9 @@ def cross_fit_with(episodes: list, fit, k: int = 5, seed: int = 0, within_groups
         "lead_steps": _quartiles([j["lead"] for j in hits if j["lead"] is not None]),
         "false_alerts_by_length": by_length(judged[True]),
         "alerts_beyond_calibration": sum(bool(j.get("beyond_calibration")) for j in judged[True] + judged[False]),
+        # alerts on episodes that could still end at a length the fold's calibration promised nothing for
+        "alerts_unpromised": sum(bool(j.get("unpromised")) for j in judged[True] + judged[False]),
+        "false_alerts_unpromised": sum(bool(j.get("unpromised")) for j in judged[True]),
         "skipped_episodes": skipped,
     }
 

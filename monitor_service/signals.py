@@ -167,16 +167,34 @@ class CalibratedDetector:
         return cls(DetectorSpec.from_dict(data["spec"]), float(data["alpha"]),
                    {name: rules.CalibratedRule.from_dict(r) for name, r in data["rules"].items()}, data.get("note", ""))
 
+    def _combined(self, why: dict[str, str]) -> str:
+        """One reason from each signal's (``single``: its own; ``fiper``, where both must alert: none while
+        either signal's promise holds; ``bonferroni``, where any may alert: every signal's promise is needed)."""
+        if self.spec.combination == "fiper" and not all(why.values()):
+            return ""
+        return "; ".join(sorted({w for w in why.values() if w}))
+
+    def unpromised_at_end(self, lengths: dict[str, int]) -> str:
+        """Why no false-alert promise covers an alert of an episode whose signals ended with these numbers of
+        values, or "" when one does."""
+        return self._combined({s: self.rules[s].unpromised_at_end(n) for s, n in lengths.items() if s in self.rules})
+
+    def unpromised_now(self, lengths: dict[str, int]) -> str:
+        """Why no promise can cover an alert raised now, the signals having these numbers of values, whatever
+        length the episode ends at; "" while it may still end where one holds."""
+        return self._combined({s: self.rules[s].unpromised(n - 1) for s, n in lengths.items()
+                               if s in self.rules and n > 0})
+
     def flags(self, episode: SignalEpisode) -> dict[str, SignalFlags]:
         """Each signal's flags over the episode (a signal the episode lacks is left out)."""
         return {s: SignalFlags.of(self.rules[s], episode.series(s)) for s in self.spec.signals if s in episode.scores}
 
     def judge(self, episode: SignalEpisode) -> dict:
         """Whether the episode alerts, at which decision step, which signals raised it, whether beyond the
-        calibrated length, which lengths it could still end at carry no promise (``rules.CalibratedRule.
-        unpromised``), the env step at which it was known and the lead before the episode's end."""
+        calibrated length, why no false-alert promise covers its alert (``unpromised``: "" when one does), the env
+        step at which it was known and the lead before the episode's end."""
         flags = self.flags(episode)
-        hit = None   # (step, known_at, signals, beyond, index, unpromised)
+        hit = None   # (step, known_at, signals, beyond, index)
         if self.spec.combination == "fiper":
             if len(flags) == 2:
                 (a, fa), (b, fb) = flags.items()
@@ -184,22 +202,21 @@ class CalibratedDetector:
                 for j in np.flatnonzero(fb.over):
                     i = over_a.get(int(fb.steps[j]))
                     if i is not None:
-                        why = {self.rules[a].unpromised(i), self.rules[b].unpromised(int(j))} - {""}
                         hit = (int(fb.steps[j]), int(max(fa.known_at[i], fb.known_at[j])), [a, b],
-                               i >= fa.calibrated or j >= fb.calibrated, int(j), "; ".join(sorted(why)))
+                               i >= fa.calibrated or j >= fb.calibrated, int(j))
                         break
         else:
             for name, f in flags.items():
                 i = np.flatnonzero(f.over)
                 if i.size and (hit is None or f.steps[i[0]] < hit[0]):
-                    hit = (int(f.steps[i[0]]), int(f.known_at[i[0]]), [name], bool(i[0] >= f.calibrated), int(i[0]),
-                           self.rules[name].unpromised(int(i[0])))
+                    hit = (int(f.steps[i[0]]), int(f.known_at[i[0]]), [name], bool(i[0] >= f.calibrated), int(i[0]))
         if hit is None:
             return {"alerted": False, "step": None, "decision_index": None, "known_at": None, "signals": [],
                     "beyond_calibration": False, "unpromised": "", "lead": None}
-        step, known, signals, beyond, index, unpromised = hit
+        step, known, signals, beyond, index = hit
         return {"alerted": True, "step": step, "decision_index": index, "known_at": known, "signals": signals,
-                "beyond_calibration": beyond, "unpromised": unpromised,
+                "beyond_calibration": beyond,
+                "unpromised": self.unpromised_at_end({s: int(f.steps.size) for s, f in flags.items()}),
                 "lead": None if episode.end_step is None else int(episode.end_step) - known}
 
 

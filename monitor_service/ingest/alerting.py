@@ -87,6 +87,10 @@ class Alerting:
         if "shape" not in result["rule"]:
             return cal_id, None, (f"no alerts: calibration #{cal_id} predates per-length thresholds (its false-alert "
                                   f"guarantee held only on average over episode lengths); recalibrate with {fix}")
+        if "unpromised_lengths" not in result["rule"]:
+            return cal_id, None, (f"no alerts: calibration #{cal_id} predates per-length promises (it merged length "
+                                  "bins with few successes into their neighbours, whose shorter episodes set the "
+                                  f"threshold, and said nothing); recalibrate with {fix}")
         if cal_id not in self.detectors:
             self.detectors[cal_id] = stored_detector(result)
         detector = self.detectors[cal_id]
@@ -150,9 +154,8 @@ class Alerting:
         for s in detector.spec.signals:
             events += self._step_signal(ep, state, s, detector.rules[s])
         events.sort(key=lambda e: e[0])   # decision step order across signals (stable within a signal)
-        for step, signal, over, under, value, threshold, beyond, unpromised in events:
-            self._judge(cur, req, ep, state, detector, cal_id, step, signal, over, under, value, threshold, beyond,
-                        unpromised)
+        for step, signal, over, under, value, threshold, beyond in events:
+            self._judge(cur, req, ep, state, detector, cal_id, step, signal, over, under, value, threshold, beyond)
         first = detector.spec.signals[0]
         st = state.get(first, {})
         ep.last_evaluated_step = st.get("last", ep.last_evaluated_step)
@@ -199,18 +202,32 @@ class Alerting:
             beyond = i >= rule.calibrated_decisions
             ep.beyond_calibration = ep.beyond_calibration or beyond
             st["flags"][str(int(steps[j]))] = over
-            out.append((int(steps[j]), signal, over, under, value, threshold, beyond,
-                        rule.unpromised(i) if over else ""))
+            out.append((int(steps[j]), signal, over, under, value, threshold, beyond))
         if len(st["flags"]) > FLAGS_KEPT:
             st["flags"] = dict(sorted(st["flags"].items(), key=lambda kv: int(kv[0]))[-FLAGS_KEPT:])
         state[signal] = st
         return out
 
+    @staticmethod
+    def _count_to(ep: EpisodeState, signal: str, step: int) -> int:
+        """How many values of ``signal`` the episode had up to decision ``step``."""
+        return bisect_right(ep.values(signal), (step, float("inf")))
+
+    def flag_unpromised(self, cur, ep: EpisodeState) -> None:
+        """At the episode's end: when no false-alert promise covers its final length, its alerts say so."""
+        _, detector, _ = self.usable_detector(cur, ep)
+        if detector is None:
+            return
+        why = detector.unpromised_at_end({s: len(ep.values(s)) for s in detector.spec.signals})
+        if why:
+            statements.flag_unpromised(self.sql, cur, ep.id, why)
+
     def _judge(self, cur, req: Request, ep: EpisodeState, state: dict, detector: CalibratedDetector,
                cal_id: int, step: int, signal: str, over: bool, under: bool, value: float, threshold: float,
-               beyond: bool, unpromised: str = "") -> None:
-        """The detector's raise or clear after one signal's value at ``step``; ``unpromised``: which lengths the
-        episode can still end at carry no false-alert promise (``rules.CalibratedRule.unpromised``)."""
+               beyond: bool) -> None:
+        """The detector's raise or clear after one signal's value at ``step``. A raised alert says at once when no
+        false-alert promise can cover it (the episode has run past every promised length: ``no_promise``);
+        ``flag_unpromised`` says it at the episode's end when its final length has none."""
         spec = detector.spec
         if ep.open_alert_id is None:
             if not over:
@@ -221,6 +238,7 @@ class Alerting:
                 if not state.get(partner, {}).get("flags", {}).get(str(step), False):
                     return
                 raised_by = list(spec.signals)
+            unpromised = detector.unpromised_now({s: self._count_to(ep, s, step) for s in spec.signals})
             note = f"{spec.name}: {'+'.join(raised_by)} over the threshold" + (
                 f"; beyond the {detector.rules[signal].calibrated_decisions} calibrated decisions of {signal}: no "
                 "false-alert guarantee covers it" if beyond else "") + (f"; {unpromised}" if unpromised else "")

@@ -207,6 +207,12 @@ def insert_alert(sql: Sql, cur, ep: EpisodeState, cal_id: int, step: int, value:
     return alert_id
 
 
+def flag_unpromised(sql: Sql, cur, episode_id: str, why: str) -> None:
+    """The episode's alerts not yet flagged: no false-alert promise covers them, and why (in the note)."""
+    cur.execute(sql.q("UPDATE alerts SET no_promise = ?, note = substr(note || ?, 1, 512) "
+                      "WHERE episode_id = ? AND no_promise = ?"), (True, f"; {why}", episode_id, False))
+
+
 def clear_alert(sql: Sql, cur, alert_id: int) -> None:
     cur.execute(sql.q("UPDATE alerts SET state = ?, cleared_at = ? WHERE id = ?"),
                 ("cleared", sql.time(utcnow()), alert_id))

@@ -143,6 +143,8 @@ class IngestStore:
         statements.write_rows(self.sql, cur, req, now)
         for ep in req.drafts.values():
             self.alerting.refresh(cur, req, ep)
+            if ep.id in req.ended:
+                self.alerting.flag_unpromised(cur, ep)
             if ep.id in req.ended and ep.open_alert_id is not None:   # the outcome resolves its open alert
                 statements.resolve_alert(self.sql, cur, ep.open_alert_id, ep.success)
                 ep.open_alert_id = None

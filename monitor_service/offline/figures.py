@@ -20,8 +20,8 @@ def pyplot():
     try:
         import matplotlib
     except ImportError:
-        raise ImportError("the offline study's figures need matplotlib: pip install 'jepa-policy-toolkit[plot]'"
-                          ) from None
+        raise ImportError("the offline study's figures need matplotlib: pip install matplotlib (the project's "
+                          "plot extra)") from None
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
     return plt
@@ -103,7 +103,7 @@ def main(argv: list[str] | None = None) -> int:
         if "groups" not in result:
             raise ValueError("not a jepa-monitor compare result (no 'groups'); write one with --out FILE.json")
     except (OSError, ValueError) as exc:
-        print(f"compare_figures: error: {args.result}: {exc}", file=sys.stderr)
+        print(f"figures: error: {args.result}: {exc}", file=sys.stderr)
         return 2
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)

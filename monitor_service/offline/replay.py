@@ -14,9 +14,11 @@ from __future__ import annotations
 
 import gzip
 import json
+import logging
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import httpx
 from tqdm import tqdm
 
 from monitor_service.client import MonitorClient
@@ -31,23 +33,35 @@ def read_records(path: str | Path, where: dict[str, str] | None = None) -> list[
                                 f"{path.name}`")
     opener = gzip.open if path.suffix == ".gz" else open
     out = []
-    with opener(path, "rt") as f:
-        for number, line in enumerate(f, 1):
-            if not line.strip():
-                continue
-            try:
-                row = json.loads(line)
-            except json.JSONDecodeError as exc:
-                raise ValueError(f"{path}:{number}: not JSON ({exc.msg})") from None
-            if not isinstance(row, dict) or "success" not in row or not isinstance(row.get("decisions"), list):
-                raise ValueError(f"{path}:{number}: not an episode record (needs success and decisions)")
-            if where and any(str(row.get(k)) != v for k, v in where.items()):
-                continue
-            if not any("z_hat" in d for d in row["decisions"]):
-                raise ValueError(f"{path}:{number}: its decisions hold no latents (z_hat); record them with "
-                                 "`jepa-policy eval --keep-latents`")
-            out.append(row)
+    number = 0
+    try:
+        with opener(path, "rt") as f:
+            for number, line in enumerate(f, 1):
+                row = _record(path, number, line, where)
+                if row is not None:
+                    out.append(row)
+    except (OSError, EOFError, UnicodeDecodeError) as exc:   # gzip.BadGzipFile is an OSError
+        raise ValueError(f"{path}: unreadable after line {number} ({type(exc).__name__}: {exc}); give an intact "
+                         "records file (JSONL, or gzip-compressed .jsonl.gz)") from None
     return out
+
+
+def _record(path: Path, number: int, line: str, where: dict[str, str] | None) -> dict | None:
+    """One line of a records file: its episode record, or None when blank or filtered out."""
+    if not line.strip():
+        return None
+    try:
+        row = json.loads(line)
+    except json.JSONDecodeError as exc:
+        raise ValueError(f"{path}:{number}: not JSON ({exc.msg})") from None
+    if not isinstance(row, dict) or "success" not in row or not isinstance(row.get("decisions"), list):
+        raise ValueError(f"{path}:{number}: not an episode record (needs success and decisions)")
+    if where and any(str(row.get(k)) != v for k, v in where.items()):
+        return None
+    if not any(isinstance(d, dict) and "z_hat" in d for d in row["decisions"]):
+        raise ValueError(f"{path}:{number}: its decisions hold no latents (z_hat); record them with "
+                         "`jepa-policy eval --keep-latents`")
+    return row
 
 
 @dataclass
@@ -87,29 +101,73 @@ def send_episode(client: MonitorClient, task: str, episode_id: str, record: dict
     return len(decisions), len(realized)
 
 
-def replay(records: list[dict], url: str, api_key: str, task: str, held_out: int, robot: str = "replay",
+PARTS = ("all", "held-out", "live")
+
+
+def episode_id(record: dict, i: int, prefix: str = "") -> str:
+    """``prefix`` + the record's ``episode_id``, or its seed (after its fault's name when it ran under one, as
+    ``jepa-policy eval --faults`` records the same seeds once per fault), or its place in the file."""
+    base = record.get("episode_id")
+    if base is None:
+        regime = record.get("regime")
+        base = (f"{regime}-" if regime not in (None, "natural") else "") + str(record.get("seed", i))
+    return f"{prefix}{base}"
+
+
+def check_service(url: str) -> None:
+    """ValueError naming the fix when no ready monitor answers at ``url``."""
+    try:
+        status = httpx.get(url.rstrip("/") + "/readyz", timeout=5.0).status_code
+    except httpx.HTTPError as exc:
+        raise ValueError(f"no monitor answers at {url} ({type(exc).__name__}); start one with `jepa-monitor "
+                         "serve` or give its address with --url") from None
+    if status != 200:
+        raise ValueError(f"the monitor at {url} is not ready (GET /readyz answered HTTP {status}); see its log")
+
+
+def replay(records: list[dict], url: str, api_key: str, task: str, held_out: int, robot: str | None = None,
            prefix: str = "", checkpoint: str | None = None, group: str | None = None,
-           signals: tuple[str, ...] = (), timeout: float = 120.0, progress: bool = False) -> ReplaySummary:
+           signals: tuple[str, ...] = (), timeout: float = 120.0, progress: bool = False,
+           part: str = "all") -> ReplaySummary:
     """Send ``records`` to the monitor at ``url`` with a robot key: the first ``held_out`` as held-out labelled
-    rollouts, the rest live. Episode ids are ``prefix`` + the record's ``episode_id`` (or its seed). Raises
-    RuntimeError when the service did not take every record within ``timeout`` seconds. ``progress``: a bar of
-    the episodes queued on stderr."""
+    rollouts, the rest live (``part``: only the held-out ones, or only the live ones, e.g. after calibrating on
+    the former). Episode ids: ``episode_id``. Raises ValueError when no monitor answers or it refuses every
+    record of the first episode sent (a wrong task, key or robot: nothing more is sent), RuntimeError when it
+    did not take every record within ``timeout`` seconds. ``progress``: a bar of the episodes on stderr."""
+    if part not in PARTS:
+        raise ValueError(f"part {part!r}: choose one of {', '.join(PARTS)}")
+    check_service(url)
+    chosen = {"all": range(len(records)), "held-out": range(min(held_out, len(records))),
+              "live": range(min(held_out, len(records)), len(records))}[part]
     summary = ReplaySummary(task)
-    with MonitorClient(url, api_key, robot=robot, batch_size=512) as client:
-        for i, record in enumerate(tqdm(records, desc=f"replay {task}", unit="episode", disable=not progress)):
-            eid = f"{prefix}{record.get('episode_id') or record.get('seed', i)}"
-            n_dec, n_tgt = send_episode(client, task, eid, record, i < held_out, checkpoint, group, signals)
-            summary.episodes += 1
-            summary.held_out += i < held_out
-            summary.decisions += n_dec
-            summary.targets += n_tgt
-            summary.episode_ids.append(eid)
-            if client.pending > client.max_buffer // 2 and not client.flush(timeout):   # never drop a record
-                break
-        if not client.flush(timeout):
-            raise RuntimeError(f"the monitor at {url} took not all records within {timeout:g} s "
-                               f"({client.pending} pending); is it running, and is the key a robot key?")
-        summary.dropped = client.stats.dropped
-        summary.rejected = [f"{rec['kind']} {rec.get('episode')} step {rec.get('step')}: HTTP {status} {detail}"
-                            for rec, status, detail in client.stats.rejected]
+    client_log = logging.getLogger("monitor_service.client")
+    level = client_log.level
+    client_log.setLevel(logging.ERROR)   # refusals are counted and reported here, not one log line each
+    try:
+        with MonitorClient(url, api_key, robot=robot, batch_size=512) as client:
+            for k, i in enumerate(tqdm(chosen, desc=f"replay {task}", unit="episode", disable=not progress)):
+                eid = episode_id(records[i], i, prefix)
+                n_dec, n_tgt = send_episode(client, task, eid, records[i], i < held_out, checkpoint, group, signals)
+                summary.episodes += 1
+                summary.held_out += i < held_out
+                summary.decisions += n_dec
+                summary.targets += n_tgt
+                summary.episode_ids.append(eid)
+                if k == 0 or client.pending > client.max_buffer // 2:   # never drop a record
+                    if not client.flush(timeout):
+                        break
+                if k == 0 and len(client.stats.rejected) >= n_dec + n_tgt + 1:
+                    rec, status, detail = client.stats.rejected[0]
+                    raise ValueError(f"the monitor refused every record of the first episode ({rec['kind']}: HTTP "
+                                     f"{status} {' '.join(str(detail).split())[:300]}); check --task, the key (a "
+                                     "robot key) and --robot")
+            if not client.flush(timeout):
+                raise RuntimeError(f"the monitor at {url} took not all records within {timeout:g} s "
+                                   f"({client.pending} pending); is it still running?")
+            summary.dropped = client.stats.dropped
+            summary.rejected = [f"{rec['kind']} {rec.get('episode')} step {rec.get('step')}: HTTP {status} "
+                                f"{' '.join(str(detail).split())[:300]}"
+                                for rec, status, detail in client.stats.rejected]
+    finally:
+        client_log.setLevel(level)
     return summary

@@ -177,13 +177,14 @@ def calibration_successes(n: int, lengths: tuple[int, int], short_share: float |
 
 def length_check(draws: int = 200, fresh: int = 200, successes: int = 100, lengths: tuple[int, int] = (5, 150),
                  alphas: tuple[float, ...] = (0.05, 0.2), params: rules.RuleParams = rules.RuleParams(),
-                 seed: int = 0, progress: bool = False, short_share: float | None = None) -> dict:
-    """False-alert rate of fresh successes per length bin, over ``draws`` calibrations on ``successes`` fresh
-    successes each (``calibration_successes``: NMSE independent of the decision index; ``short_share``: that
-    share of them short), fresh successes uniform in ``lengths``. The check of docs/monitor.md's per-length
-    promise; kinds running and band. Per bin: the rate over the fresh successes whose bin the calibration
-    promised (``rate``, ``ci``), and over those it did not (``unpromised_*``), whose alerts must all say so.
-    ``progress``: a bar of the calibrations on stderr."""
+                 seed: int = 0, progress: bool = False, short_share: float | None = None,
+                 promise_min: int = rules.PROMISE_MIN_SUCCESSES) -> dict:
+    """False-alert rate of fresh successes per length bin, over ``draws`` calibrations on ``successes`` fresh successes
+    each (``calibration_successes``: NMSE independent of the decision index; ``short_share``: that share of them
+    short), fresh successes uniform in ``lengths``. The check of docs/monitor.md's per-length promise
+    (``promise_min``: the successes a bin needs for one); kinds running and band. Per bin: the rate over the
+    fresh successes whose bin the calibration promised (``rate``, ``ci``), and over those it did not
+    (``unpromised_*``), whose alerts must all say so. ``progress``: a bar of the calibrations on stderr."""
     out = {}
     bar = tqdm(total=len(rules.RULE_KINDS) * len(alphas) * draws, desc="length check", unit="calibration",
                disable=not progress)
@@ -194,16 +195,13 @@ def length_check(draws: int = 200, fresh: int = 200, successes: int = 100, lengt
             for d in range(draws):
                 bar.update()
                 rule = rules.calibrate_rule(calibration_successes(successes, lengths, short_share, seed + 2 * d),
-                                            p, alpha, seed=d)
+                                            p, alpha, seed=d, regime_min=promise_min)
                 promised = {r.lo: r.promise for r in rule.regimes}
                 for e in mixed_length_episodes(fresh, 0, lengths, seed=seed + 2 * d + 1):
                     verdict = rule.judge(e)
                     judged.append({**verdict, "length": e.steps.size,
                                    "promised": promised.get(rules.length_bin(e.steps.size)[0], False),
-                                   # the alert says so, or the episode ran past the calibrated length (its
-                                   # beyond_calibration, which the service sets as it does)
-                                   "flagged": bool(verdict["unpromised"])
-                                   or e.steps.size > rule.calibrated_decisions})
+                                   "flagged": bool(verdict["unpromised"])})
             kept = {b["lo"]: b for b in rules.by_length([j for j in judged if j["promised"]])}
             bins = []
             for b in rules.by_length(judged):
@@ -216,7 +214,7 @@ def length_check(draws: int = 200, fresh: int = 200, successes: int = 100, lengt
             out[f"{kind}, alpha {alpha:g}"] = bins
     bar.close()
     return {"draws": draws, "fresh_per_draw": fresh, "calibration_successes": successes, "lengths": list(lengths),
-            "short_share": short_share, "shape": params.shape, "rules": out}
+            "short_share": short_share, "promise_min": promise_min, "shape": params.shape, "rules": out}
 
 
 def length_table(check: dict) -> str:
@@ -242,7 +240,8 @@ def length_table(check: dict) -> str:
                  f"successes whose bin it did not promise (too few calibration successes that long), and their "
                  f"alert rate, every alert flagged as without promise; {check['draws']} calibrations on "
                  f"{check['calibration_successes']} successes{mix}, {check['fresh_per_draw']} fresh successes "
-                 f"each; threshold shape {check['shape']}")
+                 f"each; threshold shape {check['shape']}; a promise needs {check['promise_min']} successes of a "
+                 "bin (and alpha's minimum)")
     return "\n".join(lines)
 
 
@@ -272,7 +271,9 @@ def study_table(detection: dict) -> str:
                 f"{b['lo']}-{b['hi'] if b['hi'] < 10**9 else ''} decisions {b['alerts']}/{b['episodes']}"
                 for b in per_length)
                 + (f"; alerts beyond the calibrated length: {r['alerts_beyond_calibration']}"
-                   if r.get("alerts_beyond_calibration") else ""))
+                   if r.get("alerts_beyond_calibration") else "")
+                + (f"; false alerts on lengths without a promise: "
+                   f"{r['false_alerts_unpromised']}" if r.get("false_alerts_unpromised") else ""))
     first = next(iter(detection.values()))
     lines.append(f"  cross-fitted: {first['folds']} folds; alpha = {first['alpha']}; "
                  "decision of the 1st alert as median (quartiles)")

@@ -88,10 +88,12 @@ def run_tasks_study(files: dict[str, str | Path], where: dict[str, str] | None =
             held, live, kinds, service_alerts = {}, {}, {}, {}
             for task, rows in loaded.items():
                 dim = len(next(d["z_hat"] for r in rows for d in r["decisions"] if "z_hat" in d))
-                http.put(f"/v1/tasks/{task}", json={"latent_dim": dim}, headers=admin).raise_for_status()
+                put = http.put(f"/v1/tasks/{task}", json={"latent_dim": dim}, headers=admin)
+                if put.status_code >= 300:
+                    raise ValueError(f"task {task!r}: the service refused it: {put.json().get('detail')}")
                 n_held = round(held_out_share * len(rows))
                 sent = replay(rows[:n_held], server.url, robot_key, task, n_held, prefix=f"{task}-cal-",
-                              progress=progress)
+                              robot="replay", progress=progress)
                 cal = http.post("/v1/calibrations", headers=admin,
                                 json={"task": task, "alpha": alpha, "rule": rule, "n_bootstrap": 500,
                                       "n_permutation": 500})
@@ -99,7 +101,11 @@ def run_tasks_study(files: dict[str, str | Path], where: dict[str, str] | None =
                     raise ValueError(f"{task}: the service refused its calibration: {cal.json().get('detail')}")
                 result = cal.json()["result"]
                 live_sent = replay(rows[n_held:], server.url, robot_key, task, 0, prefix=f"{task}-live-",
-                                   progress=progress)
+                                   robot="replay", progress=progress)
+                for what in (sent, live_sent):
+                    if what.rejected or what.dropped:
+                        raise ValueError(f"{task}: the service refused {len(what.rejected)} and dropped "
+                                         f"{what.dropped} of its records, e.g. {(what.rejected or ['-'])[0]}")
                 held[task] = [_scores(http, admin, eid, bool(r["success"]), r.get("length"))
                               for eid, r in zip(sent.episode_ids, rows[:n_held])]
                 live[task] = [_scores(http, admin, eid, bool(r["success"]), r.get("length"))
@@ -192,8 +198,9 @@ def tasks_figure(study: dict, path: str | Path) -> Path:
         bins = np.logspace(np.log10(min(values)), np.log10(max(values)), 25) if values else 10
         for label, color in (("successes", "tab:green"), ("failures", "tab:red")):
             ax.hist(t["_peaks"][label], bins=bins, alpha=0.55, color=color, label=label)
-        ax.axvline(t["calibration"]["threshold"], color="black", label="its threshold")
-        ax.axvline(study["pooled"]["threshold"], color="black", linestyle="--", label="pooled threshold")
+        if study["rule"] == "running":   # a band rule's threshold is on z-scores of log NMSE, not on this axis
+            ax.axvline(t["calibration"]["threshold"], color="black", label="its threshold")
+            ax.axvline(study["pooled"]["threshold"], color="black", linestyle="--", label="pooled threshold")
         ax.set(xscale="log", title=task, xlabel="peak running-median NMSE of a live episode", ylabel="episodes")
     axes[0][0].legend(fontsize=8)
     fig.tight_layout()

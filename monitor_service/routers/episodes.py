@@ -68,7 +68,7 @@ def get_episode(
     decisions = session.scalars(select(Decision).where(Decision.episode_id == e.id).order_by(Decision.step)).all()
     detector = None
     cal = active_calibration(session, e.task, e.checkpoint)
-    if cal is not None and "shape" in cal.result.get("rule", {}):
+    if cal is not None and {"shape", "unpromised_lengths"} <= set(cal.result.get("rule", {})):
         candidate = stored_detector(cal.result)
         made = candidate.spec.params
         if made == rule_params(settings, made.kind, made.shape):

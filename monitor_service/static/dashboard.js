@@ -179,7 +179,7 @@ async function refresh() {
       h("td", {}, String(a.id)), h("td", {}, a.task), h("td", {}, a.robot), h("td", {}, a.episode_id),
       h("td", {}, String(a.step)), h("td", {}, `${fmt(a.score, 4)} / ${fmt(a.threshold, 4)}`),
       h("td", { class: "state", title: a.note }, stateText + (a.beyond_calibration ? " (beyond the calibrated length)" : "") +
-        (a.no_promise ? " (no false-alert promise if the episode runs to a length without enough calibration)" : "")),
+        (a.no_promise ? " (no false-alert promise at this episode's length: too few calibration successes that long)" : "")),
       h("td", {}, a.acknowledged_at ? a.acknowledged_by : "no"), h("td", {}, action)));
   }
 

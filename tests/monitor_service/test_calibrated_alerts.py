@@ -1,5 +1,6 @@
 """The service alerts exactly as its calibrated rule says: live alerts against the pure rule, stale settings,
 the controls, detection figures, metrics and the early score of out-of-order decisions."""
+import json
 import re
 
 import numpy as np
@@ -148,3 +149,31 @@ def test_a_calibration_from_before_episode_rules_raises_nothing_and_says_so(clie
     assert "predates episode-level alert rules" in note and "recalibrate" in note
     with client.app.state.sessionmaker() as s:
         assert s.scalar(select(Episode.risk_score).where(Episode.id == "old")) is None
+
+
+def test_a_calibration_from_before_per_length_promises_raises_nothing_and_says_so(client, robot, operator, admin):
+    """A stored rule of the release that merged scarce length bins (no ``promise`` per regime, no
+    ``unpromised_lengths``): its merged bins alerted above alpha with nothing said, so it alerts no more, its
+    episodes say why and the stale gauge asks for a recalibration."""
+    register_task(client, "Square")
+    rng = np.random.default_rng(8)
+    _calibration_set(client, robot, rng)
+    made = client.post("/v1/calibrations", json={"task": "Square", "alpha": 0.2, "n_bootstrap": 200,
+                                                 "n_permutation": 200}, headers=admin).json()
+    with client.app.state.sessionmaker() as s:   # the same calibration as the earlier release stored it
+        row = s.get(CalibrationRow, made["id"])
+        old = json.loads(json.dumps(row.result))
+        for part in [old["rule"], *old["detector"]["rules"].values()]:
+            part.pop("unpromised_lengths")
+            part.pop("promise_min")
+            for regime in part["regimes"]:
+                regime.pop("promise")
+        row.result = old
+        s.commit()
+    client.app.state.ingest.forget_calibrations()
+    assert post_batch(client, robot, records_for_nmse("old-rule", "Square", rng, [5.0] * 8, held_out=False)).json()[
+        "alerts_raised"] == []
+    note = client.get("/v1/episodes/old-rule", headers=operator).json()["alert_note"]
+    assert "predates per-length promises" in note and "recalibrate" in note
+    assert re.search(r'jepa_monitor_calibration_stale\{checkpoint="",task="Square"\} 1\.0',
+                     client.get("/metrics", headers=operator).text)

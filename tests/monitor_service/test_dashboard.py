@@ -32,7 +32,7 @@ def test_dashboard_shows_risk_roc_and_acknowledges(tmp_path):
                                         headers=A).json()["key"]}
         op_key = http.post("/v1/keys", json={"name": "alice", "role": "operator"}, headers=A).json()["key"]
         rng = np.random.default_rng(0)
-        for i in range(30):
+        for i in range(66):   # 44 successes: the band rule ranks 22, enough for a promise at 1-20 decisions
             fail = i % 3 == 0
             recs, _ = episode_records(f"cal{i}", "Square", rng, 0.6 if fail else 0.3, n_steps=5, success=not fail)
             http.post("/v1/batch", json={"records": recs}, headers=robot).raise_for_status()
@@ -47,7 +47,8 @@ def test_dashboard_shows_risk_roc_and_acknowledges(tmp_path):
             http.post("/v1/batch", json={"records": recs}, headers=robot).raise_for_status()
         http.post("/v1/calibrations", json={"task": "Can", "rule": "running", "n_bootstrap": 200,
                                             "n_permutation": 200}, headers=A).raise_for_status()
-        recs, _ = episode_records("can-bad", "Can", rng, 2.0, n_steps=8, held_out=False)
+        # a failure that ran to 25 decisions, a length the calibration holds 3 successes of: no promise covers it
+        recs, _ = episode_records("can-bad", "Can", rng, 2.0, n_steps=25, held_out=False, success=False)
         can_alert = http.post("/v1/batch", json={"records": recs}, headers=robot).json()["alerts_raised"][0]
         recs, _ = episode_records("live-bad", "Square", rng, 2.0, n_steps=8, held_out=False)
         alert_id = http.post("/v1/batch", json={"records": recs}, headers=robot).json()["alerts_raised"][0]
@@ -103,7 +104,7 @@ def test_dashboard_shows_risk_roc_and_acknowledges(tmp_path):
                 assert "no promise at 21-" in can.inner_text() and "(3 successes)" in can.inner_text()
                 can_row = page.locator(f"#alerts tr[data-alert='{can_alert}'] td.state")
                 assert "no false-alert promise" in can_row.inner_text()
-                assert "21-" in can_row.get_attribute("title")   # the note names the lengths
+                assert "3 calibration successes" in can_row.get_attribute("title")   # the note says why
                 row.locator("button.ack").click()
                 page.wait_for_selector(f"#alerts tr[data-alert='{alert_id}'] >> text=alice")
                 assert row.locator("td.state").inner_text() == "acknowledged" and row.locator("button.ack").count() == 0

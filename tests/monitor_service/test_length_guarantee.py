@@ -131,9 +131,9 @@ def test_live_alerts_over_http_equal_the_offline_rule_at_every_length(tmp_path):
                 assert got["step"] == expected["step"], e.episode
                 assert got["threshold"] == pytest.approx(rule.threshold_at(expected["decision_index"]), rel=1e-9)
                 assert got["beyond_calibration"] == expected["beyond_calibration"]
-                # the alert says when the episode could still end at a length without a promise, and which
+                # once the episode ended, its alert says whether its length carried the promise, and why not
                 assert got["no_promise"] == bool(expected["unpromised"])
-                assert expected["unpromised"] in got["note"]
+                assert ("no false-alert promise" in got["note"]) == got["no_promise"]
                 checked["no_promise"] += got["no_promise"]
                 # the outcome arrived after the alert: resolved, as a false alert on a success
                 assert got["state"] in ("resolved", "cleared")
@@ -160,11 +160,12 @@ def test_the_length_check_command_prints_its_figures_and_a_bar_on_stderr(capsys)
     out, err = capsys.readouterr()
     assert "false alerts of fresh successes in the bins the calibration promised" in out and err == ""
     assert "3 calibrations on 20 successes, 20 fresh" in out
-    # mostly short calibration successes: 2 of 20 in 21-150, too few for a promise at 0.2 in any longer bin;
-    # the fresh successes there are counted apart and every one of their alerts says it has no promise
+    # mostly short calibration successes: 2 of 20 in 21-150, too few for a promise at 0.2 in any longer bin even
+    # at alpha's own minimum (4); the fresh successes there are counted apart and every one of their alerts says it
+    # has no promise
     assert main([*argv, "--no-progress", "--json", "--short-share", "0.9"]) == 0
     check = json.loads(capsys.readouterr().out)
-    assert check["short_share"] == 0.9
+    assert check["short_share"] == 0.9 and check["promise_min"] == 1
     for bins in check["rules"].values():
         assert bins[0]["unpromised_episodes"] == 0 and sum(b["unpromised_episodes"] for b in bins[1:]) > 0
         assert all(b["unpromised_alerts_flagged"] == b["unpromised_alerts"] for b in bins)

@@ -60,7 +60,7 @@ def test_replay_calibrates_then_alerts_with_the_files_own_numbers(tmp_path, monk
                               ).json()["key"]
         operator = {"X-API-Key": http.post("/v1/keys", headers=admin, json={"name": "o", "role": "operator"})
                     .json()["key"]}
-        monkeypatch.setenv("JEPA_MONITOR_API_KEY", robot_key)
+        monkeypatch.setenv("JEPA_POLICY_MONITOR_KEY", robot_key)
         argv = ["replay", str(path), "--task", "Lift", "--url", server.url, "--where", "arm=jepa",
                 "--held-out", "0.5", "--prefix", "lift-", "--signals", "stac", "--json"]
         assert main(argv) == 0
@@ -84,6 +84,12 @@ def test_replay_calibrates_then_alerts_with_the_files_own_numbers(tmp_path, monk
                     assert got[d["step"]]["scores"]["stac"] == pytest.approx(d["scores"]["stac"], rel=1e-6)
                 else:
                     assert got[d["step"]]["nmse"] is None
+        # a wrong task: the first episode is refused whole, and nothing more is sent (one line)
+        assert main(["replay", str(path), "--task", "Nope", "--url", server.url, "--prefix", "x-",
+                     "--no-progress"]) == 2
+        err = capsys.readouterr().err.strip()
+        assert len(err.splitlines()) == 1 and "refused every record of the first episode" in err, err
+        assert len(http.get("/v1/episodes", params={"limit": 1000}, headers=operator).json()) == 56
         # the held-out half calibrates the task; replaying the file again under new ids sends it all live
         cal = http.post("/v1/calibrations", headers=admin, json={"task": "Lift", "rule": "running",
                                                                  "n_bootstrap": 100, "n_permutation": 100})
@@ -94,6 +100,10 @@ def test_replay_calibrates_then_alerts_with_the_files_own_numbers(tmp_path, monk
         assert main(["replay", str(path), "--task", "Lift", "--url", server.url, "--where", "arm=jepa",
                      "--held-out", "0", "--prefix", "again-"]) == 0
         assert "56 episodes (0 held out for calibration, 56 live)" in capsys.readouterr().out
+        # --part live sends only the episodes after the held-out ones
+        assert main(["replay", str(path), "--task", "Lift", "--url", server.url, "--where", "arm=jepa",
+                     "--held-out", "50", "--part", "live", "--prefix", "tail-", "--no-progress"]) == 0
+        assert "6 episodes (0 held out for calibration, 6 live)" in capsys.readouterr().out
         alerts = http.get("/v1/alerts", params={"limit": 1000}, headers=operator).json()
         alerted = {a["episode_id"] for a in alerts if a["episode_id"].startswith("again-")}
         failed = {f"again-{r['seed']}" for r in jepa if not r["success"]}
@@ -102,12 +112,14 @@ def test_replay_calibrates_then_alerts_with_the_files_own_numbers(tmp_path, monk
 
 
 def test_replay_errors_are_one_line(tmp_path, monkeypatch, capsys):
-    monkeypatch.delenv("JEPA_MONITOR_API_KEY", raising=False)
+    monkeypatch.delenv("JEPA_POLICY_MONITOR_KEY", raising=False)
     good = write(tmp_path / "r.jsonl.gz", records(2, 0, seed=1))
     no_latents = tmp_path / "plain.jsonl"
     no_latents.write_text(json.dumps({"success": True, "decisions": [{"step": 0, "nmse": 0.1}]}) + "\n")
     bad = tmp_path / "bad.jsonl"
     bad.write_text("{not json\n")
+    not_gzip = tmp_path / "plain.jsonl.gz"
+    not_gzip.write_text("{}\n")
     cases = [
         (["replay", str(tmp_path / "none.jsonl"), "--task", "T"], "does not exist; write one with `jepa-policy eval"),
         (["replay", str(no_latents), "--task", "T", "--api-key", "k"], "hold no latents (z_hat)"),
@@ -115,6 +127,10 @@ def test_replay_errors_are_one_line(tmp_path, monkeypatch, capsys):
         (["replay", str(good), "--task", "T"], "give the robot key"),
         (["replay", str(good), "--task", "T", "--api-key", "k", "--where", "arm"], "give FIELD=VALUE"),
         (["replay", str(good), "--task", "T", "--api-key", "k", "--where", "arm=mip"], "no episode records with"),
+        (["replay", str(not_gzip), "--task", "T", "--api-key", "k"], "unreadable after line 0 (BadGzipFile"),
+        (["replay", str(good), "--task", "T", "--api-key", "k", "--url", "http://127.0.0.1:9"],
+         "no monitor answers at http://127.0.0.1:9"),
+        (["tasks-study", "--task", f"T={not_gzip}"], "unreadable after line 0"),
     ]
     for argv, message in cases:
         assert main(argv) == 2, argv

@@ -111,35 +111,38 @@ def successes_of(counts, rng: np.random.Generator) -> list[rules.EpisodeScores]:
     return out
 
 
-@pytest.mark.parametrize("counts, kind, shape", [(SKEWED, "running", "flat"), (SCARCE, "running", "flat"),
-                                                 (SKEWED, "band", "running-max")])
-def test_skewed_calibration_keeps_the_promise_per_length_or_says_it_has_none(counts, kind, shape):
+@pytest.mark.parametrize("counts, kind, shape, regime_min", [(SKEWED, "running", "flat", 1),
+                                                             (SKEWED, "running", "flat", 20),
+                                                             (SCARCE, "running", "flat", 1),
+                                                             (SKEWED, "band", "running-max", 1)])
+def test_skewed_calibration_keeps_the_promise_per_length_or_says_it_has_none(counts, kind, shape, regime_min):
     """Calibrations whose successes are mostly short. Per length bin, over independent (calibration, fresh
     success) pairs: where the rule promises the bin, alerts on fresh successes of that length are
     Binomial(promised pairs, p <= alpha) (the former rule merged the scarce long bin into a 21-150 regime and
     alerted at 0.17-0.34 there at alpha 0.1); where it does not (too few calibration successes of those
-    lengths), every alert on such a success names that bin as unpromised."""
+    lengths: alpha's minimum, and 20 with ``regime_min`` 20), every alert on such a success says why."""
     params = rules.RuleParams(kind, shape=shape)
     for alpha in (0.1, 0.2):
         promised_alerts = {b: [0, 0] for b in LENGTH_BINS}
         unpromised_alerts = {b: [0, 0] for b in LENGTH_BINS}
         for i in range(PAIRS_BY_LENGTH):
             rng = np.random.default_rng([29, len(counts), hash(kind) % 1000, int(alpha * 10), i])
-            rule = rules.calibrate_rule(successes_of(counts, rng), params, alpha, seed=i)
-            if kind == "running" and counts is SKEWED:   # every bin holds >= 9 (0.1) or 4 (0.2): all promised
-                assert [(r.lo, r.promise) for r in rule.regimes] == [(1, True), (21, True), (41, True), (81, True)]
-            if kind == "running" and counts is SCARCE and alpha == 0.1:
+            rule = rules.calibrate_rule(successes_of(counts, rng), params, alpha, seed=i, regime_min=regime_min)
+            if kind == "running" and counts is SKEWED:   # every bin holds >= 9 (0.1) or 4 (0.2); 15 < 20
+                assert [(r.lo, r.promise) for r in rule.regimes] == [(1, True), (21, True), (41, regime_min == 1),
+                                                                     (81, regime_min == 1)]
+            if kind == "running" and counts is SCARCE and alpha == 0.1:   # 5 < 9
                 assert [r.promise for r in rule.regimes] == [True, True, True, False] and \
-                    rule.unpromised_lengths()[0]["successes"] == 5
+                    [u["successes"] for u in rule.unpromised_lengths()] == [5]
             for (lo, hi), fresh in zip(LENGTH_BINS, one_per_bin(rng)):
                 regime = next(r for r in rule.regimes if r.lo == rules.length_bin(fresh.n_decisions)[0])
                 verdict = rule.judge(fresh)
                 tally = (promised_alerts if regime.promise else unpromised_alerts)[(lo, hi)]
                 tally[0] += verdict["alerted"]
                 tally[1] += 1
-                if verdict["alerted"] and not regime.promise:
-                    assert verdict["beyond_calibration"] or \
-                        f"{regime.lo}-{regime.hi} ({regime.n} calibration successes)" in verdict["unpromised"]
+                if verdict["alerted"]:   # flagged exactly when its length has no promise, saying how many there were
+                    assert (verdict["unpromised"] == "") == regime.promise, verdict
+                    assert regime.promise or f"a length with {regime.n} calibration successes" in verdict["unpromised"]
         for (lo, hi), (k, n) in promised_alerts.items():
             if n:
                 assert binomtest(k, n, alpha, alternative="greater").pvalue > 1e-3, (alpha, lo, hi, k, n)
@@ -154,7 +157,7 @@ def test_running_max_shape_against_a_direct_computation():
     rng = np.random.default_rng(3)
     cal = mixed_length_successes(60, rng)
     params = rules.RuleParams("running", shape="running-max")
-    rule = rules.calibrate_rule(cal, params, 0.2, seed=4)
+    rule = rules.calibrate_rule(cal, params, 0.2, seed=4)   # every bin with a finite quantile promised
     fit, conf = rules.fit_split(60, 4)
     runs = [rules.running_statistic(e.nmse, 5) for e in cal]
     longest = max(runs[i].size for i in conf)
@@ -176,6 +179,13 @@ def test_running_max_shape_against_a_direct_computation():
     for i in range(longest):
         assert levels[i] == max(r.level for r in rule.regimes if r.hi > i)
     assert np.allclose(rule.thresholds(longest), q * np.exp(levels))
+    # a minimum of 20: 30 ranked successes over four bins, none holding 20: no bin promised, each judged at the
+    # quantile of all of them together
+    pooled = rules.calibrate_rule(cal, params, 0.2, seed=4, regime_min=20)
+    ranked = sorted(stats.values())
+    assert [r.promise for r in pooled.regimes] == [False] * 4 and all(r.rank == 0 for r in pooled.regimes)
+    assert all(r.level == pytest.approx(ranked[rules.conformal_rank(len(ranked), 0.2) - 1]) for r in pooled.regimes)
+    assert "no promise at 1-20 decisions" in pooled.note and pooled.unpromised(0).startswith("no false-alert promise")
 
 
 def test_length_regimes_one_per_bin_promised_where_enough_and_flag_beyond():
