@@ -386,6 +386,8 @@ class CalibratedRule:
     def unpromised_at_end(self, length: int) -> str:
         """Why no false-alert promise covers the alerts of a successful episode that ended after ``length`` scored
         decisions, or "" when one does (the promise is per final length: its bin must be promised)."""
+        if not math.isfinite(self.alpha):   # a labelled (Youden) threshold: it promises nothing, and says so elsewhere
+            return ""
         regime = self._regime_of(length)
         if regime is None:
             return self._why(f"the episode ran to {length} scored decisions, longer than any calibration success")
@@ -399,7 +401,7 @@ class CalibratedRule:
         index + 1 scored decisions so far) whatever length the episode ends at, or "" while it may still end in a
         promised bin (whether it did is ``unpromised_at_end``'s, once its length is known)."""
         length = index + 1
-        if any(r.promise and length <= self._end(r) for r in self.regimes):
+        if not math.isfinite(self.alpha) or any(r.promise and length <= self._end(r) for r in self.regimes):
             return ""
         return self._why(f"the episode has run to {length} scored decisions, past every promised length")
 

@@ -115,7 +115,8 @@ def test_dashboard_shows_risk_roc_and_acknowledges(tmp_path):
                 fresh = browser.new_context().new_page()
                 fresh.goto(f"{server.url}/dashboard#key={op_key}")
                 fresh.wait_for_selector("#tasks tr[data-task='Square']")
-                assert fresh.inner_text("#status") == "connected" and op_key not in fresh.url
+                fresh.wait_for_function("document.getElementById('status').textContent === 'connected'")
+                assert op_key not in fresh.url
                 assert fresh.evaluate("sessionStorage.getItem('jepaMonitorKey')") == op_key
             finally:
                 browser.close()
