@@ -319,13 +319,15 @@ def cmd_replay(args) -> int:
     signals = tuple(x for x in (args.signals or "").split(",") if x)
     summary = replay(records, args.url, key, args.task, held, robot=args.robot, prefix=args.prefix,
                      checkpoint=args.checkpoint, group=args.group, signals=signals, progress=not args.no_progress,
-                     part=args.part)
+                     part=args.part, in_flight=args.in_flight)
     out = summary.to_dict()
     if args.json:
         print(json.dumps(out))
     else:
         print(f"{args.task}: {out['episodes']} episodes ({out['held_out']} held out for calibration, "
-              f"{out['episodes'] - out['held_out']} live), {out['decisions']} decisions, {out['targets']} realized "
+              f"{out['episodes'] - out['held_out']} live"
+              + (f", the last {out['in_flight']} still running" if out["in_flight"] else "")
+              + f"), {out['decisions']} decisions, {out['targets']} realized "
               f"latents sent to {args.url}; {len(out['rejected'])} refused, {out['dropped']} dropped")
         for line in out["rejected"][:10]:
             print(f"  refused: {line}")
@@ -342,8 +344,8 @@ def cmd_tasks_study(args) -> int:
             raise ValueError(f"--task {item!r}: give TASK=RECORDS, e.g. --task Lift=demo_out/Lift/decisions.jsonl.gz")
         files[task] = path
     compare_cli.check_out(args.out, (".json", ".md", ".png"))
-    study = run_tasks_study(files, _where(args.where), args.held_out, args.alpha, args.rule,
-                            progress=not args.no_progress)
+    study = run_tasks_study(files, _where(args.where), args.held_out, args.alpha, args.rule, work_dir=args.keep,
+                            progress=not args.no_progress, in_flight=args.in_flight)
     table = tasks_table(study)
     figures = [tasks_figure(study, path) for path in args.out if path.endswith(".png")]
     for t in study["tasks"].values():
@@ -482,6 +484,9 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--group", help="the episodes' group (leave-one-group-out figures)")
     s.add_argument("--signals", metavar="A,B", help="named scores to send with each decision (the task must "
                                                     "register them), e.g. stac")
+    s.add_argument("--in-flight", type=int, default=0, metavar="K",
+                   help="send the last K live episodes without their outcome: the service and its dashboard see "
+                        "them running (default 0)")
     s.add_argument("--json", action="store_true", help="print the summary as JSON")
     s.add_argument("--no-progress", action="store_true", help="no progress bar on stderr (for logs)")
     s.set_defaults(func=cmd_replay)
@@ -496,6 +501,11 @@ def build_parser() -> argparse.ArgumentParser:
                    help="share of each file's episodes (its first ones) held out for calibration (default 0.5)")
     s.add_argument("--alpha", type=_share, default=0.1, help="the rule's false-alert rate (default 0.1)")
     s.add_argument("--rule", choices=["running", "band"], default="running", help="alert rule (default running)")
+    s.add_argument("--keep", metavar="DIR", help="keep the service's database (DIR/tasks_study.db) and log: "
+                                                 "`jepa-monitor serve` on it shows the tasks on the dashboard")
+    s.add_argument("--in-flight", type=int, default=0, metavar="K",
+                   help="send each task's last K live episodes without their outcome, so that a dashboard on the "
+                        "kept database shows them running (default 0)")
     s.add_argument("--out", action="append", default=[], metavar="FILE.json|FILE.md|FILE.png",
                    help="also write the figures as JSON (.json), the tables as Markdown (.md) or each task's "
                         "peak NMSE against both thresholds (.png); repeatable")

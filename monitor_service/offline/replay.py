@@ -71,6 +71,7 @@ class ReplaySummary:
     held_out: int = 0
     decisions: int = 0
     targets: int = 0
+    in_flight: int = 0     # live episodes sent without their outcome
     dropped: int = 0
     rejected: list[str] = field(default_factory=list)   # the service's refusals, one line each
     episode_ids: list[str] = field(default_factory=list)
@@ -81,10 +82,11 @@ class ReplaySummary:
 
 def send_episode(client: MonitorClient, task: str, episode_id: str, record: dict, held_out: bool,
                  checkpoint: str | None = None, group: str | None = None,
-                 signals: tuple[str, ...] = ()) -> tuple[int, int]:
+                 signals: tuple[str, ...] = (), outcome: bool = True) -> tuple[int, int]:
     """One episode in the robot's order: every decision, then each realized latent once its step is reached,
-    then the outcome. ``signals``: the named scores to send with the decisions (those the task registered).
-    Returns (decisions, targets) queued."""
+    then the outcome (``outcome`` False: none, the episode still running as the service sees it). ``signals``:
+    the named scores to send with the decisions (those the task registered). Returns (decisions, targets)
+    queued."""
     decisions = sorted((d for d in record["decisions"] if "z_hat" in d), key=lambda d: d["step"])
     realized = {}
     for d in decisions:
@@ -96,8 +98,9 @@ def send_episode(client: MonitorClient, task: str, episode_id: str, record: dict
             realized[int(d["target_step"])] = d["z_real"]
     for step in sorted(realized):
         client.target(episode_id, step, realized[step])
-    client.outcome(episode_id, bool(record["success"]), held_out=held_out, group=group,
-                   length=None if record.get("length") is None else int(record["length"]))
+    if outcome:
+        client.outcome(episode_id, bool(record["success"]), held_out=held_out, group=group,
+                       length=None if record.get("length") is None else int(record["length"]))
     return len(decisions), len(realized)
 
 
@@ -128,17 +131,23 @@ def check_service(url: str) -> None:
 def replay(records: list[dict], url: str, api_key: str, task: str, held_out: int, robot: str | None = None,
            prefix: str = "", checkpoint: str | None = None, group: str | None = None,
            signals: tuple[str, ...] = (), timeout: float = 120.0, progress: bool = False,
-           part: str = "all") -> ReplaySummary:
+           part: str = "all", in_flight: int = 0) -> ReplaySummary:
     """Send ``records`` to the monitor at ``url`` with a robot key: the first ``held_out`` as held-out labelled
     rollouts, the rest live (``part``: only the held-out ones, or only the live ones, e.g. after calibrating on
     the former). Episode ids: ``episode_id``. Raises ValueError when no monitor answers or it refuses every
     record of the first episode sent (a wrong task, key or robot: nothing more is sent), RuntimeError when it
-    did not take every record within ``timeout`` seconds. ``progress``: a bar of the episodes on stderr."""
+    did not take every record within ``timeout`` seconds. ``progress``: a bar of the episodes on stderr.
+    ``in_flight``: the last that many live episodes are sent without their outcome, so that the service (and
+    its dashboard) sees them running until its live window passes."""
     if part not in PARTS:
         raise ValueError(f"part {part!r}: choose one of {', '.join(PARTS)}")
-    check_service(url)
     chosen = {"all": range(len(records)), "held-out": range(min(held_out, len(records))),
               "live": range(min(held_out, len(records)), len(records))}[part]
+    n_live = sum(i >= held_out for i in chosen)
+    if not 0 <= in_flight <= n_live:
+        raise ValueError(f"in_flight {in_flight}: give 0 to {n_live}, the live episodes sent (held-out ones always "
+                         "carry their outcome, which calibration needs)")
+    check_service(url)
     summary = ReplaySummary(task)
     client_log = logging.getLogger("monitor_service.client")
     level = client_log.level
@@ -147,9 +156,11 @@ def replay(records: list[dict], url: str, api_key: str, task: str, held_out: int
         with MonitorClient(url, api_key, robot=robot, batch_size=512) as client:
             for k, i in enumerate(tqdm(chosen, desc=f"replay {task}", unit="episode", disable=not progress)):
                 eid = episode_id(records[i], i, prefix)
-                n_dec, n_tgt = send_episode(client, task, eid, records[i], i < held_out, checkpoint, group, signals)
+                n_dec, n_tgt = send_episode(client, task, eid, records[i], i < held_out, checkpoint, group, signals,
+                                            outcome=k < len(chosen) - in_flight)
                 summary.episodes += 1
                 summary.held_out += i < held_out
+                summary.in_flight += k >= len(chosen) - in_flight
                 summary.decisions += n_dec
                 summary.targets += n_tgt
                 summary.episode_ids.append(eid)

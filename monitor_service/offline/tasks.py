@@ -18,6 +18,7 @@ the distribution of each episode's largest running-median NMSE, successes and fa
 """
 from __future__ import annotations
 
+import secrets
 import tempfile
 from pathlib import Path
 
@@ -28,9 +29,6 @@ from monitor_service import rules
 from monitor_service.offline.figures import pyplot
 from monitor_service.offline.replay import read_records, replay
 from monitor_service.server import start_server
-
-ADMIN_KEY = "tasks-study-admin-key-0123456789"
-
 
 def _rate(k: int, n: int) -> dict:
     return {"k": k, "n": n, "rate": k / n if n else None, "ci": rules.binomial_ci(k, n)}
@@ -65,9 +63,12 @@ def peak_running_nmse(episode: rules.EpisodeScores, window: int) -> float | None
 
 def run_tasks_study(files: dict[str, str | Path], where: dict[str, str] | None = None, held_out_share: float = 0.5,
                     alpha: float = 0.1, rule: str = "running", work_dir: str | Path | None = None,
-                    progress: bool = False) -> dict:
+                    progress: bool = False, in_flight: int = 0) -> dict:
     """The study of the module docstring; returns its figures (JSON-ready but for ``_peaks``, each task's peak
-    values for the figure). ``progress``: bars of the episodes replayed on stderr."""
+    values for the figure). ``progress``: bars of the episodes replayed on stderr. ``work_dir``: keep the
+    service's database (``tasks_study.db``) and log there. ``in_flight``: each task's last that many live
+    episodes are sent without their outcome (judged all the same, from their records): a dashboard served on
+    the kept database shows them running."""
     if not 0 < held_out_share < 1:
         raise ValueError(f"held_out_share must lie in (0, 1), got {held_out_share}")
     loaded = {task: read_records(path, where) for task, path in files.items()}
@@ -76,13 +77,16 @@ def run_tasks_study(files: dict[str, str | Path], where: dict[str, str] | None =
             raise ValueError(f"{files[task]}: no episode records for {task}" + (f" with {where}" if where else ""))
     tmp = tempfile.TemporaryDirectory() if work_dir is None else None
     base = Path(tmp.name if tmp else work_dir)
+    if (base / "tasks_study.db").exists():
+        raise ValueError(f"{base / 'tasks_study.db'} exists already (an earlier study's): keep this one in another "
+                         "folder, or remove that file")
     base.mkdir(parents=True, exist_ok=True)
     out: dict = {"alpha": alpha, "rule": rule, "held_out_share": held_out_share, "tasks": {}}
+    admin = {"X-API-Key": secrets.token_urlsafe(24)}   # a kept database must not open to a key anyone can read
     try:
-        with start_server(f"sqlite:///{base / 'tasks_study.db'}", admin_key=ADMIN_KEY,
+        with start_server(f"sqlite:///{base / 'tasks_study.db'}", admin_key=admin["X-API-Key"],
                           log_path=base / "server.log") as server, \
                 httpx.Client(base_url=server.url, timeout=120) as http:
-            admin = {"X-API-Key": ADMIN_KEY}
             robot_key = http.post("/v1/keys", headers=admin, json={"name": "replay", "role": "robot",
                                                                    "robot": "replay"}).json()["key"]
             held, live, kinds, service_alerts = {}, {}, {}, {}
@@ -101,7 +105,7 @@ def run_tasks_study(files: dict[str, str | Path], where: dict[str, str] | None =
                     raise ValueError(f"{task}: the service refused its calibration: {cal.json().get('detail')}")
                 result = cal.json()["result"]
                 live_sent = replay(rows[n_held:], server.url, robot_key, task, 0, prefix=f"{task}-live-",
-                                   robot="replay", progress=progress)
+                                   robot="replay", progress=progress, in_flight=in_flight)
                 for what in (sent, live_sent):
                     if what.rejected or what.dropped:
                         raise ValueError(f"{task}: the service refused {len(what.rejected)} and dropped "
@@ -124,6 +128,10 @@ def run_tasks_study(files: dict[str, str | Path], where: dict[str, str] | None =
                                           "threshold": cal.json()["threshold"], "note": result["rule"]["note"],
                                           "regimes": result["rule"]["regimes"]},
                                       "rule": result["rule"]}
+            if tmp is None:   # kept: its own keys die with the study (`jepa-monitor keys create` makes yours)
+                keys = http.get("/v1/keys", headers=admin).json()
+                for key in sorted(keys, key=lambda k: k["role"] == "admin"):
+                    http.delete(f"/v1/keys/{key['id']}", headers=admin).raise_for_status()
         params = rules.RuleParams(rule)
         pooled = rules.calibrate_rule([e for task in held for e in held[task] if e.success], params, alpha)
         out["pooled"] = {"threshold": pooled.threshold, "note": pooled.note,

@@ -15,7 +15,8 @@ function keyFromFragment() {
 }
 
 const state = { key: keyFromFragment() || sessionStorage.getItem("jepaMonitorKey") || "", streamAbort: null };
-const TRAJECTORIES = 12;  // live episodes drawn, most recently active first
+const TRAJECTORIES_PER_TASK = 4;  // live episodes drawn for each task, most recently active first
+const LIVE_LIMIT = 200;            // live episodes listed (and counted per task) at most
 
 function h(tag, attrs = {}, ...children) {
   const el = document.createElement(tag);
@@ -108,7 +109,8 @@ function trajectoryChart(detail, signal) {
   lo -= pad; hi += pad;
   const x0 = 0, x1 = Math.max(1, ...pts.map((p) => p.known_at));
   const title = `${detail.id} (${detail.task}, ${signal}, ${detail.rule} rule)`;
-  const [root, X, Y] = frame("trajectory", { "data-episode": detail.id, "data-signal": signal }, title, "env step",
+  const [root, X, Y] = frame("trajectory", { "data-episode": detail.id, "data-signal": signal, "data-task": detail.task },
+    title, "env step",
     detail.rule === "band" ? `${signal}: band z-score, running median` : `${signal}, running median`, 340, 220);
   const fx = (s) => X((s - x0) / (x1 - x0)), fy = (v) => Y((v - lo) / (hi - lo));
   root.append(svg("polyline", { points: pts.map((p) => `${fx(p.known_at)},${fy(p.threshold)}`).join(" "),
@@ -133,15 +135,19 @@ function detectorName(result) {
 
 async function refresh() {
   const [report, alerts, episodes] = await Promise.all([
-    api("/v1/report"), api("/v1/alerts?limit=100"), api("/v1/episodes?live=true&limit=200"),
+    api("/v1/report"), api("/v1/alerts?limit=100"), api(`/v1/episodes?live=true&limit=${LIVE_LIMIT}`),
   ]);
+  // each task's own live episodes, so that a busy task hides neither another's count nor its trajectories
+  const tasks = report.tasks.filter((c) => !c.checkpoint).map((c) => c.task);
+  const liveOf = Object.fromEntries(await Promise.all(tasks.map(async (t) =>
+    [t, await api(`/v1/episodes?live=true&limit=${LIVE_LIMIT}&task=${encodeURIComponent(t)}`)])));
   const tbody = document.querySelector("#tasks tbody");
   tbody.replaceChildren();
   const charts = document.getElementById("charts");
   charts.replaceChildren();
   for (const c of report.tasks) {
     if (c.checkpoint) continue;
-    const live = episodes.filter((e) => e.task === c.task);
+    const live = liveOf[c.task];
     const over = live.filter((e) => e.risk_score !== null && e.risk_score > e.risk_threshold).length;
     const openAlerts = alerts.filter((a) => a.task === c.task && (a.state === "open" || a.state === "acknowledged")).length;
     const r = c.result;
@@ -157,7 +163,8 @@ async function refresh() {
       h("td", {}, fmt(r.average_precision)), h("td", {}, fmt(r.permutation_p, 4)),
       h("td", { class: "detector" }, `${detectorName(r)}, ${c.rule}: up to ${fmt(c.threshold, 4)}`),
       h("td", { class: unpromised ? "regimes no-promise" : "regimes" }, promiseText),
-      h("td", {}, String(live.length)), h("td", { class: over ? "risk-high" : "" }, String(over)),
+      h("td", {}, live.length >= LIVE_LIMIT ? `${LIVE_LIMIT}+` : String(live.length)),
+      h("td", { class: over ? "risk-high" : "" }, String(over)),
       h("td", {}, String(openAlerts))));
     const box = h("div", { class: "chart" });
     box.append(rocChart(c.task, r.roc, r.auroc), histogramChart(c.task, r.histogram));
@@ -202,16 +209,18 @@ async function refresh() {
       h("td", {}, e.alert_note)));
   }
 
-  const details = await Promise.all(episodes.slice(0, TRAJECTORIES).map((e) => api(`/v1/episodes/${encodeURIComponent(e.id)}`)));
   const traj = document.getElementById("trajectories");
   traj.replaceChildren();
-  for (const d of details) {
-    for (const [signal, pts] of Object.entries(d.signal_risk || {})) {
-      if (d.rule === null || pts.length === 0) continue;
-      const box = h("div", { class: "chart" });
-      box.append(trajectoryChart(d, signal));
-      traj.append(box);
+  for (const t of tasks) {
+    const details = await Promise.all(liveOf[t].slice(0, TRAJECTORIES_PER_TASK).map((e) =>
+      api(`/v1/episodes/${encodeURIComponent(e.id)}`)));
+    const box = h("div", { class: "chart", "data-task": t });
+    for (const d of details) {
+      for (const [signal, pts] of Object.entries(d.signal_risk || {})) {
+        if (d.rule !== null && pts.length) box.append(trajectoryChart(d, signal));
+      }
     }
+    if (box.children.length) traj.append(h("h3", {}, t), box);
   }
   if (!traj.children.length) traj.append(h("p", {}, "No live episode has a scored decision under a usable calibration."));
 }

@@ -1,10 +1,13 @@
 """Shared helpers of the monitor tests: settings in a temp dir, keys, and synthetic episodes."""
 from __future__ import annotations
 
+import gzip
+import json
 from pathlib import Path
 
 import numpy as np
 
+from monitor_service.scoring import nmse
 from monitor_service.settings import MonitorSettings
 
 ADMIN = "test-admin-key"
@@ -128,3 +131,36 @@ def records_with_scores(episode, task, rng, nmse_values, scores: dict, steps=Non
             out["length"] = length
         recs.append(out)
     return recs
+
+
+def latent_records(n_success: int, n_failure: int, seed: int, dim: int = 16,
+                   noise: tuple[float, float] = (0.3, 0.9)) -> list[dict]:
+    """Recorded episodes (nothing sent yet) as `jepa-policy eval --keep-latents --out` writes them: failures
+    predict their future worse; a last decision's target never comes (the episode ended first)."""
+    rng = np.random.default_rng(seed)
+    out = []
+    for i in range(n_success + n_failure):
+        fail = i % (n_success + n_failure) >= n_success
+        length = int(rng.integers(30, 80))
+        decisions = []
+        for step in range(0, length, 8):
+            z_now, z_real = rng.normal(size=dim), rng.normal(size=dim)
+            z_hat = z_real + noise[fail] * rng.normal(size=dim)
+            d = {"step": step, "target_step": step + 4, "z_hat": z_hat.tolist(), "z_now": z_now.tolist(),
+                 "scores": {"stac": float(rng.uniform())}}
+            if step + 4 <= length:
+                d.update(z_real=z_real.tolist(), nmse=nmse(z_hat, z_real))
+            decisions.append(d)
+        out.append({"episode": i, "seed": 1000 * seed + i, "success": not fail, "length": length,
+                    "decisions": decisions, "arm": "jepa"})
+        if fail:
+            out[-1]["failure_kind"] = ("never_grasped", "dropped")[i % 2]
+    order = np.random.default_rng(seed + 1).permutation(len(out))
+    return [out[i] for i in order]
+
+
+def write_records(path, rows):
+    with gzip.open(path, "wt") as f:
+        for row in rows:
+            f.write(json.dumps(row) + "\n")
+    return path

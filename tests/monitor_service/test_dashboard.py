@@ -1,14 +1,18 @@
 """The dashboard in headless Debian Chromium against a real uvicorn server: data and risk trajectories shown,
 charts labelled, the alert life cycle (acknowledge only on open alerts), gaps shown, the key kept in
 sessionStorage and taken from the URL fragment in one step."""
+import importlib.util
+import json
 import os
+from pathlib import Path
 
 import httpx
 import numpy as np
 import pytest
-from monitor_testkit import ADMIN, DIM, episode_records
+from monitor_testkit import ADMIN, DIM, episode_records, latent_records, write_records
 
-from monitor_service.db import Alert, make_engine, make_sessionmaker
+from monitor_service.cli import main
+from monitor_service.db import Alert, ApiKey, make_engine, make_sessionmaker
 from monitor_service.server import start_server
 
 CHROMIUM = "/usr/bin/chromium"
@@ -128,3 +132,39 @@ def test_dashboard_shows_risk_roc_and_acknowledges(tmp_path):
             assert alert.note == "acknowledged from dashboard"
         engine.dispose()
         http.close()
+
+
+def test_dashboard_shows_three_tasks_each_with_its_own_threshold_alerts_and_trajectories(tmp_path):
+    """`jepa-monitor tasks-study --keep DIR --in-flight 3` on three tasks whose successes predict their future with
+    different errors, then scripts/dashboard_screenshot.py on the kept database: each task's row shows its own
+    threshold (as the API has it), its three running episodes each get a risk trajectory against that threshold,
+    and a busy task hides no other's. The study's own keys are revoked in the kept database."""
+    pytest.importorskip("playwright.sync_api", reason="the playwright package is not installed")
+    files = {task: write_records(tmp_path / f"{task}.jsonl.gz", latent_records(40, 14, seed=seed, noise=noise))
+             for task, seed, noise in (("PushT", 11, (0.5, 1.0)), ("Lift", 12, (0.2, 0.6)), ("Can", 13, (0.3, 0.8)))}
+    keep = tmp_path / "kept"
+    argv = ["tasks-study", *[a for t, f in files.items() for a in ("--task", f"{t}={f}")], "--keep", str(keep),
+            "--in-flight", "3", "--no-progress", "--out", str(tmp_path / "study.json")]
+    assert main(argv) == 0
+    assert main(argv) == 2, "a second study into the same kept database is refused"
+    study = json.loads((tmp_path / "study.json").read_text())
+
+    spec = importlib.util.spec_from_file_location(
+        "dashboard_screenshot", Path(__file__).parents[2] / "scripts" / "dashboard_screenshot.py")
+    shot = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(shot)
+    png = tmp_path / "dashboard.png"
+    checked = shot.screenshot(f"sqlite:///{keep / 'tasks_study.db'}", png)
+    assert set(checked) == {"PushT", "Lift", "Can"}
+    thresholds = {t: c["threshold"] for t, c in checked.items()}
+    assert thresholds["Lift"] < thresholds["Can"] < thresholds["PushT"]   # each its own, from its own noise
+    for task, c in checked.items():
+        assert c["threshold"] == pytest.approx(study["tasks"][task]["calibration"]["threshold"])
+        assert c["live"] == 3 and len(c["trajectories"]) == 3
+        assert all(e.startswith(f"{task}-live-") for e in c["trajectories"])
+        assert c["alerted_episodes"] == study["tasks"][task]["service"]["alerted_episodes"]
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    engine = make_engine(f"sqlite:///{keep / 'tasks_study.db'}")
+    with make_sessionmaker(engine)() as s:
+        assert all(k.revoked_at is not None for k in s.query(ApiKey)), "no key of the study or the script lives on"
+    engine.dispose()

@@ -1,57 +1,23 @@
 """`jepa-monitor replay`: recorded rollouts with latents into a real server over HTTP, as a robot sends them; the
 service's NMSE and persistence NMSE equal those recomputed from the file's latents, the held-out ones calibrate
 and the live ones are alerted on; bad files and missing keys are one-line errors."""
-import gzip
 import json
 
 import httpx
 import numpy as np
 import pytest
-from monitor_testkit import ADMIN
+from monitor_testkit import ADMIN, latent_records, write_records
 
 from monitor_service.cli import main
 from monitor_service.scoring import nmse
 from monitor_service.server import start_server
 
-DIM = 16
-
-
-def records(n_success: int, n_failure: int, seed: int, dim: int = DIM, noise: tuple[float, float] = (0.3, 0.9)
-            ) -> list[dict]:
-    """Episode records as `jepa-policy eval --keep-latents --out` writes them: failures predict their future
-    worse; a last decision's target never comes (the episode ended first)."""
-    rng = np.random.default_rng(seed)
-    out = []
-    for i in range(n_success + n_failure):
-        fail = i % (n_success + n_failure) >= n_success
-        length = int(rng.integers(30, 80))
-        decisions = []
-        for step in range(0, length, 8):
-            z_now, z_real = rng.normal(size=dim), rng.normal(size=dim)
-            z_hat = z_real + noise[fail] * rng.normal(size=dim)
-            d = {"step": step, "target_step": step + 4, "z_hat": z_hat.tolist(), "z_now": z_now.tolist(),
-                 "scores": {"stac": float(rng.uniform())}}
-            if step + 4 <= length:
-                d.update(z_real=z_real.tolist(), nmse=nmse(z_hat, z_real))
-            decisions.append(d)
-        out.append({"episode": i, "seed": 1000 * seed + i, "success": not fail, "length": length,
-                    "decisions": decisions, "arm": "jepa"})
-        if fail:
-            out[-1]["failure_kind"] = ("never_grasped", "dropped")[i % 2]
-    order = np.random.default_rng(seed + 1).permutation(len(out))
-    return [out[i] for i in order]
-
-
-def write(path, rows):
-    with gzip.open(path, "wt") as f:
-        for row in rows:
-            f.write(json.dumps(row) + "\n")
-    return path
+DIM = 16   # latent_records' default
 
 
 def test_replay_calibrates_then_alerts_with_the_files_own_numbers(tmp_path, monkeypatch, capsys):
-    rows = records(40, 16, seed=3) + [{**r, "arm": "mip"} for r in records(2, 0, seed=4)]
-    path = write(tmp_path / "decisions.jsonl.gz", rows)
+    rows = latent_records(40, 16, seed=3) + [{**r, "arm": "mip"} for r in latent_records(2, 0, seed=4)]
+    path = write_records(tmp_path / "decisions.jsonl.gz", rows)
     with start_server(f"sqlite:///{tmp_path / 'm.db'}", admin_key=ADMIN, log_path=tmp_path / "s.log") as server, \
             httpx.Client(base_url=server.url, timeout=60) as http:
         admin = {"X-API-Key": ADMIN}
@@ -113,7 +79,7 @@ def test_replay_calibrates_then_alerts_with_the_files_own_numbers(tmp_path, monk
 
 def test_replay_errors_are_one_line(tmp_path, monkeypatch, capsys):
     monkeypatch.delenv("JEPA_POLICY_MONITOR_KEY", raising=False)
-    good = write(tmp_path / "r.jsonl.gz", records(2, 0, seed=1))
+    good = write_records(tmp_path / "r.jsonl.gz", latent_records(2, 0, seed=1))
     no_latents = tmp_path / "plain.jsonl"
     no_latents.write_text(json.dumps({"success": True, "decisions": [{"step": 0, "nmse": 0.1}]}) + "\n")
     bad = tmp_path / "bad.jsonl"
@@ -145,8 +111,8 @@ def test_tasks_study_calibrates_each_task_in_one_service_and_shows_what_pooling_
     """Two tasks of different latent sizes whose successes predict their future with different errors: each
     calibrated on its own held-out half, the service's live alerts equal the rule offline, and one threshold
     pooled over both over-alerts the noisier task's successes and misses the quieter task's failures."""
-    quiet = write(tmp_path / "quiet.jsonl.gz", records(120, 40, seed=5, dim=8, noise=(0.2, 0.5)))
-    noisy = write(tmp_path / "noisy.jsonl.gz", records(120, 40, seed=6, dim=24, noise=(0.6, 1.2)))
+    quiet = write_records(tmp_path / "quiet.jsonl.gz", latent_records(120, 40, seed=5, dim=8, noise=(0.2, 0.5)))
+    noisy = write_records(tmp_path / "noisy.jsonl.gz", latent_records(120, 40, seed=6, dim=24, noise=(0.6, 1.2)))
     out = tmp_path / "study"
     argv = ["tasks-study", "--task", f"Quiet={quiet}", "--task", f"Noisy={noisy}", "--alpha", "0.1"]
     assert main([*argv, "--out", str(out / "s.png")]) == 2   # checked before the work: no such folder
