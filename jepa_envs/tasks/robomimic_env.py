@@ -102,6 +102,9 @@ def make_backend_from_env_args(env_args: dict, *, control_delta: bool, use_camer
     ctrl = kwargs.get("controller_configs") or osc_pose_config(control_delta)
     kwargs["controller_configs"] = {**ctrl, "control_delta": bool(control_delta)}
     kwargs.pop("render_gpu_device_id", None)  # EGL device choice; meaningless under OSMesa
+    # robosuite's demonstration files keep env_name inside env_info, and robomimic's convert_robosuite.py copies
+    # env_info into env_kwargs as it is (robomimic's data-processing env drops it there too)
+    kwargs.pop("env_name", None)
     kwargs.update(overrides)
     _register_source_tasks(env_args["env_name"])
     with global_numpy_seed(seed):

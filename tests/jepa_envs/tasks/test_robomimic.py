@@ -221,6 +221,25 @@ def test_bad_env_args_are_refused_with_a_reason(square_args_file):
         make_backend_from_env_args({**args, "env_name": "NoSuchEnv"}, control_delta=True)
 
 
+def test_env_args_from_robomimics_convert_robosuite_build_the_env():
+    """robomimic's convert_robosuite.py (v0.3.0) turns robosuite's demonstration file into env_args by copying its
+    env_info, which names env_name, into env_kwargs as it is; building from them raised 'make() got multiple values
+    for argument env_name' (found by `make interop`: render-dataset on robomimic's converted Lift demos)."""
+    import robosuite
+
+    src = f"{robosuite.__path__[0]}/models/assets/demonstrations/lift/demo.hdf5"
+    with h5py.File(src) as f:   # convert_robosuite.py's env_meta, line for line
+        env_args = {"type": 1, "env_name": f["data"].attrs["env"],
+                    "env_version": f["data"].attrs["repository_version"],
+                    "env_kwargs": json.loads(f["data"].attrs["env_info"])}
+    assert env_args["env_kwargs"]["env_name"] == "Lift"
+    backend = make_backend_from_env_args(env_args, control_delta=True, use_camera_obs=False)
+    try:
+        assert type(backend).__name__ == "Lift" and backend.robots[0].controller.use_delta
+    finally:
+        backend.close()
+
+
 def _empty_h5(path):
     with h5py.File(path, "w") as f:
         f.create_group("data")
