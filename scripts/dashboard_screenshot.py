@@ -6,9 +6,10 @@ database):
 
 A real server is started on the database (a fresh admin and operator key, both revoked at the end); the page is
 read the way an operator reads it, and for every calibrated task the script checks what the API says: the
-task's own threshold in its row, its live-episode count, and a risk trajectory for each of its live episodes
-drawn (up to the dashboard's four) against that task's threshold. A mismatch is an error. Needs the `test` extra
-(playwright) and Debian's chromium (scripts/setup.sh installs both)."""
+task's own threshold in its row, its live-episode and open-alert counts, every open alert listed, and a risk
+trajectory for each of its live episodes drawn (up to the dashboard's four) against that task's threshold. A
+mismatch is an error. Needs the `test` extra (playwright) and Debian's chromium (scripts/setup.sh installs both).
+"""
 from __future__ import annotations
 
 import argparse
@@ -76,9 +77,18 @@ def screenshot(database_url: str, out: str | Path, live_window_s: float = 30 * 8
                             if drawn.nth(i).locator("polyline.threshold").count() != 1:
                                 raise RuntimeError(f"{task}: a trajectory without its threshold line")
                         alerts = http.get("/v1/alerts", headers=admin, params={"task": task, "limit": 5000}).json()
+                        waiting = sum(a["state"] in ("open", "acknowledged") for a in alerts)
+                        if row.locator("td").nth(8).inner_text() != str(waiting):
+                            raise RuntimeError(f"{task}: the row shows {row.locator('td').nth(8).inner_text()} open "
+                                               f"alerts, the API {waiting}")
+                        listed = page.locator("#alerts tbody tr", has=page.locator(f"td:text-is('{task}')"))
+                        shown = {int(listed.nth(i).get_attribute("data-alert")) for i in range(listed.count())}
+                        if not {a["id"] for a in alerts if a["state"] in ("open", "acknowledged")} <= shown:
+                            raise RuntimeError(f"{task}: an open or acknowledged alert is missing from the list")
                         checked[task] = {"threshold": c["threshold"], "rule": c["rule"], "live": len(live),
                                          "trajectories": ids,
-                                         "alerted_episodes": len({a["episode_id"] for a in alerts})}
+                                         "alerted_episodes": len({a["episode_id"] for a in alerts}),
+                                         "waiting_alerts": waiting}
                     page.screenshot(path=str(out), full_page=True)
                 finally:
                     browser.close()

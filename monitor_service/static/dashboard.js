@@ -17,6 +17,7 @@ function keyFromFragment() {
 const state = { key: keyFromFragment() || sessionStorage.getItem("jepaMonitorKey") || "", streamAbort: null };
 const TRAJECTORIES_PER_TASK = 4;  // live episodes drawn for each task, most recently active first
 const LIVE_LIMIT = 200;            // live episodes listed (and counted per task) at most
+const SETTLED_SHOWN = 15;          // cleared or resolved alerts listed below the open and acknowledged ones
 
 function h(tag, attrs = {}, ...children) {
   const el = document.createElement(tag);
@@ -134,9 +135,14 @@ function detectorName(result) {
 }
 
 async function refresh() {
-  const [report, alerts, episodes] = await Promise.all([
-    api("/v1/report"), api("/v1/alerts?limit=100"), api(`/v1/episodes?live=true&limit=${LIVE_LIMIT}`),
+  // every alert waiting for someone, then the most recent settled ones (all: GET /v1/alerts)
+  const [report, open, acked, resolved, cleared, episodes] = await Promise.all([
+    api("/v1/report"), api("/v1/alerts?state=open&limit=1000"), api("/v1/alerts?state=acknowledged&limit=1000"),
+    api("/v1/alerts?state=resolved&limit=" + SETTLED_SHOWN), api("/v1/alerts?state=cleared&limit=" + SETTLED_SHOWN),
+    api(`/v1/episodes?live=true&limit=${LIVE_LIMIT}`),
   ]);
+  const settled = resolved.concat(cleared).sort((a, b) => b.id - a.id).slice(0, SETTLED_SHOWN);
+  const alerts = open.concat(acked, settled);
   // each task's own live episodes, so that a busy task hides neither another's count nor its trajectories
   const tasks = report.tasks.filter((c) => !c.checkpoint).map((c) => c.task);
   const liveOf = Object.fromEntries(await Promise.all(tasks.map(async (t) =>
@@ -177,6 +183,8 @@ async function refresh() {
 
   const abody = document.querySelector("#alerts tbody");
   abody.replaceChildren();
+  document.getElementById("alerts-shown").textContent = `${open.length} open, ${acked.length} acknowledged, ` +
+    `then the ${settled.length} most recent cleared or resolved (every alert: GET /v1/alerts).`;
   for (const a of alerts) {
     // Only an open alert waits for someone; acknowledged, cleared and resolved ones show what happened.
     const action = a.state === "open" ?
