@@ -20,6 +20,7 @@ import torch
 from jepa_envs.errors import first_line
 from jepa_policy.blocks import BasePolicyModel
 from jepa_policy.config import ModelConfig
+from jepa_policy.lerobot_format import read_lerobot_checkpoint
 from jepa_policy.model import build_model
 
 FORMAT = "jepa-policy-checkpoint/1"
@@ -127,10 +128,16 @@ def save_eval_snapshot(path: Path, *, ema, step: int, cfg, model_cfg: ModelConfi
 
 
 def load_checkpoint(path: str | Path, map_location="cpu") -> dict:
-    """The checkpoint's payload; a clear error for a missing file or a file of another kind."""
+    """The checkpoint's payload; a clear error for a missing file or a file of another kind. A directory is read
+    as a checkpoint of the LeRobot ``jepa`` policy (``jepa_policy.lerobot_format``)."""
     path = Path(path)
     if not path.exists():
         raise FileNotFoundError(f"checkpoint {path} does not exist; pass the .pt file written by `jepa-policy train`")
+    if path.is_dir():
+        # a LeRobot ``jepa`` policy's pretrained_model folder: no EMA there, its weights are the ones to act with
+        payload = read_lerobot_checkpoint(path)
+        payload["ema"] = {EMA_PREFIX + key: value for key, value in payload["model"].items()}
+        return {"format": FORMAT, **payload}
     payload = safe_load(path, map_location)
     if not isinstance(payload, dict) or payload.get("format") != FORMAT:
         raise ValueError(f"{path} is not a jepa-policy checkpoint (missing format tag)")

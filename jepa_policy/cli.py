@@ -378,8 +378,9 @@ def cmd_serve(args) -> int:
     from jepa_policy.serve import ServeConfig, read_secret, serve_checkpoint
     from jepa_policy.serve.config import API_KEY_ENV, MONITOR_KEY_ENV
 
-    if not Path(args.checkpoint).is_file():
-        raise FileNotFoundError(f"checkpoint {args.checkpoint} does not exist; train one with `jepa-policy train`")
+    if not Path(args.checkpoint).exists():
+        raise FileNotFoundError(f"checkpoint {args.checkpoint} does not exist; train one with `jepa-policy train` (or "
+                                "pass the pretrained_model folder lerobot-train wrote for --policy.type=jepa)")
     config = ServeConfig(host=args.host, port=args.port,
                          api_key=read_secret("--api-key", args.api_key, args.api_key_file, API_KEY_ENV),
                          tls_cert=args.tls_cert, tls_key=args.tls_key, tls_client_ca=args.tls_client_ca,
@@ -413,7 +414,8 @@ def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_train)
 
     p = sub.add_parser("eval", help="seeded rollouts of a checkpoint: success rate and per-decision NMSE")
-    p.add_argument("--checkpoint", required=True, help="a `jepa-policy train` checkpoint (.pt)")
+    p.add_argument("--checkpoint", required=True,
+                   help="a `jepa-policy train` checkpoint (.pt) or a LeRobot jepa policy folder")
     p.add_argument("--episodes", type=int, default=40, help="rollouts (default 40, the paper's)")
     p.add_argument("--seed", type=int, default=100_000, help="seed of the first rollout; episode i uses seed + i")
     p.add_argument("--num-envs", type=int, default=4, help="environments stepped together (the policy's batch)")
@@ -595,7 +597,8 @@ def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
 
     p = sub.add_parser("serve", help="serve a checkpoint over openpi's websocket protocol (openpi-client), with the "
                                      "monitor inside")
-    p.add_argument("--checkpoint", required=True, help="a `jepa-policy train` checkpoint")
+    p.add_argument("--checkpoint", required=True,
+                   help="a `jepa-policy train` checkpoint, or a LeRobot jepa policy folder")
     p.add_argument("--host", default="127.0.0.1",
                    help="bind address (another than loopback needs an API key or mutual TLS)")
     p.add_argument("--port", type=int, default=8000, help="TCP port (0: a free one)")
