@@ -32,6 +32,7 @@ import numpy as np
 from tqdm import tqdm
 
 from monitor_service.client import MonitorClient
+from monitor_service.db import read_decisions
 from monitor_service.encoding import MSGPACK_CONTENT_TYPE, pack
 from monitor_service.server import free_port, start_server
 
@@ -233,10 +234,11 @@ def _verify_no_lost_updates(database_url: str) -> dict:
 
     engine = create_engine(database_url)
     with engine.connect() as conn:
-        rows = conn.execute(text(
-            "SELECT e.id, e.n_decisions, e.n_scored, count(d.id), count(d.nmse) FROM episodes e "
-            "LEFT JOIN decisions d ON d.episode_id = e.id WHERE e.task = 'bench' GROUP BY e.id")).all()
+        counters = conn.execute(text("SELECT id, n_decisions, n_scored FROM episodes WHERE task = 'bench'")).all()
+        decisions = read_decisions(conn, [r[0] for r in counters])
     engine.dispose()
+    rows = [(eid, n, scored, len(decisions[eid]), sum(d["nmse"] is not None for d in decisions[eid]))
+            for eid, n, scored in counters]
     bad = [r for r in rows if r[1] != r[3] or r[2] != r[4]]
     return {"episodes": len(rows), "decisions": sum(r[3] for r in rows), "mismatched_episodes": len(bad)}
 

@@ -1,9 +1,12 @@
-"""Storage: SQLAlchemy 2 models, the engine (SQLite in WAL mode or PostgreSQL) and the migration runner."""
+"""Storage: SQLAlchemy 2 models, the engine (SQLite in WAL mode or PostgreSQL), the migration runner, and the
+decision log's packing (``DecisionLog``)."""
 from __future__ import annotations
 
 import datetime as dt
+import json
 from pathlib import Path
 
+import numpy as np
 from sqlalchemy import (
     JSON,
     Boolean,
@@ -17,6 +20,7 @@ from sqlalchemy import (
     create_engine,
     event,
     false,
+    select,
     text,
 )
 from sqlalchemy.engine import Engine, make_url
@@ -90,32 +94,78 @@ class Episode(Base):
     signal_state: Mapped[dict | None] = mapped_column(JSON, nullable=True)      # per-signal rule state
 
 
-class Decision(Base):
-    __tablename__ = "decisions"
-    # the unique (episode_id, step) index serves every lookup by episode; no other index (migration 0003)
-    __table_args__ = (UniqueConstraint("episode_id", "step", name="uq_decision_episode_step"),)
+class DecisionLog(Base):
+    """An episode's decisions, their scores and every latent, append-only: one row per ingest request that brought
+    records of the episode (migration 0006; before it, one row per decision and per realized latent in two tables
+    with a unique index each).
+
+    - ``decisions``: the request's new decisions, ``DECISION_ENTRY`` records (horizon -1: a decision that sent
+      scores only; NaN: not scored yet), and ``scores`` their named scores ({step: {signal: value}}) when any;
+    - ``rescored``: decisions of earlier rows scored by this request's realized latents, ``RESCORE_ENTRY``
+      records; a decision's scores are its entry's, overwritten by later rows' rescored entries;
+    - ``entries`` and ``latents``: the latents it brought, (kind, step) as little-endian int64 pairs per latent
+      (kind ``Z_HAT``, ``Z_NOW`` or ``TARGET``) and the float32 little-endian vectors of ``dim`` values in the same
+      order. Only the ingest path reads latents (a resend to compare, an episode resumed by another process).
+
+    ``read_decisions`` folds the rows into each episode's decisions; the unique index per decision step is gone:
+    the ingest path refuses a second decision at a step under the episode row's lock and version counter."""
+    __tablename__ = "decision_log"
     id: Mapped[int] = mapped_column(Integer, primary_key=True)
-    episode_id: Mapped[str] = mapped_column(ForeignKey("episodes.id"))
-    step: Mapped[int] = mapped_column(Integer)
-    horizon: Mapped[int | None] = mapped_column(Integer, nullable=True)
-    target_step: Mapped[int | None] = mapped_column(Integer, nullable=True)
-    z_hat: Mapped[bytes | None] = mapped_column(LargeBinary, nullable=True)   # none: the decision sent scores only
-    nmse: Mapped[float | None] = mapped_column(Float, nullable=True)
-    # the current latent z_t, when the client sends it: the persistence baseline NMSE(z_t, z_{t+k}) (Sec. 4.10)
-    z_now: Mapped[bytes | None] = mapped_column(LargeBinary, nullable=True)
-    nmse_persistence: Mapped[float | None] = mapped_column(Float, nullable=True)
-    scores: Mapped[dict | None] = mapped_column(JSON, nullable=True)   # named per-decision scores {signal: value}
+    episode_id: Mapped[str] = mapped_column(ForeignKey("episodes.id"), index=True)
+    decisions: Mapped[bytes | None] = mapped_column(LargeBinary, nullable=True)
+    scores: Mapped[dict | None] = mapped_column(JSON, nullable=True)
+    rescored: Mapped[bytes | None] = mapped_column(LargeBinary, nullable=True)
+    dim: Mapped[int | None] = mapped_column(Integer, nullable=True)
+    entries: Mapped[bytes | None] = mapped_column(LargeBinary, nullable=True)
+    latents: Mapped[bytes | None] = mapped_column(LargeBinary, nullable=True)
     created_at: Mapped[dt.datetime] = mapped_column(DateTime, default=utcnow)
 
 
-class Target(Base):
-    __tablename__ = "targets"
-    __table_args__ = (UniqueConstraint("episode_id", "step", name="uq_target_episode_step"),)
-    id: Mapped[int] = mapped_column(Integer, primary_key=True)
-    episode_id: Mapped[str] = mapped_column(ForeignKey("episodes.id"))
-    step: Mapped[int] = mapped_column(Integer)
-    z: Mapped[bytes] = mapped_column(LargeBinary)
-    created_at: Mapped[dt.datetime] = mapped_column(DateTime, default=utcnow)
+DECISION_ENTRY = np.dtype([("step", "<i8"), ("horizon", "<i8"), ("nmse", "<f8"), ("nmse_persistence", "<f8")])
+RESCORE_ENTRY = np.dtype([("step", "<i8"), ("nmse", "<f8"), ("nmse_persistence", "<f8")])
+Z_HAT, Z_NOW, TARGET = 0, 1, 2   # what a latent of a log row is: a decision's z_hat, its z_now, a realized z
+NAN = float("nan")
+
+
+def pack_decisions(rows: list[tuple[int, int | None, float | None, float | None]]) -> bytes:
+    """(step, horizon, nmse, nmse_persistence) rows as ``DECISION_ENTRY`` bytes (None: -1 or NaN)."""
+    return np.array([(s, -1 if h is None else h, NAN if n is None else n, NAN if p is None else p)
+                     for s, h, n, p in rows], dtype=DECISION_ENTRY).tobytes()
+
+
+def pack_rescored(rows: list[tuple[int, float, float | None]]) -> bytes:
+    return np.array([(s, n, NAN if p is None else p) for s, n, p in rows], dtype=RESCORE_ENTRY).tobytes()
+
+
+def fold_decisions(rows) -> list[dict]:
+    """An episode's decisions in step order from its log rows' (decisions, scores, rescored) in row order:
+    {"step", "horizon", "target_step", "nmse", "nmse_persistence", "scores"} each (None where absent)."""
+    found: dict[int, dict] = {}
+    for decisions, scores, rescored in rows:
+        if scores is not None and not isinstance(scores, dict):   # JSON: text on SQLite, decoded by psycopg2
+            scores = json.loads(scores)
+        if decisions is not None:
+            for step, horizon, nmse, pers in np.frombuffer(decisions, dtype=DECISION_ENTRY).tolist():
+                found[step] = {"step": step, "horizon": None if horizon < 0 else horizon,
+                               "target_step": None if horizon < 0 else step + horizon,
+                               "nmse": None if nmse != nmse else nmse,
+                               "nmse_persistence": None if pers != pers else pers,
+                               "scores": None if scores is None else scores.get(str(step))}
+        if rescored is not None:
+            for step, nmse, pers in np.frombuffer(rescored, dtype=RESCORE_ENTRY).tolist():
+                found[step]["nmse"], found[step]["nmse_persistence"] = nmse, None if pers != pers else pers
+    return [found[s] for s in sorted(found)]
+
+
+def read_decisions(session, episode_ids: list[str]) -> dict[str, list[dict]]:
+    """Every decision of the given episodes (``fold_decisions``), by episode id; a session or a connection."""
+    by_episode: dict[str, list] = {e: [] for e in episode_ids}
+    for start in range(0, len(episode_ids), 500):   # bounded IN lists
+        q = (select(DecisionLog.episode_id, DecisionLog.decisions, DecisionLog.scores, DecisionLog.rescored)
+             .where(DecisionLog.episode_id.in_(episode_ids[start:start + 500])).order_by(DecisionLog.id))
+        for episode_id, decisions, scores, rescored in session.execute(q):
+            by_episode[episode_id].append((decisions, scores, rescored))
+    return {e: fold_decisions(rows) for e, rows in by_episode.items()}
 
 
 class CalibrationRow(Base):

@@ -7,6 +7,7 @@ database at scrape time, so every worker reports the same committed truth.
 from __future__ import annotations
 
 import os
+from bisect import bisect_left
 
 from prometheus_client import CollectorRegistry, Counter, Histogram, generate_latest
 from prometheus_client.core import GaugeMetricFamily
@@ -38,31 +39,46 @@ SCORES = Histogram("jepa_monitor_score", "Named per-decision scores sent beside 
 SIGNAL_ALERTS = Counter("jepa_monitor_signal_alerts", "Alerts raised, per signal that raised them", ["task", "signal"])
 
 
+def observe_many(histogram, values: list[float]) -> None:
+    """``histogram.observe(v)`` for every value of ``values`` (a labelled child), as one increment of the sum and
+    one per bucket touched: prometheus_client keeps each bucket's own count (``_buckets``, made cumulative when
+    collected) and ``observe`` walks the bounds once per value, the larger part of publishing a batch."""
+    bounds = histogram._upper_bounds
+    counts: dict[int, int] = {}
+    for value in values:
+        i = bisect_left(bounds, value)   # the first bound >= value: observe's bucket
+        counts[i] = counts.get(i, 0) + 1
+    histogram._sum.inc(sum(values))
+    for i, n in counts.items():
+        histogram._buckets[i].inc(n)
+
+
 def publish(observations: list[tuple[str, str, str, float]],
             signal_observations: list[tuple[str, str, str, str, float]] = ()) -> None:
     """Turn a committed request's (kind, task, robot, value) and (kind, task, robot, signal, value) observations
     into Prometheus samples. Signals are the task's registered names: bounded like tasks."""
-    children: dict[tuple[str, str, str], object] = {}
+    scores: dict[tuple[str, str, str], list[float]] = {}
     for kind, task, robot, signal, value in signal_observations:
         if kind == "score":
-            child = children.get((task, robot, signal))
-            if child is None:
-                child = children[task, robot, signal] = SCORES.labels(task, robot, signal)
-            child.observe(value)
+            scores.setdefault((task, robot, signal), []).append(value)
         else:
             SIGNAL_ALERTS.labels(task, signal).inc()
+    for labels, values in scores.items():
+        observe_many(SCORES.labels(*labels), values)
     counters = {"decision": DECISIONS, "target": TARGETS, "outcome": OUTCOMES, "alert": ALERTS, "gap": GAPS,
                 "late": LATE}
     counts: dict[tuple[str, str, str], float] = {}
-    histograms: dict[tuple[str, str], object] = {}
+    nmse: dict[tuple[str, str], list[float]] = {}
     for kind, task, robot, value in observations:
-        if kind == "nmse":   # one labelled child per (task, robot) of the request, not one lookup per value
-            child = histograms.get((task, robot))
-            if child is None:
-                child = histograms[task, robot] = NMSE.labels(task, robot)
-            child.observe(value)
+        if kind == "nmse":
+            values = nmse.get((task, robot))
+            if values is None:
+                values = nmse[task, robot] = []
+            values.append(value)
         else:
             counts[kind, task, robot] = counts.get((kind, task, robot), 0.0) + value
+    for labels, values in nmse.items():   # one labelled child per (task, robot) of the request
+        observe_many(NMSE.labels(*labels), values)
     for (kind, task, robot), total in counts.items():   # a batch's records: one increment per counter
         counters[kind].labels(task, robot).inc(total)
 

@@ -6,7 +6,7 @@ from sqlalchemy import select, update
 from sqlalchemy.orm import Session
 
 from monitor_service import calibration, stats
-from monitor_service.db import CalibrationRow, Decision, Episode, Task
+from monitor_service.db import CalibrationRow, Episode, Task, read_decisions
 from monitor_service.signals import SERVICE_SIGNALS
 from monitor_service.ingest import rule_params
 from monitor_service.settings import MonitorSettings
@@ -36,14 +36,8 @@ def calibration_data(session: Session, task: str, checkpoint: str | None) -> lis
         q = q.where(Episode.checkpoint == checkpoint)
     eps = {e.id: calibration.LabelledEpisode(e.id, bool(e.success), [], e.group, e.length)
            for e in session.scalars(q.order_by(Episode.id))}
-    ids = list(eps)
-    cols = (Decision.episode_id, Decision.step, Decision.target_step, Decision.nmse, Decision.nmse_persistence,
-            Decision.scores)
-    for start in range(0, len(ids), 500):   # bounded IN lists
-        for r in session.execute(select(*cols).where(Decision.episode_id.in_(ids[start:start + 500]))
-                                 .order_by(Decision.episode_id, Decision.step)):
-            eps[r.episode_id].decisions.append({"step": r.step, "target_step": r.target_step, "nmse": r.nmse,
-                                                "nmse_persistence": r.nmse_persistence, "scores": r.scores})
+    for episode_id, decisions in read_decisions(session, list(eps)).items():
+        eps[episode_id].decisions.extend(decisions)
     return list(eps.values())
 
 

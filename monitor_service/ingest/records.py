@@ -74,21 +74,21 @@ def _known(store: Episodes, cur, req: Request, episode_id: str, what: str) -> Ep
     return ep
 
 
-def _target_z(store: Episodes, cur, ep: EpisodeState, step: int) -> bytes | None:
+def _target_z(store: Episodes, cur, req: Request, ep: EpisodeState, step: int) -> bytes | None:
     t = ep.targets.get(step)
     if t is None:
         return None
     if t.z is not None:
         return t.z
-    return statements.target_latent(store.sql, cur, ep.id, step)
+    return statements.target_latent(store.sql, cur, req, ep.id, step)
 
 
-def _stored_as(store: Episodes, cur, ep: EpisodeState, step: int, d: Dec) -> tuple:
+def _stored_as(store: Episodes, cur, req: Request, ep: EpisodeState, step: int, d: Dec) -> tuple:
     """(horizon, z_hat, z_now, scores) of an existing decision: from memory while its latents are kept (or it
     sent none), else from its row."""
     if d.z_hat is not None or d.horizon is None or not d.stored:
         return d.horizon, d.z_hat, d.z_now, d.scores
-    return statements.stored_decision(store.sql, cur, ep.id, step)
+    return statements.stored_decision(store.sql, cur, req, ep.id, step)
 
 
 def _pair(req: Request, ep: EpisodeState, step: int, d: Dec, z: bytes) -> None:
@@ -150,7 +150,7 @@ def apply_decision(store: Episodes, cur, req: Request, rec: DecisionIn) -> None:
     scores = rec.scores or None
     existing = ep.decisions.get(rec.step)
     if existing is not None:
-        if _stored_as(store, cur, ep, rec.step, existing) == (rec.horizon, z_hat, z_now, scores):
+        if _stored_as(store, cur, req, ep, rec.step, existing) == (rec.horizon, z_hat, z_now, scores):
             return   # the same record again: nothing to change, nothing double-counted
         raise IngestError(409, f"episode {ep.id!r} already has a different decision at step {rec.step}")
     d = Dec(rec.horizon, z_hat=z_hat, z_now=z_now, stored=False, scores=scores)
@@ -167,7 +167,7 @@ def apply_decision(store: Episodes, cur, req: Request, rec: DecisionIn) -> None:
     req.new_decisions.append((ep.id, rec.step))
     if z_hat is not None:
         ep.unscored.add(rec.step)
-        z = _target_z(store, cur, ep, rec.step + rec.horizon)
+        z = _target_z(store, cur, req, ep, rec.step + rec.horizon)
         if z is not None:
             _pair(req, ep, rec.step, d, z)
             ep.changed_target(rec.step + rec.horizon).z = None
@@ -185,7 +185,7 @@ def apply_target(store: Episodes, cur, req: Request, rec: TargetIn) -> None:
         known = existing.z
         if known is None:   # used by a decision: its bytes are in this request or stored
             known = next((t for e, s, t in req.new_targets if e == ep.id and s == rec.step), None) or \
-                statements.target_latent(store.sql, cur, ep.id, rec.step)
+                statements.target_latent(store.sql, cur, req, ep.id, rec.step)
         if known == z:
             return
         raise IngestError(409, f"episode {ep.id!r} already has a different realized latent at step {rec.step}")

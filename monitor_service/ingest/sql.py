@@ -2,13 +2,19 @@
 
 SQLAlchemy's ORM would cost more per record than the rest of the request (``docs/monitor.md``, "Tests and
 benchmark"); the schema itself stays SQLAlchemy's (``db.py``, migrations).
+
+A request appends one ``decision_log`` row per episode it touched (``db.DecisionLog``): its new decisions, the
+late scores of earlier ones and its latents, packed, where each record was a row of an indexed table before. Reading
+an episode back (a resend to compare, an episode resumed by another process) folds its log rows.
 """
 from __future__ import annotations
 
 import json
 
+import numpy as np
+
 from monitor_service import scoring
-from monitor_service.db import utcnow
+from monitor_service.db import TARGET, Z_HAT, Z_NOW, fold_decisions, pack_decisions, pack_rescored, utcnow
 from monitor_service.ingest.state import Dec, EpisodeState, Request, StaleState, Tgt
 
 EPISODE_COLUMNS = ("id, task, robot, checkpoint, group_name, held_out, success, length, version, n_decisions, "
@@ -53,17 +59,9 @@ class Sql:
             from psycopg2.extras import execute_values
             execute_values(cur, f"INSERT INTO {table} ({columns}) VALUES %s", rows, page_size=len(rows))
 
-    def set_scores(self, cur, rows: list[tuple]) -> None:
-        """``UPDATE decisions SET nmse, nmse_persistence`` for (nmse, persistence, episode_id, step) rows."""
-        if self.dialect == "sqlite":
-            cur.executemany("UPDATE decisions SET nmse = ?, nmse_persistence = ? WHERE episode_id = ? AND step = ?",
-                            rows)
-        else:
-            from psycopg2.extras import execute_values
-            execute_values(cur, "UPDATE decisions AS d SET nmse = v.nmse, nmse_persistence = v.pers FROM (VALUES %s) "
-                                "AS v (nmse, pers, episode_id, step) WHERE d.episode_id = v.episode_id AND "
-                                "d.step = v.step", rows, template="(%s::float8, %s::float8, %s, %s)",
-                           page_size=len(rows))
+    def insert_one(self, cur, table: str, columns: str, row: tuple) -> None:
+        marks = ", ".join([self.mark] * (columns.count(",") + 1))
+        cur.execute(f"INSERT INTO {table} ({columns}) VALUES ({marks})", row)
 
     def time(self, value):
         """A naive-UTC datetime as this database stores it (SQLite: SQLAlchemy's text format)."""
@@ -81,10 +79,26 @@ def lock_versions(sql: Sql, cur, episode_ids: list[str]) -> list[tuple[str, int]
     return cur.fetchall()
 
 
+class StoredEpisode:
+    """An episode's log rows as stored: its decisions by step and its latents by (kind, step)."""
+
+    def __init__(self, sql: Sql, cur, episode_id: str):
+        cur.execute(sql.q("SELECT decisions, scores, rescored, dim, entries, latents FROM decision_log "
+                          "WHERE episode_id = ? ORDER BY id"), (episode_id,))
+        rows = cur.fetchall()
+        self.decisions = {d["step"]: d for d in fold_decisions([r[:3] for r in rows])}
+        self.latents: dict[tuple[int, int], bytes] = {}
+        for *_, dim, entries, latents in rows:
+            if entries is None:
+                continue
+            size, view = dim * 4, memoryview(latents)
+            for i, (kind, step) in enumerate(np.frombuffer(entries, dtype="<i8").reshape(-1, 2).tolist()):
+                self.latents[kind, step] = bytes(view[i * size:(i + 1) * size])
+
+
 def load_episode(sql: Sql, cur, episode_id: str) -> EpisodeState | None:
     """An episode's state from its rows (decision latents kept only while unscored), or None if unknown."""
-    q = sql.q
-    cur.execute(q(f"SELECT {EPISODE_COLUMNS} FROM episodes WHERE id = ?"), (episode_id,))
+    cur.execute(sql.q(f"SELECT {EPISODE_COLUMNS} FROM episodes WHERE id = ?"), (episode_id,))
     row = cur.fetchone()
     if row is None:
         return None
@@ -94,14 +108,12 @@ def load_episode(sql: Sql, cur, episode_id: str) -> EpisodeState | None:
                       bool(row[21]), late_decisions=row[22], early_revisions=row[23],
                       signal_state=row[24] if row[24] is None or isinstance(row[24], dict) else json.loads(row[24]),
                       ended=row[25] is not None)
-    cur.execute(q("SELECT step, horizon, nmse, nmse_persistence, z_hat, z_now, scores FROM decisions "
-                  "WHERE episode_id = ? ORDER BY step"), (episode_id,))
-    for step, horizon, nmse, pers, z_hat, z_now, scores in cur.fetchall():
-        z_hat, z_now = None if z_hat is None else bytes(z_hat), None if z_now is None else bytes(z_now)
-        scores = scores if scores is None or isinstance(scores, dict) else json.loads(scores)
+    stored = StoredEpisode(sql, cur, episode_id)
+    for step, dec in stored.decisions.items():
+        horizon, nmse, pers, scores = dec["horizon"], dec["nmse"], dec["nmse_persistence"], dec["scores"]
         d = Dec(horizon, nmse, pers, scores=scores)
-        if z_hat is not None and nmse is None:
-            d.z_hat, d.z_now = z_hat, z_now
+        if horizon is not None and nmse is None:   # latents waiting for their target
+            d.z_hat, d.z_now = stored.latents[Z_HAT, step], stored.latents.get((Z_NOW, step))
             ep.unscored.add(step)
         elif nmse is not None:
             ep.scored.append((step, nmse))
@@ -113,30 +125,33 @@ def load_episode(sql: Sql, cur, episode_id: str) -> EpisodeState | None:
                 ep.series.setdefault(name, []).append((step, value))
         ep.decisions[step] = d
     aimed = {s + d.horizon for s, d in ep.decisions.items() if d.horizon is not None}
-    cur.execute(q("SELECT step, z FROM targets WHERE episode_id = ?"), (episode_id,))
-    for step, z in cur.fetchall():
-        ep.targets[step] = Tgt(None if step in aimed else bytes(z))
+    for (kind, step), z in stored.latents.items():
+        if kind == TARGET:
+            ep.targets[step] = Tgt(None if step in aimed else z)
     ep.count_gaps()
     return ep
 
 
-def stored_decision(sql: Sql, cur, episode_id: str, step: int) -> tuple | None:
+def stored_episode(sql: Sql, cur, req: Request, episode_id: str) -> StoredEpisode:
+    """The episode as stored, read once per request (a resent batch compares many records)."""
+    found = req.stored.get(episode_id)
+    if found is None:
+        found = req.stored[episode_id] = StoredEpisode(sql, cur, episode_id)
+    return found
+
+
+def stored_decision(sql: Sql, cur, req: Request, episode_id: str, step: int) -> tuple | None:
     """(horizon, z_hat, z_now, scores) of a stored decision (to recognise a resend), or None."""
-    cur.execute(sql.q("SELECT horizon, z_hat, z_now, scores FROM decisions WHERE episode_id = ? AND step = ?"),
-                (episode_id, step))
-    row = cur.fetchone()
-    if row is None:
+    stored = stored_episode(sql, cur, req, episode_id)
+    dec = stored.decisions.get(step)
+    if dec is None:
         return None
-    horizon, z_hat, z_now, scores = row
-    return (horizon, None if z_hat is None else bytes(z_hat), None if z_now is None else bytes(z_now),
-            scores if scores is None or isinstance(scores, dict) else json.loads(scores))
+    return dec["horizon"], stored.latents.get((Z_HAT, step)), stored.latents.get((Z_NOW, step)), dec["scores"]
 
 
-def target_latent(sql: Sql, cur, episode_id: str, step: int) -> bytes | None:
+def target_latent(sql: Sql, cur, req: Request, episode_id: str, step: int) -> bytes | None:
     """A stored realized latent (dropped from memory once a decision used it)."""
-    cur.execute(sql.q("SELECT z FROM targets WHERE episode_id = ? AND step = ?"), (episode_id, step))
-    row = cur.fetchone()
-    return None if row is None else bytes(row[0])
+    return stored_episode(sql, cur, req, episode_id).latents.get((TARGET, step))
 
 
 def task_signals(sql: Sql, cur, task: str) -> frozenset[str] | None:
@@ -226,8 +241,17 @@ def resolve_alert(sql: Sql, cur, alert_id: int, success: bool) -> None:
 
 
 def write_rows(sql: Sql, cur, req: Request, now) -> None:
-    """The request's new episodes, decisions and targets, and the late scores of stored decisions."""
+    """The request's new episodes, and one decision-log row per episode: its new decisions, the late scores of
+    stored ones, its latents."""
     q = sql.q
+    logs: dict[str, tuple[list, dict, list, list, list]] = {}   # decisions, scores, rescored, keys, latents
+
+    def log(eid: str) -> tuple[list, dict, list, list, list]:
+        entry = logs.get(eid)
+        if entry is None:
+            entry = logs[eid] = ([], {}, [], [], [])
+        return entry
+
     for ep in req.drafts.values():
         if ep.new:
             cur.execute(q(
@@ -235,18 +259,32 @@ def write_rows(sql: Sql, cur, req: Request, now) -> None:
                 "last_evaluated_step, over_count, under_count, alert_note, started_at, updated_at, version) "
                 "VALUES (?, ?, ?, ?, ?, ?, 0, 0, -1, 0, 0, '', ?, ?, 0)"),
                 (ep.id, ep.task, ep.robot, ep.checkpoint, ep.group, ep.held_out, now, now))
-    rows = [(eid, step, d.horizon, None if d.horizon is None else step + d.horizon, d.z_hat, d.nmse, d.z_now,
-             d.nmse_persistence, None if d.scores is None else json.dumps(d.scores), now)
-            for eid, step in req.new_decisions for d in [req.drafts[eid].decisions[step]]]
-    if rows:
-        sql.insert_many(cur, "decisions", "episode_id, step, horizon, target_step, z_hat, nmse, z_now, "
-                                          "nmse_persistence, scores, created_at", rows)
-    if req.new_targets:
-        sql.insert_many(cur, "targets", "episode_id, step, z, created_at",
-                        [(eid, step, z, now) for eid, step, z in req.new_targets])
-    if req.scored_stored:
-        sql.set_scores(cur, [(req.drafts[eid].decisions[s].nmse, req.drafts[eid].decisions[s].nmse_persistence,
-                              eid, s) for eid, s in req.scored_stored])
+    for eid, step in req.new_decisions:
+        d = req.drafts[eid].decisions[step]
+        decisions, scores, _, keys, latents = log(eid)
+        decisions.append((step, d.horizon, d.nmse, d.nmse_persistence))
+        if d.scores is not None:
+            scores[str(step)] = d.scores
+        if d.z_hat is not None:
+            keys += (Z_HAT, step)
+            latents.append(d.z_hat)
+            if d.z_now is not None:
+                keys += (Z_NOW, step)
+                latents.append(d.z_now)
+    for eid, step in req.scored_stored:
+        d = req.drafts[eid].decisions[step]
+        log(eid)[2].append((step, d.nmse, d.nmse_persistence))
+    for eid, step, z in req.new_targets:
+        _, _, _, keys, latents = log(eid)
+        keys += (TARGET, step)
+        latents.append(z)
+    for eid, (decisions, scores, rescored, keys, latents) in logs.items():
+        sql.insert_one(cur, "decision_log",
+                       "episode_id, decisions, scores, rescored, dim, entries, latents, created_at",
+                       (eid, pack_decisions(decisions) if decisions else None, json.dumps(scores) if scores else None,
+                        pack_rescored(rescored) if rescored else None, len(latents[0]) // 4 if latents else None,
+                        np.array(keys, dtype="<i8").tobytes() if keys else None, b"".join(latents) if latents else None,
+                        now))
 
 
 def update_episode(sql: Sql, cur, ep: EpisodeState, now) -> None:

@@ -191,3 +191,4 @@ class Request:
     scored: int = 0
     task_dims: dict[str, int] = field(default_factory=dict)           # latent_dim fixed by this request
     to_score: list[tuple[EpisodeState, int, Dec, bytes]] = field(default_factory=list)   # (ep, step, dec, z)
+    stored: dict[str, object] = field(default_factory=dict)   # episodes as stored, read for resends (sql.py)

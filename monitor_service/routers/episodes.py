@@ -9,7 +9,7 @@ from sqlalchemy.orm import Session
 
 from monitor_service import scoring
 from monitor_service.auth import Principal, require
-from monitor_service.db import Decision, Episode, utcnow
+from monitor_service.db import Episode, read_decisions, utcnow
 from monitor_service.deps import get_read_session, get_settings
 from monitor_service.calibration import LabelledEpisode
 from monitor_service.ingest.alerting import stored_detector
@@ -65,7 +65,7 @@ def get_episode(
     e = session.get(Episode, episode_id)
     if e is None:
         raise HTTPException(404, f"episode {episode_id!r} is unknown; list episodes with GET /v1/episodes")
-    decisions = session.scalars(select(Decision).where(Decision.episode_id == e.id).order_by(Decision.step)).all()
+    decisions = read_decisions(session, [e.id])[e.id]
     detector = None
     cal = active_calibration(session, e.task, e.checkpoint)
     if cal is not None and {"shape", "unpromised_lengths"} <= set(cal.result.get("rule", {})):
@@ -75,10 +75,7 @@ def get_episode(
             detector = candidate
     signal_risk = {}
     if detector is not None:
-        episode = LabelledEpisode(e.id, bool(e.success), [
-            {"step": d.step, "target_step": d.target_step, "nmse": d.nmse, "nmse_persistence": d.nmse_persistence,
-             "scores": d.scores} for d in decisions],
-            e.group, e.length).signal_episode()
+        episode = LabelledEpisode(e.id, bool(e.success), decisions, e.group, e.length).signal_episode()
         for signal, flags in detector.flags(episode).items():
             rule = detector.rules[signal]
             signal_risk[signal] = [
@@ -88,9 +85,7 @@ def get_episode(
     first = None if detector is None else detector.spec.signals[0]
     return EpisodeDetail(
         **episode_out(e, settings.live_episode_s),
-        decisions=[DecisionOut(step=d.step, horizon=d.horizon, target_step=d.target_step, nmse=d.nmse,
-                               nmse_persistence=d.nmse_persistence,
-                               nmse_ratio=scoring.nmse_ratio_or_none(d.nmse, d.nmse_persistence), scores=d.scores)
+        decisions=[DecisionOut(**d, nmse_ratio=scoring.nmse_ratio_or_none(d["nmse"], d["nmse_persistence"]))
                    for d in decisions],
         rule=None if detector is None else detector.spec.params.kind,
         detector=None if detector is None else detector.spec.name,

@@ -20,7 +20,7 @@ def test_migrations_reach_head_idempotently_and_match_models(tmp_path):
     assert db.current_revision(engine) is None
     db.upgrade(engine)
     db.upgrade(engine)
-    assert db.current_revision(engine) == db.head_revision() == "0005"
+    assert db.current_revision(engine) == db.head_revision() == "0006"
     with engine.connect() as conn:
         assert compare_metadata(MigrationContext.configure(conn), db.Base.metadata) == []
         assert conn.execute(text("PRAGMA journal_mode")).scalar() == "wal"
@@ -43,7 +43,7 @@ def test_cli_offline_calibrate_report_keys_tasks(tmp_path, capsys):
     settings = make_settings(tmp_path)
     url = ["--database-url", settings.database_url]
     assert main(url + ["db", "upgrade"]) == 0
-    assert "revision 0005" in capsys.readouterr().out
+    assert "revision 0006" in capsys.readouterr().out
     assert main(url + ["tasks", "add", "Square", "Coffee", "--latent-dim", "16"]) == 0
     assert main(url + ["keys", "create", "--name", "arm9", "--role", "robot", "--robot", "arm9"]) == 0
     key = json.loads(capsys.readouterr().out.strip().splitlines()[-1])["key"]
