@@ -6,7 +6,8 @@
 #   with --no-deps beside torch 2.13.0 and torchvision 0.28.0 from PyPI (its dataset code imports torchvision,
 #   whose PyPI wheel needs PyPI's CUDA build of torch: about 4 GB, downloaded once into .cache/interop), the
 #   torchcodec that decodes its videos (it loads Debian's FFmpeg libraries) and the modules its dataset code
-#   imports. openpi-client needs numpy < 2: its own small venv. gym-pusht 0.1.8 (the standard Push-T) pins
+#   imports; JEPA Policy's LeRobot plugin goes there too (scripts/interop_lerobot_policy.py runs lerobot-train and
+#   lerobot-eval with it). openpi-client needs numpy < 2: its own small venv. gym-pusht 0.1.8 (the standard Push-T) pins
 #   pymunk < 7 (ours is 7.x): its own venv; scripts/interop_pusht.py checks our standard PushT against it step for
 #   step and writes docs/pusht_parity.md.
 set -euo pipefail
@@ -34,6 +35,16 @@ if ! "$LEROBOT/bin/python" -c "import lerobot.datasets.lerobot_dataset, torchcod
     "huggingface-hub>=0.34.2,<0.36" pandas pyarrow "av>=15,<16" jsonlines "packaging>=24.2,<26" "draccus==0.10.0" \
     "deepdiff>=7.0.1,<9" "termcolor>=2.4" accelerate einops
 fi
+# The LeRobot plugin of JEPA Policy (jepa_policy/lerobot_plugin): this project without its dependencies, the
+# modules `import jepa_policy.policy` needs, what lerobot-train / lerobot-eval import beyond the dataset code
+# (diffusers, pyserial), and gym-pusht 0.1.8 for `lerobot-eval --env.type=pusht` (its pymunk < 7, gymnasium 1.x
+# and opencv clash with nothing LeRobot pins)
+if ! "$LEROBOT/bin/python" -c "import lerobot_policy_jepa, lerobot.scripts.lerobot_train, gym_pusht" 2>/dev/null; then
+  echo "[interop] JEPA Policy's LeRobot plugin and gym-pusht in $LEROBOT"
+  "${PIPX[@]}" "$LEROBOT/bin/pip" install -q --disable-pip-version-check "gym-pusht==0.1.8" \
+    "diffusers>=0.27.2,<0.36" "pyserial>=3.5,<4" "imageio[ffmpeg]>=2.34" scikit-learn h5py tqdm
+  "${PIPX[@]}" "$LEROBOT/bin/pip" install -q --disable-pip-version-check --no-deps -e . -e jepa_policy/lerobot_plugin
+fi
 
 OPENPI=$ROOT/openpi
 if ! "$OPENPI/bin/python" -c "import openpi_client.websocket_client_policy" 2>/dev/null; then
@@ -55,4 +66,5 @@ status=0
 python3 scripts/interop_pusht.py --gym-pusht-python "$GYM_PUSHT/bin/python" \
   --lerobot-python "$LEROBOT/bin/python" --table docs/pusht_parity.md || status=1
 python3 scripts/interop.py --lerobot-python "$LEROBOT/bin/python" --openpi-python "$OPENPI/bin/python" "$@" || status=1
+python3 scripts/interop_lerobot_policy.py --lerobot-venv "$LEROBOT" || status=1
 exit $status
