@@ -152,7 +152,8 @@ def episode_of(row: dict, where: str = "") -> Episode:
     group = str(row.get("group") or f"{row.get('arm', 'policy')}:{row.get('checkpoint', '')}")
     onset = row.get("fault_onset")
     return Episode(seed, success, length, regime, group, steps, known, values,
-                   None if onset is None else int(onset), extra={"arm": row.get("arm")})
+                   None if onset is None else int(onset),
+                   extra={"arm": row.get("arm"), "failure_kind": row.get("failure_kind")})
 
 
 def load_records(paths, where: dict | None = None) -> list[Episode]:
@@ -275,6 +276,44 @@ def ranking(episodes: list[Episode], signals, regime: str, cut: int | None, n_bo
         out[STACK] = {"auroc": r["auroc"], "ci": r["ci"], "failures": sum(y for _, y in scored),
                       "successes": sum(1 - y for _, y in scored), "members": members,
                       **({"reason": r["reason"]} if "reason" in r else {})}
+    return out
+
+
+def ranking_by_kind(episodes: list[Episode], signals, cut: int | None, n_bootstrap: int, seed: int,
+                    aggregate: str = "mean") -> dict:
+    """Per natural failure kind (the records' ``failure_kind``, e.g. never_grasped, dropped): AUROC [95 % CI] of
+    each signal, that kind's failures against every natural success. Empty unless the records name two kinds
+    or more."""
+    natural = [e for e in episodes if e.regime == "natural"]
+    kinds = sorted({str(e.extra.get("failure_kind")) for e in natural if not e.success
+                    and e.extra.get("failure_kind") is not None})
+    if len(kinds) < 2:
+        return {}
+    return {kind: ranking([e for e in natural if e.success or str(e.extra.get("failure_kind")) == kind], signals,
+                          "natural", cut, n_bootstrap, seed, aggregate=aggregate) for kind in kinds}
+
+
+def paired_differences(episodes: list[Episode], signals, cut: int | None, n_bootstrap: int, seed: int,
+                       aggregate: str = "mean") -> dict:
+    """Ours against each other signal on the natural episodes both score: AUROC(ours) - AUROC(other) with its
+    paired bootstrap 95 % CI (``stats.paired_auroc_difference``), for ``nmse`` and ``nmse_ratio`` where present."""
+    positives = [e for e in episodes if e.regime == "natural"]
+    out: dict = {}
+    for ours in (OURS, RATIO):
+        if ours not in signals:
+            continue
+        out[ours] = {}
+        for other in signals:
+            if other == ours:
+                continue
+            pairs = [(episode_score(e.values[ours][:cut], aggregate), episode_score(e.values[other][:cut], aggregate),
+                      int(not e.success)) for e in positives if ours in e.values and other in e.values]
+            pairs = np.array([p for p in pairs if p[0] is not None and p[1] is not None], dtype=np.float64)
+            if pairs.size == 0 or len(set(pairs[:, 2])) < 2:
+                out[ours][other] = {"difference": None, "ci": None, "reason": "both classes needed"}
+                continue
+            out[ours][other] = stats.paired_auroc_difference(pairs[:, 0], pairs[:, 1], pairs[:, 2].astype(int),
+                                                            n_bootstrap, seed)
     return out
 
 
@@ -426,6 +465,8 @@ def compare(episodes: list[Episode], alpha: float = 0.1, folds: int = 5, prefix:
             for regime in regimes:
                 v["ranking"][regime] = ranking(eps, chosen, regime, cut, n_bootstrap, seed, regime == "natural",
                                                aggregate, stacked)
+            v["ranking_by_kind"] = ranking_by_kind(eps, chosen, cut, n_bootstrap, seed, aggregate)
+            v["paired"] = paired_differences(eps, chosen, cut, n_bootstrap, seed, aggregate)
             for rule_name in rule_names:
                 d = detection(eps, chosen, cut, alpha, RULES[rule_name], folds, seed)
                 rows = {}
@@ -467,6 +508,45 @@ def ranking_table(result: dict, view: str) -> list[str]:
         for s in g["signals"] + ([STACK] if STACK in v["ranking"][regimes[0]] else []):
             name = f"{STACK}({'+'.join(v['ranking'][regimes[0]][s]['members'])})" if s == STACK else s
             lines.append(f"| {name} | " + " | ".join(_auc(v["ranking"][r].get(s, {})) for r in regimes) + " |")
+        lines.append("")
+    return lines
+
+
+def kind_table(result: dict, view: str) -> list[str]:
+    """Markdown: per checkpoint, one row per signal, one column per natural failure kind: AUROC [95 % CI]."""
+    lines = []
+    for group, g in result["groups"].items():
+        v = g["views"].get(view)
+        if not v or not v.get("ranking_by_kind"):
+            continue
+        kinds = v["ranking_by_kind"]
+        lines += [f"**{group}** ({view}: {v['episodes']} episodes)", "",
+                  "| signal | " + " | ".join(f"{k} ({next(iter(r.values()))['failures']})" for k, r in kinds.items())
+                  + " |", "|---" * (len(kinds) + 1) + "|"]
+        for s in g["signals"]:
+            lines.append(f"| {s} | " + " | ".join(_auc(r.get(s, {})) for r in kinds.values()) + " |")
+        lines.append("")
+    return lines
+
+
+def paired_table(result: dict, view: str) -> list[str]:
+    """Markdown: ours minus each other signal, AUROC on the same natural episodes, with the paired 95 % CI."""
+    lines = []
+    for group, g in result["groups"].items():
+        v = g["views"].get(view)
+        if not v or not v.get("paired"):
+            continue
+        ours = list(v["paired"])
+        others = [s for s in g["signals"] if any(s in v["paired"][o] for o in ours)]
+        lines += [f"**{group}** ({view})", "", "| other signal | " + " | ".join(f"{o} minus it" for o in ours) + " |",
+                  "|---" * (len(ours) + 1) + "|"]
+        for s in others:
+            cells = []
+            for o in ours:
+                d = v["paired"][o].get(s)
+                cells.append("-" if d is None or d["difference"] is None else
+                             f"{d['difference']:+.3f} [{d['ci'][0]:+.3f}, {d['ci'][1]:+.3f}]")
+            lines.append(f"| {s} | " + " | ".join(cells) + " |")
         lines.append("")
     return lines
 
@@ -555,6 +635,17 @@ def summary_text(result: dict) -> str:
             ranked = sorted(nat.items(), key=lambda kv: -(kv[1]["auroc"] or 0))
             lines.append(f"  {view} ({v['episodes']} episodes{cut}) natural-failure AUROC: "
                          + ", ".join(f"{k} {_auc(r)}" for k, r in ranked))
+            for ours, diffs in (v.get("paired") or {}).items():
+                shown = [f"{o} {d['difference']:+.3f} [{d['ci'][0]:+.2f}, {d['ci'][1]:+.2f}]"
+                         for o, d in diffs.items() if d["difference"] is not None and o not in CONTROL_SIGNALS]
+                if shown:
+                    lines.append(f"    paired AUROC difference, {ours} minus: " + ", ".join(shown))
+            for kind, r in (v.get("ranking_by_kind") or {}).items():
+                best = max((s for s in r if s not in CONTROL_SIGNALS and r[s].get("auroc") is not None),
+                           key=lambda s: r[s]["auroc"], default=None)
+                if best is not None:
+                    lines.append(f"    {kind} ({r[best]['failures']} failures): best {best} {_auc(r[best])}"
+                                 + (f", {OURS} {_auc(r[OURS])}" if OURS in r and best != OURS else ""))
             for rule in v["detection"]:
                 for row in best_rows({"groups": {group: g}}, view, rule):
                     d = row["best_detection"]
@@ -579,6 +670,15 @@ def markdown(result: dict, figures=()) -> str:
     for view in ("prefix", "whole"):
         lines += [f"## Ranking (AUROC of failures against natural successes), {view}", ""]
         lines += ranking_table(result, view)
+    for view in ("prefix", "whole"):
+        kinds = kind_table(result, view)
+        if kinds:
+            lines += [f"## Ranking per natural failure kind (AUROC of that kind against natural successes), {view}",
+                      ""] + kinds
+        paired = paired_table(result, view)
+        if paired:
+            lines += [f"## Paired AUROC differences, natural failures, {view} (same episodes, paired bootstrap "
+                      "95 % CI)", ""] + paired
     rule = next(iter(result["settings"]["rules"]))
     for view in ("prefix", "whole"):
         lines += [f"## Detection, natural failures, {view}", ""]

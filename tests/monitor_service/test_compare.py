@@ -302,3 +302,32 @@ def test_the_stacked_ranking_fuses_two_half_informative_signals_and_never_fits_o
     with_faults = cmp.stacked_scores(both, members, 10)
     assert all(with_faults[i] == pytest.approx(stacked[i]) for i in range(len(eps)))
     assert cmp.stack_members(["nmse", "random", "nmse_persistence", "stac"]) == ["nmse", "stac"]
+
+
+def test_failure_kinds_rank_apart_and_ours_is_differenced_with_others_on_the_same_episodes():
+    """Natural failures of two kinds: NMSE separates one kind only, STAC the other; each kind's ranking says so,
+    and the paired difference of NMSE against STAC equals the two AUROCs' difference with its interval."""
+    rows = []
+    for seed in range(120):
+        kind = (None, "dropped", "never_grasped")[seed % 3]
+        rows.append(record(seed, kind is None, 30 if kind else 12 + seed % 10,
+                           nmse=lambda i, s, g, k=kind: (2.0 if k == "dropped" else 0.0) + g.random(),
+                           stac=lambda i, s, g, k=kind: (2.0 if k == "never_grasped" else 0.0) + g.random()))
+        if kind:
+            rows[-1]["failure_kind"] = kind
+    result = run(rows, signals=["nmse", "stac"])
+    v = result["groups"]["jepa:jepa.pt"]["views"]["prefix"]
+    kinds = v["ranking_by_kind"]
+    assert set(kinds) == {"dropped", "never_grasped"}
+    assert kinds["dropped"]["nmse"]["auroc"] == 1.0 and abs(kinds["dropped"]["stac"]["auroc"] - 0.5) < 0.2
+    assert kinds["never_grasped"]["stac"]["auroc"] == 1.0 and abs(kinds["never_grasped"]["nmse"]["auroc"] - 0.5) < 0.2
+    assert kinds["dropped"]["nmse"]["failures"] == 40 and kinds["dropped"]["nmse"]["successes"] == 40
+    d = v["paired"]["nmse"]["stac"]
+    nat = v["ranking"]["natural"]
+    assert d["difference"] == pytest.approx(nat["nmse"]["auroc"] - nat["stac"]["auroc"])
+    assert d["ci"][0] <= d["difference"] <= d["ci"][1]
+    md = cmp.markdown(result)
+    assert "## Ranking per natural failure kind" in md and "| nmse | 1.000 [1.00, 1.00] |" in md
+    assert "## Paired AUROC differences" in md and "| stac |" in md
+    assert "dropped (40 failures): best nmse 1.000" in cmp.summary_text(result)
+    assert run(natural(), signals=["nmse"])["groups"]["jepa:jepa.pt"]["views"]["prefix"]["ranking_by_kind"] == {}
