@@ -175,8 +175,14 @@ def model_batch(batch: Mapping, spec: TaskSpec, obs_steps: int, with_future: boo
 def observation(batch: Mapping, spec: TaskSpec) -> dict[str, np.ndarray]:
     """One env step of a LeRobot policy's input (batched, after its preprocessor) as our runtime's observation:
     ``<camera>_image`` uint8 (B, h, w, 3), low-dim float32 (B, d)."""
-    obs = {key: uint8_frames(_feature(batch, lerobot_key, "the observation")).cpu().numpy()
-           for lerobot_key, key in image_features(spec).items()}
+    obs, size = {}, spec.image_size
+    for lerobot_key, key in image_features(spec).items():
+        x = _feature(batch, lerobot_key, "the observation")
+        if tuple(x.shape[-2:]) != (size, size):
+            raise ValueError(f"{lerobot_key} is {x.shape[-2]}x{x.shape[-1]} px but this jepa policy acts on "
+                             f"{size}x{size} px, the size it was trained at; give it frames of that size (gym-pusht "
+                             "renders 96 px: train at 96 px, e.g. `jepa-policy train --image-size 96`, then convert)")
+        obs[key] = uint8_frames(x).cpu().numpy()
     if spec.lowdim:
         state = _feature(batch, STATE, "the observation").float().cpu().numpy()
         obs.update(split_state(state, spec))

@@ -151,6 +151,8 @@ def test_a_lerobot_policy_folder_acts_in_our_runtime_as_its_network(tmp_path):
     converted = observation(lerobot_obs, _spec())
     assert np.array_equal(converted["top_image"], ep["top_image"][:1])
     assert np.array_equal(converted["agent_pos"], ep["agent_pos"][:1].astype(np.float32))
+    with pytest.raises(ValueError, match=r"observation.image is 96x96 px but this jepa policy acts on 32x32 px"):
+        observation({**lerobot_obs, "observation.image": torch.zeros(1, 3, 96, 96)}, _spec())
 
 
 def test_a_folder_of_another_policy_or_task_is_refused_with_the_fix(tmp_path):
