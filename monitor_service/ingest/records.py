@@ -44,7 +44,10 @@ def apply_records(store: Episodes, cur, req: Request, records: list) -> None:
 
 
 def _check_dim(store: Episodes, cur, req: Request, task: str, dim: int, what: str) -> None:
-    known = store.task_dims.get(task) or req.task_dims.get(task)
+    known = store.task_dims.get(task)
+    if known == dim:   # the common case: the task's size, known to this process
+        return
+    known = known or req.task_dims.get(task)
     if known is None:
         found = statements.task_latent_dim(store.sql, cur, task, dim)
         if found is None:
@@ -247,5 +250,9 @@ def compute_scores(req: Request) -> None:
             d.nmse = value
             if d.stored:   # a new decision keeps its latents until they are written
                 d.z_hat = d.z_now = None
-            insort(ep.scored, (step, value))
+            scored = ep.scored
+            if not scored or scored[-1][0] < step:   # in step order, as most pairs come: no search
+                scored.append((step, value))
+            else:
+                insort(scored, (step, value))
             req.observations.append(("nmse", ep.task, ep.robot, value))

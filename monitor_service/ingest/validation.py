@@ -18,6 +18,7 @@ from monitor_service.schemas import F32_MAX, MAX_HORIZON, MAX_SIGNALS, MAX_STEP,
 
 NAME = re.compile(r"^[A-Za-z0-9_.:\-]+$")
 MAX_RECORDS = 10_000
+LITTLE_F32 = np.dtype("<f4")   # a singleton: the msgpack decoder's arrays have exactly this dtype
 DECISION_KEYS = frozenset({"kind", "task", "episode", "step", "horizon", "z_hat", "scores", "z_now", "robot",
                            "checkpoint", "held_out", "group"})
 TARGET_KEYS = frozenset({"kind", "episode", "step", "z"})
@@ -97,9 +98,9 @@ def _int(value: Any, low: int, high: int) -> int:
 def _latent(value: Any, latents: list[np.ndarray]) -> np.ndarray:
     """A float32 1-D array (msgpack) or a list of numbers (JSON); its finiteness is checked with all the others."""
     if type(value) is np.ndarray:
-        if value.dtype != np.float32 or value.ndim != 1 or not value.size:
+        if value.dtype is not LITTLE_F32 or value.ndim != 1 or not value.size:   # anything else: pydantic's words
             raise _Unusual
-        array = value.astype("<f4", copy=False)
+        array = value
     elif type(value) is list:
         if not value or not set(map(type, value)) <= {float, int}:
             raise _Unusual
