@@ -168,11 +168,12 @@ def _eval_regimes(args, policy, calibration) -> int:
     block, so each faulted episode has a natural twin up to its onset."""
     import time
 
-    from jepa_envs.tasks.faults import FAULTS
+    from jepa_envs.tasks.faults import faults_for
 
     if args.video or args.save_rollouts:
         raise ValueError("--faults writes records only; drop --video / --save-rollouts (or run one fault at a time)")
-    names = sorted(FAULTS) if args.faults.strip() == "all" else [x for x in args.faults.split(";") if x.strip()]
+    names = faults_for(policy.spec) if args.faults.strip() == "all" else \
+        [x for x in args.faults.split(";") if x.strip()]
     if not names:
         raise ValueError(f"--faults {args.faults!r} names no fault; give NAME[;NAME...] or all")
     regimes = ([] if args.faults_only else [None]) + [_fault_spec(x) for x in names]

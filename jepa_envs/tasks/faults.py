@@ -23,6 +23,13 @@ One wrapper per fault (``FAULTS`` lists them with their kind):
   and ``SensorNoise`` (Gaussian pixel noise, a few levels of 255), shifts meant not to cause failure (whether
   they do is measured: docs/failure_prediction.md).
 
+Lift and Can (robosuite) have their own physical, dynamics and visual faults, changes of the simulation itself:
+``ObjectDisplaced`` (the cube or can moved away at the onset, out of the gripper if it held it),
+``GripperSlip`` (the gripper's finger force limit scaled down, so a held object slips) and ``LightDimmed`` (the
+scene's lights dimmed: rendered so, not painted on the image). Their model edits are undone at the next reset
+(robosuite keeps its model across resets here). The actuation, image and benign faults apply to every task but
+``ActionNoise``, whose noise is in PushT's world units; ``faults_for(spec)`` lists a task's faults.
+
 ``gym.make(FAULTED_ID, base="JEPA/PushT-v0", fault="block_displaced", fault_kwargs={...}, **env_kwargs)`` builds
 the base env and wraps it (``make_faulted``); the id's module is imported by its name, so rollout workers that
 only know the string (``jepa_envs.rollouts.pool``) can build it too.
@@ -51,6 +58,8 @@ class FaultWrapper(gym.Wrapper):
     name = "fault"
     kind = "physical"
     salt = 0   # separates the generators of different faults under one seed
+    suites: tuple[str, ...] | None = None   # the task suites it applies to (None: every task)
+    sources: tuple[str, ...] | None = None  # and within them, these backend tasks only (None: all)
 
     def __init__(self, env: gym.Env, onset: int | tuple[int, int] | list[int] = DEFAULT_ONSET):
         super().__init__(env)
@@ -137,6 +146,7 @@ class BlockDisplaced(FaultWrapper):
     at the onset, kept on the table and clear of the agent (the direction is redrawn until it is)."""
 
     name, kind, salt = "block_displaced", "physical", 1
+    suites = ("embedded",)
 
     def __init__(self, env, onset=DEFAULT_ONSET, distance: float = 60.0, turn_deg: float = 40.0):
         super().__init__(env, onset)
@@ -165,6 +175,7 @@ class BlockFriction(FaultWrapper):
     """The block's contact friction multiplied by ``factor`` (0.1: a slippery block that turns away)."""
 
     name, kind, salt = "block_friction", "dynamics", 2
+    suites = ("embedded",)
 
     def __init__(self, env, onset=DEFAULT_ONSET, factor: float = 0.1):
         super().__init__(env, onset)
@@ -185,6 +196,7 @@ class BlockSlides(FaultWrapper):
     trajectories equal to 1e-11 with the mass x100), so this is the task's dynamics fault of the block."""
 
     name, kind, salt = "block_slides", "dynamics", 3
+    suites = ("embedded",)
 
     def __init__(self, env, onset=DEFAULT_ONSET, keep: float = 0.05):
         super().__init__(env, onset)
@@ -201,6 +213,7 @@ class WeakActuator(FaultWrapper):
     """The agent's PD gains multiplied by ``factor`` (0.5: halved, a degraded actuator that lags its target)."""
 
     name, kind, salt = "weak_actuator", "dynamics", 4
+    suites = ("embedded",)
 
     def __init__(self, env, onset=DEFAULT_ONSET, factor: float = 0.5):
         super().__init__(env, onset)
@@ -246,6 +259,7 @@ class ActionNoise(FaultWrapper):
     from the onset on."""
 
     name, kind, salt = "action_noise", "actuation", 6
+    suites = ("embedded",)   # std in PushT's world units
 
     def __init__(self, env, onset=DEFAULT_ONSET, std: float = 25.0):
         super().__init__(env, onset)
@@ -390,6 +404,123 @@ class SensorNoise(FaultWrapper):
         return np.clip(np.rint(image.astype(np.float64) + noise), 0, 255).astype(np.uint8)
 
 
+# ----------------------------------------------------------------------------- Lift and Can (robosuite)
+
+def _pick(env: gym.Env, fault: str):
+    """The robosuite environment of a Lift or Can env, with its object's free joint and the x-y box the object
+    may be moved within (Lift: the table; Can: the bin it starts in), 5 cm inside the edges."""
+    backend = getattr(env.unwrapped, "backend", None)
+    kind = type(backend).__name__
+    if kind == "Lift":
+        half = np.asarray(backend.table_full_size[:2]) / 2 - 0.05
+        centre = np.asarray(backend.table_offset[:2])
+        joint = backend.cube.joints[0]
+    elif kind == "PickPlaceCan":
+        half = np.asarray(backend.bin_size[:2]) / 2 - 0.05
+        centre = np.asarray(backend.bin1_pos[:2])
+        joint = backend.objects[backend.object_id].joints[0]
+    else:
+        raise ValueError(f"the {fault} fault moves Lift's cube or Can's can and needs JEPA/Lift-v0 or JEPA/Can-v0, "
+                         f"not {type(env.unwrapped).__name__}; use an actuation or image fault on other tasks")
+    return backend, joint, centre - half, centre + half
+
+
+class ModelEdit(FaultWrapper):
+    """A fault that edits the simulator's model at the onset; the edit is undone before the next episode."""
+
+    def __init__(self, env, onset=DEFAULT_ONSET):
+        super().__init__(env, onset)
+        self.saved: list[tuple[np.ndarray, np.ndarray]] = []
+
+    def edit(self, array: np.ndarray, value: np.ndarray) -> None:
+        """Set ``array`` (a view into the MuJoCo model) to ``value``, remembering what it held."""
+        self.saved.append((array, array.copy()))
+        array[...] = value
+
+    def start_episode(self) -> None:
+        for array, original in reversed(self.saved):
+            array[...] = original
+        self.saved.clear()
+
+
+class ObjectDisplaced(FaultWrapper):
+    """The cube (Lift) or can (Can) moved ``distance`` metres in a random horizontal direction at the onset, at
+    its height and at rest: out of the gripper if it held it (it falls). Kept inside the table (Lift) or the
+    start bin (Can)."""
+
+    name, kind, salt = "object_displaced", "physical", 12
+    suites, sources = ("robomimic",), ("Lift", "PickPlaceCan")
+
+    def __init__(self, env, onset=(50, 90), distance: float = 0.08):
+        super().__init__(env, onset)
+        _pick(env, self.name)
+        if not 0 < distance <= 0.3:
+            raise ValueError(f"distance must lie in (0, 0.3] metres, got {distance}")
+        self.distance = float(distance)
+
+    def begin(self) -> None:
+        backend, joint, low, high = _pick(self.env, self.name)
+        data = backend.sim.data
+        qpos = np.array(data.get_joint_qpos(joint), dtype=np.float64)
+        phi = self.rng.uniform(-math.pi, math.pi)
+        qpos[:2] = np.clip(qpos[:2] + self.distance * np.array([math.cos(phi), math.sin(phi)]), low, high)
+        data.set_joint_qpos(joint, qpos)
+        data.set_joint_qvel(joint, np.zeros(6))
+        backend.sim.forward()
+
+
+class GripperSlip(ModelEdit):
+    """The gripper's finger actuators' force limit multiplied by ``factor`` (0.1: 2 of its 20 N), so a held
+    object slips out of the fingers."""
+
+    name, kind, salt = "gripper_slip", "dynamics", 13
+    suites = ("robomimic",)
+
+    def __init__(self, env, onset=(50, 90), factor: float = 0.1):
+        super().__init__(env, onset)
+        if not 0 <= factor < 1:
+            raise ValueError(f"force factor must lie in [0, 1), got {factor}")
+        self.factor = float(factor)
+        self._gripper()
+
+    def _gripper(self):
+        backend = getattr(self.env.unwrapped, "backend", None)
+        robots = getattr(backend, "robots", None)
+        if not robots or getattr(robots[0], "gripper", None) is None:
+            raise ValueError(f"the {self.name} fault weakens a robosuite gripper; {type(self.env.unwrapped).__name__} "
+                             "has none")
+        return backend.sim.model, robots[0].gripper.actuators
+
+    def begin(self) -> None:
+        model, actuators = self._gripper()
+        for name in actuators:
+            i = model.actuator_name2id(name)
+            self.edit(model._model.actuator_forcelimited[i:i + 1], np.ones(1))
+            self.edit(model._model.actuator_forcerange[i], model._model.actuator_forcerange[i] * self.factor)
+
+
+class LightDimmed(ModelEdit):
+    """The scene's lights (and the renderer's headlight) dimmed to ``factor`` of their diffuse and specular
+    strength at the onset: the simulator renders a darker scene, shadows included."""
+
+    name, kind, salt = "light_dimmed", "visual", 14
+    suites = ("robomimic",)
+
+    def __init__(self, env, onset=DEFAULT_ONSET, factor: float = 0.35):
+        super().__init__(env, onset)
+        if not 0 < factor < 1:
+            raise ValueError(f"light factor must lie in (0, 1), got {factor}")
+        if getattr(getattr(env.unwrapped, "backend", None), "sim", None) is None:
+            raise ValueError(f"the {self.name} fault dims a MuJoCo scene; {type(env.unwrapped).__name__} has none")
+        self.factor = float(factor)
+
+    def begin(self) -> None:
+        m = self.env.unwrapped.backend.sim.model._model
+        for array in (m.light_diffuse, m.light_specular, m.light_ambient, m.vis.headlight.diffuse,
+                      m.vis.headlight.ambient, m.vis.headlight.specular):
+            self.edit(array, array * self.factor)
+
+
 # ----------------------------------------------------------------------------- registry
 
 @dataclass(frozen=True)
@@ -401,9 +532,16 @@ class FaultInfo:
 
 FAULTS: dict[str, FaultInfo] = {cls.name: FaultInfo(cls, cls.kind, (cls.__doc__ or "").split("\n")[0]) for cls in (
     BlockDisplaced, BlockFriction, BlockSlides, WeakActuator, ActionLatency, ActionNoise, Distractors, ColourShift,
-    CameraShift, BackgroundTint, SensorNoise)}
+    CameraShift, BackgroundTint, SensorNoise, ObjectDisplaced, GripperSlip, LightDimmed)}
 FAULTED_ID = "JEPA/Faulted-v0"
 FAULTED_ENV = f"{__name__}:{FAULTED_ID}"   # what gym.make and the rollout pool are given (imports this module)
+
+
+def faults_for(spec) -> list[str]:
+    """The faults that apply to a task (its ``TaskSpec``): what ``--faults all`` runs on it."""
+    return sorted(name for name, info in FAULTS.items()
+                  if (info.wrapper.suites is None or spec.suite in info.wrapper.suites)
+                  and (info.wrapper.sources is None or spec.source_task in info.wrapper.sources))
 
 
 def wrap_fault(env: gym.Env, fault: str, **kwargs) -> FaultWrapper:
