@@ -9,7 +9,11 @@
 #   imports; JEPA Policy's LeRobot plugin goes there too (scripts/interop_lerobot_policy.py runs lerobot-train and
 #   lerobot-eval with it). openpi-client needs numpy < 2: its own small venv. gym-pusht 0.1.8 (the standard Push-T) pins
 #   pymunk < 7 (ours is 7.x): its own venv; scripts/interop_pusht.py checks our standard PushT against it step for
-#   step and writes docs/pusht_parity.md.
+#   step and writes docs/pusht_parity.md. robomimic 0.3.0 (its EnvRobosuite, dataset_states_to_obs.py and replay,
+#   the oracle for our Lift, Can and Square) imports torchvision through its dataset script: its own venv, with
+#   --no-deps beside robosuite 1.4.1 and mujoco 3.3.7 as ours, the CUDA torch from PyPI again (pip's cache keeps the
+#   download) and robomimic's own next-day fix of its mujoco_py import (commit 8df6e8e, in every later release);
+#   scripts/interop_robomimic.py writes docs/robomimic_parity.md.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 ROOT=.cache/interop
@@ -62,9 +66,31 @@ if ! "$GYM_PUSHT/bin/python" -c "import gym_pusht, PIL" 2>/dev/null; then
   "${PIPX[@]}" "$GYM_PUSHT/bin/pip" install -q --disable-pip-version-check "gym-pusht==0.1.8" pillow
 fi
 
+ROBOMIMIC=$ROOT/robomimic
+if ! "$ROBOMIMIC/bin/python" -c "import robomimic.scripts.dataset_states_to_obs, robomimic.envs.env_robosuite, \
+    robomimic.macros_private, robosuite.macros_private" 2>/dev/null; then
+  echo "[interop] robomimic 0.3.0 venv ($ROBOMIMIC)"
+  python3.11 -m venv "$ROBOMIMIC"
+  # what its env, file and dataset-script code import (its file utils load its models, which import torchvision)
+  "${PIPX[@]}" "$ROBOMIMIC/bin/pip" install -q --disable-pip-version-check "torch==2.13.0" "torchvision==0.28.0" \
+    "numpy==2.3.5" "robosuite==1.4.1" "mujoco==3.3.7" "numba==0.68.1" "scipy==1.17.1" "h5py==3.16.0" termcolor tqdm \
+    matplotlib egl_probe
+  "${PIPX[@]}" "$ROBOMIMIC/bin/pip" install -q --disable-pip-version-check --no-deps "robomimic==0.3.0"
+  # 0.3.0 imports mujoco_py, which robosuite 1.4 no longer uses and which does not build here: robomimic's own fix
+  SITE=$("$ROBOMIMIC/bin/python" -c 'import sysconfig; print(sysconfig.get_paths()["purelib"])')
+  if grep -q "^import mujoco_py" "$SITE/robomimic/envs/env_robosuite.py"; then
+    patch -s -p1 -d "$SITE" < scripts/interop_robomimic_8df6e8e.patch
+  fi
+  # both packages' private settings files (without them every import warns; robosuite's script asks on stdin)
+  [ -f "$SITE/robosuite/macros_private.py" ] || "$ROBOMIMIC/bin/python" -m robosuite.scripts.setup_macros >/dev/null 2>&1
+  [ -f "$SITE/robomimic/macros_private.py" ] || "$ROBOMIMIC/bin/python" -m robomimic.scripts.setup_macros >/dev/null
+fi
+
 status=0
 python3 scripts/interop_pusht.py --gym-pusht-python "$GYM_PUSHT/bin/python" \
   --lerobot-python "$LEROBOT/bin/python" --table docs/pusht_parity.md || status=1
 python3 scripts/interop.py --lerobot-python "$LEROBOT/bin/python" --openpi-python "$OPENPI/bin/python" "$@" || status=1
 python3 scripts/interop_lerobot_policy.py --lerobot-venv "$LEROBOT" || status=1
+python3 scripts/interop_robomimic.py --robomimic-python "$ROBOMIMIC/bin/python" --table docs/robomimic_parity.md \
+  || status=1
 exit $status
