@@ -124,9 +124,11 @@ def ours_act(checkpoint: str, obs_file: Path) -> dict:
         before = policy.last_decision
         actions.append(policy.act({"top_image": data["pixels"][t], "agent_pos": data["agent_pos"][t]}))
         if policy.last_decision is not before:
-            z_hats.append(policy.last_decision.z_hat)
             steps.append(t)
-    return {"actions": np.stack(actions), "z_hat": np.stack(z_hats), "decision_index": np.asarray(steps),
+            if policy.last_decision.z_hat is not None:      # MIP predicts no future latent
+                z_hats.append(policy.last_decision.z_hat)
+    return {"actions": np.stack(actions), "z_hat": np.asarray(z_hats, dtype=np.float32),
+            "decision_index": np.asarray(steps),
             "seconds": time.perf_counter() - start}
 
 
@@ -140,7 +142,8 @@ def compare_runtimes(venv: Path, checkpoint_ours: str, checkpoint_lerobot: str, 
     return {"observations": int(len(ours["actions"])), "decisions": int(len(ours["decision_index"])),
             "same_decision_steps": bool(same_grid),
             "max_abs_action_diff": float(np.abs(ours["actions"] - theirs["actions"]).max()),
-            "max_abs_z_hat_diff": float(np.abs(ours["z_hat"] - theirs["z_hat"]).max()) if same_grid else None,
+            "max_abs_z_hat_diff": (float(np.abs(ours["z_hat"] - theirs["z_hat"]).max()) if same_grid and
+                                   len(ours["z_hat"]) else None),
             "future_pairs_scored_in_lerobot": int(len(theirs["nmse"])),
             "median_nmse_in_lerobot": float(np.median(theirs["nmse"])) if len(theirs["nmse"]) else None,
             "seconds_ours": round(ours["seconds"], 1), "seconds_lerobot": round(float(theirs["seconds"]), 1)}
@@ -221,6 +224,9 @@ def main() -> int:
                                                  work / "lerobot_acts_trained.npz")
     result["lerobot_to_ours"]["jepa_policy_eval"] = our_eval(checkpoint, work, 4)
     result["lerobot_to_ours"]["jepa_policy_serve"] = our_serve(checkpoint)
+    result["mip_lerobot_to_ours"] = compare_runtimes(venv, result["train_mip"]["checkpoint"],
+                                                     result["train_mip"]["checkpoint"], obs_file,
+                                                     work / "lerobot_acts_mip.npz")
     ours, converted, times = ours_to_lerobot(venv, root, work, max(2, args.steps // 10))
     result["ours_to_lerobot"] = {**times, **compare_runtimes(venv, ours, converted, obs_file,
                                                                   work / "lerobot_acts_converted.npz")}
@@ -229,6 +235,7 @@ def main() -> int:
               result["lerobot_to_ours"]["max_abs_z_hat_diff"] == 0.0,
               result["ours_to_lerobot"]["max_abs_action_diff"] == 0.0,
               result["ours_to_lerobot"]["max_abs_z_hat_diff"] == 0.0,
+              result["mip_lerobot_to_ours"]["max_abs_action_diff"] == 0.0,
               result["eval_lerobot"]["episodes"] == args.episodes]
     result["ok"] = all(checks)
     print(json.dumps(result, indent=2))

@@ -43,11 +43,12 @@ def act(policy_dir: str, src: str, out: str) -> None:
             action = post(policy.select_action(pre(obs)))
         actions.append(action.numpy()[0])
         if policy.last_decision is not before:
-            z_hats.append(policy.last_decision.z_hat[0])
             steps.append(t)
+            if policy.last_decision.z_hat is not None:      # MIP predicts no future latent
+                z_hats.append(policy.last_decision.z_hat[0])
     nmse += [float(x) for pair in policy.future_log for x in pair["nmse"]]
-    np.savez(out, actions=np.stack(actions), z_hat=np.stack(z_hats), decision_index=np.asarray(steps),
-             nmse=np.asarray(nmse), seconds=time.perf_counter() - start)
+    np.savez(out, actions=np.stack(actions), z_hat=np.asarray(z_hats, dtype=np.float32),
+             decision_index=np.asarray(steps), nmse=np.asarray(nmse), seconds=time.perf_counter() - start)
 
 
 if __name__ == "__main__":
