@@ -169,6 +169,7 @@ def test_a_folder_of_another_policy_or_task_is_refused_with_the_fix(tmp_path):
         model_config({**config, "arm": "diffusion"}, SIZE)
 
 
+@pytest.mark.slow      # 20-45 s here, most of it LeRobot's own imports
 @pytest.mark.timeout(300)
 @pytest.mark.skipif(not LEROBOT_PYTHON.exists(), reason="LeRobot's venv is not built (make interop)")
 def test_ours_converted_acts_bit_equal_in_lerobots_runtime(tmp_path):
