@@ -17,7 +17,7 @@ builds it; robosuite 1.4.1 and mujoco 3.3.7 there as here) through scripts/inter
    random rollouts of (1) and on the three human Lift demonstrations (the actions our render-dataset wrote).
 
     python scripts/interop_robomimic.py --robomimic-python .cache/interop/robomimic/bin/python \\
-        [--steps 20] [--demos 3] [--table docs/robomimic_parity.md]
+        [--steps 20] [--demos 3] [--demo-steps N] [--tasks Lift Can Square] [--table docs/robomimic_parity.md]
 
 Prints one table, writes interop_out/robomimic.json and optionally the markdown table. Exit 1 when a check fails.
 """
@@ -110,26 +110,28 @@ def goal_diff(absolute: np.ndarray, goal_pos: np.ndarray, goal_ori: np.ndarray) 
 
 def action_diff(absolute: np.ndarray, rm: dict, deltas: np.ndarray) -> dict:
     """Our absolute actions against the goals robosuite set inside robomimic's replay, step 0 apart: robosuite adds a
-    delta to the end-effector pose its controller last read, and after ``reset_to`` sets a state that is still the
-    pose of the reset before it (the controller reads the arm again only after it has run), while our conversion,
-    like the recording, starts from the pose of the state. Checked: robosuite's goal = the pose its controller held
-    + the scaled delta at every step, and that pose is the state's own from step 1 on."""
-    held = np.abs(rm["controller_pos"] - rm["obs/robot0_eef_pos"]).max(axis=1)
-    rule = rm["controller_pos"] + rm["delta_scale"] * np.clip(deltas[:, :3], -1, 1)
+    delta to the end-effector pose its controller reads from the arm, but re-reads the arm only once the controller
+    has run since its last read. After ``reset_to`` set the first state it has not (it last read the arm at the
+    reset before), so step 0's delta goes to the reset's pose; our conversion, like the recording, starts from the
+    pose of the state. Checked: robosuite's goal = the pose it used + the scaled delta at every step, it re-read the
+    arm at every step from step 1 on, and step 0's difference is the distance between the two poses."""
+    fresh = rm["controller_fresh"].astype(bool)
+    used = np.where(fresh[:, None], rm["obs/robot0_eef_pos"], rm["controller_pos"])
+    rule = used + rm["delta_scale"] * np.clip(deltas[:, :3], -1, 1)
+    behind = float(np.abs(rm["controller_pos"][0] - rm["obs/robot0_eef_pos"][0]).max())
     first = goal_diff(absolute[:1], rm["goal_pos"][:1], rm["goal_ori"][:1])
     gram = np.einsum("nij,nkj->nik", rm["goal_ori"], rm["goal_ori"])
     return {"later": goal_diff(absolute[1:], rm["goal_pos"][1:], rm["goal_ori"][1:]), "first": first,
             "robosuite_goal_not_orthonormal_by": float(np.abs(gram - np.eye(3)).max()),
             "robosuite_goal_rule_max_m": float(np.abs(rm["goal_pos"] - rule).max()),
-            "controller_pose_behind_first_m": float(held[0]),
-            "controller_pose_behind_later_m": float(held[1:].max()),
-            "first_explained": bool(abs(first["position_max_m"] - held[0]) <= 1e-9)}
+            "controller_reread_first": bool(fresh[0]), "controller_reread_later": bool(fresh[1:].all()),
+            "controller_pose_behind_first_m": behind,
+            "first_explained": bool(fresh[0] or abs(first["position_max_m"] - behind) <= 1e-9)}
 
 
 def action_ok(a: dict) -> bool:
     return (a["later"]["position_max_m"] <= GOAL_TOL and a["later"]["orientation_max_rad"] <= GOAL_ORI_TOL
-            and a["robosuite_goal_rule_max_m"] <= GOAL_TOL and a["controller_pose_behind_later_m"] <= GOAL_TOL
-            and a["first_explained"])
+            and a["robosuite_goal_rule_max_m"] <= GOAL_TOL and a["controller_reread_later"] and a["first_explained"])
 
 
 def stack(frames: list[dict]) -> dict:
@@ -268,22 +270,25 @@ def compare_files(ours: Path, theirs: Path) -> dict:
                 "ok": all(r["ok"] for r in rows.values())}
 
 
-def check_datasets(py: str, work: Path, demos: int) -> dict:
+def check_datasets(py: str, work: Path, demos: int, steps: int | None = None) -> dict:
     """(2) and the human-demonstration half of (3)."""
     from jepa_envs.datasets.convert_abs_actions import delta_to_abs_by_replay
     from jepa_envs.datasets.hdf5 import demo_names
     from jepa_envs.tasks.robomimic_env import RobomimicEnv, env_args_from_hdf5
     from jepa_policy.demo.pick import human_demos_file
 
-    raw = work / "lift_demo.hdf5"   # robosuite's file, its first `demos` demonstrations
+    raw = work / "lift_demo.hdf5"   # robosuite's file, its first `demos` demonstrations (their first `steps` steps)
     with h5py.File(human_demos_file()) as f, h5py.File(raw, "w") as g:
         data = g.create_group("data")
         for key, value in f["data"].attrs.items():
             data.attrs[key] = value
         for name in demo_names(f["data"])[:demos]:
-            f.copy(f["data"][name], data, name=name)
+            demo = data.create_group(name)
+            demo.attrs["model_file"] = f["data"][name].attrs["model_file"]
+            for key in ("states", "actions"):
+                demo.create_dataset(key, data=f["data"][name][key][:steps])
     run([py, "-m", "robomimic.scripts.conversion.convert_robosuite", "--dataset", raw], "robomimic convert_robosuite")
-    result = {"source": str(human_demos_file()), "demos": demos}
+    result = {"source": str(human_demos_file()), "demos": demos, "steps_per_demo": steps}
     # robomimic on the file as recorded
     started = time.perf_counter()
     as_recorded = render_robomimic(py, raw, "robomimic_as_recorded.hdf5")
@@ -318,6 +323,7 @@ def check_datasets(py: str, work: Path, demos: int) -> dict:
                 model = f["data"][name].attrs["model_file"]
                 states, deltas = f["data"][name]["states"][()], f["data"][name]["actions"][()]
                 info, rm = peer("replay", py, work, f"lift-{name}", env_args, model, states, deltas, ())
+                result["robomimic"] = info
                 delta_env.reset(seed=0, options={"model": model, "state": states[0]})
                 converted = delta_to_abs_by_replay(delta_env.backend, states, deltas)
                 written = o["data"][name]["actions"][()]
@@ -401,7 +407,7 @@ def table_lines(result: dict) -> list[str]:
 
 
 def write_table(path: Path, result: dict, args: str) -> None:
-    r = next(iter(result["tasks"].values()))["robomimic"]
+    r = next(iter(result["tasks"].values()))["robomimic"] if result["tasks"] else result["datasets"]["robomimic"]
     head = (f"# Parity of our robomimic tasks with robomimic {r['robomimic']}\n\nWritten by `make interop` "
             f"(scripts/interop_robomimic.py {args}) on {datetime.date.today()}; do not edit by hand. robomimic "
             f"{r['robomimic']} ran in its own venv with robosuite {r['robosuite']} and mujoco {r['mujoco']}, as ours "
@@ -414,7 +420,8 @@ def main() -> int:
     parser.add_argument("--robomimic-python", required=True, help="python of robomimic's venv")
     parser.add_argument("--steps", type=int, default=20, help="delta actions per task in robomimic's rollout")
     parser.add_argument("--demos", type=int, default=3, help="robosuite's human Lift demonstrations rendered (1-3)")
-    parser.add_argument("--tasks", nargs="+", default=list(TASKS), choices=TASKS)
+    parser.add_argument("--demo-steps", type=int, help="only the first N steps of each demonstration")
+    parser.add_argument("--tasks", nargs="*", default=list(TASKS), choices=TASKS)
     parser.add_argument("--skip-datasets", action="store_true", help="only the per-task checks (1) and (3)")
     parser.add_argument("--table", type=Path, help="write the table (markdown) here")
     parser.add_argument("--out", default="interop_out")
@@ -428,7 +435,7 @@ def main() -> int:
         for task in args.tasks:
             result["tasks"][task] = check_task(task, args.robomimic_python, Path(tmp), args.steps)
         if not args.skip_datasets:
-            result["datasets"] = check_datasets(args.robomimic_python, Path(tmp), args.demos)
+            result["datasets"] = check_datasets(args.robomimic_python, Path(tmp), args.demos, args.demo_steps)
     result["seconds"] = round(time.perf_counter() - started, 1)
     result["ok"] = all(r["ok"] for r in result["tasks"].values()) and result.get("datasets", {}).get("ok", True)
     print("\n".join(table_lines(result)))

@@ -10,7 +10,8 @@ Then, as ``dataset_states_to_obs.py`` does, for every t: ``reset_to({"states": s
 ``step(actions[t])`` gives the observation robomimic's step returns (``step_obs/<key>``), what ``get_observation()``
 says after it (``after_obs/<key>``), the state it reached (``next_states``) and the goal robosuite's
 OSC controller derived from the delta action (``goal_pos``, ``goal_ori``), beside the end-effector position the
-controller held before that step (``controller_pos``: the one it adds the delta to). ``observe`` gives only
+controller held before that step and whether it re-reads the arm first (``controller_pos``, ``controller_fresh``).
+``observe`` gives only
 ``obs/<key>`` of each of ``states``. Each prints one JSON line.
 """
 from __future__ import annotations
@@ -63,12 +64,14 @@ def replay(src: str, dst: str) -> dict:
         env.reset_to({"model": str(data["model"]), "states": states[0]})
     out = {"states": states}
     frames = {"obs": [], "step_obs": [], "after_obs": []}
-    next_states, goal_pos, goal_ori, controller_pos = [], [], [], []
+    next_states, goal_pos, goal_ori, controller_pos, controller_fresh = [], [], [], [], []
     robot = env.env.robots[0]
     for state, action in zip(states, actions):
         frames["obs"].append(env.reset_to({"states": state}))
-        # the pose the controller will add the delta to: robosuite re-reads it only after it last ran
+        # the pose the controller adds the delta to: robosuite re-reads the arm (new_update) only once the controller
+        # has run since it last read it; otherwise the pose it holds
         controller_pos.append(np.array(robot.controller.ee_pos))
+        controller_fresh.append(bool(robot.controller.new_update))
         frames["step_obs"].append(env.step(action)[0])
         next_states.append(sim_state(env))
         goal_pos.append(np.array(robot.controller.goal_pos))
@@ -76,7 +79,8 @@ def replay(src: str, dst: str) -> dict:
         if cameras:
             frames["after_obs"].append(env.get_observation())
     out.update(next_states=np.stack(next_states), goal_pos=np.stack(goal_pos), goal_ori=np.stack(goal_ori),
-               controller_pos=np.stack(controller_pos), delta_scale=robot.controller.scale_action(np.ones(6))[:3])
+               controller_pos=np.stack(controller_pos), controller_fresh=np.array(controller_fresh),
+               delta_scale=robot.controller.scale_action(np.ones(6))[:3])
     for prefix, seen in frames.items():
         if seen:
             out.update(stack(seen, prefix))
