@@ -159,10 +159,11 @@ class RobosuiteTaskEnv(JEPAEnv):
         self._outcome = OutcomeTracker(backend) if pick_object(backend) is not None else None
         self.action_space = self._make_action_space()
         self._resumed_cameras: set[str] = set()
-        # Observations are read at the END of each control step (``step``: a forced update), as robomimic's env
-        # wrapper does and as its datasets are rendered from recorded states, so a recorded state re-renders to
-        # the frame seen live (render-dataset). robosuite's own clock samples observables early in a step; the
-        # cameras are made to never sample on it, so each is still rendered once per step.
+        # Observations are read at the END of each control step (``step``: a forced update), as robomimic's datasets
+        # are rendered from recorded states (its ``step`` returns robosuite's clock-sampled ones instead), so a
+        # recorded state re-renders to the frame seen live (render-dataset). robosuite's own clock samples
+        # observables early in a step; the cameras are made to never sample on it, so each is still rendered once
+        # per step.
         for key in self._camera_keys.values():
             backend.modify_observable(observable_name=key, attribute="sampling_rate", modifier=1e-9)
 
