@@ -167,6 +167,9 @@ def load(targets: list[Target], binary: bool, batch: int, dim: int, concurrency:
     cpu1 = [_cpu_seconds(t.pid) for t in targets]
     if errors:
         raise RuntimeError(f"the server refused a request: {errors[0]}")
+    if not latencies:
+        raise RuntimeError(f"no request was answered in {seconds:g} s (load average {os.getloadavg()[0]:.1f}); "
+                           "run the bench with more --seconds or on a quieter machine")
     lat = np.asarray(latencies) * 1000
     row = {"requests_per_s": counts["requests"] / elapsed, "decisions_per_s": counts["decisions"] / elapsed,
            "records_per_s": counts["records"] / elapsed, "p50_ms": float(np.percentile(lat, 50)),

@@ -162,8 +162,8 @@ def test_kill_9_during_batches_keeps_every_acknowledged_one_whole(tmp_path):
     (-9): every acknowledged batch is there after the restart, and every batch is there whole or not at all."""
     url = f"sqlite:///{tmp_path / 'monitor.db'}"
     port = free_port()
-    server = start_server(url, admin_key=ADMIN, port=port, log_path=tmp_path / "s.log")
-    http = httpx.Client(base_url=server.url, timeout=30)
+    server = start_server(url, admin_key=ADMIN, port=port, log_path=tmp_path / "s.log", ready_timeout=300)
+    http = httpx.Client(base_url=server.url, timeout=120)
     try:
         http.put("/v1/tasks/Square", json={"latent_dim": DIM}, headers={"X-API-Key": ADMIN}).raise_for_status()
         robot = {"X-API-Key": http.post("/v1/keys", json={"name": "arm1", "role": "robot", "robot": "arm1"},
@@ -177,7 +177,7 @@ def test_kill_9_during_batches_keeps_every_acknowledged_one_whole(tmp_path):
 
         def writer(w: int) -> None:
             rng = np.random.default_rng(w)
-            with httpx.Client(base_url=server.url, timeout=30) as h:
+            with httpx.Client(base_url=server.url, timeout=120) as h:
                 for i in range(10_000):
                     if stop.is_set():
                         return
@@ -200,15 +200,15 @@ def test_kill_9_during_batches_keeps_every_acknowledged_one_whole(tmp_path):
 
         with concurrent.futures.ThreadPoolExecutor(4) as pool:
             futures = [pool.submit(writer, w) for w in range(4)]
-            deadline = time.monotonic() + 60
-            while len(acked) < 12 and time.monotonic() < deadline:
+            deadline = time.monotonic() + 300   # a loaded machine may take minutes for the first few
+            while len(acked) < 8 and time.monotonic() < deadline:
                 time.sleep(0.05)
             server.kill()
             stop.set()
             for f in futures:
                 f.result()
-        assert len(acked) >= 12
-        server = start_server(url, admin_key=ADMIN, port=port, log_path=tmp_path / "s.log")
+        assert len(acked) >= 8
+        server = start_server(url, admin_key=ADMIN, port=port, log_path=tmp_path / "s.log", ready_timeout=300)
         found = {e["id"]: e for e in http.get("/v1/episodes?limit=5000", headers=op).json()}
         assert set(acked) <= set(found) <= set(sent)
         for episode in found:

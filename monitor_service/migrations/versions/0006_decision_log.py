@@ -28,8 +28,8 @@ Z_HAT, Z_NOW, TARGET = 0, 1, 2
 NAN = float("nan")
 
 LOG = sa.table("decision_log", sa.column("episode_id", sa.String), sa.column("decisions", sa.LargeBinary),
-               sa.column("scores", sa.JSON(none_as_null=True)), sa.column("rescored", sa.LargeBinary), sa.column("dim", sa.Integer),
-               sa.column("entries", sa.LargeBinary), sa.column("latents", sa.LargeBinary),
+               sa.column("scores", sa.JSON(none_as_null=True)), sa.column("rescored", sa.LargeBinary),
+               sa.column("dim", sa.Integer), sa.column("entries", sa.LargeBinary), sa.column("latents", sa.LargeBinary),
                sa.column("created_at", sa.DateTime))
 
 
