@@ -270,11 +270,44 @@ def compare_files(ours: Path, theirs: Path) -> dict:
                 "ok": all(r["ok"] for r in rows.values())}
 
 
-def check_datasets(py: str, work: Path, demos: int, steps: int | None = None) -> dict:
-    """(2) and the human-demonstration half of (3)."""
+def human_actions(py: str, work: Path, refit: Path, ours: Path) -> list[dict]:
+    """(3) on robosuite's human Lift demonstrations: robomimic replays each recorded delta action from its recorded
+    state in the refit model; our conversion of the same actions (float64) and the absolute actions `render-dataset`
+    wrote to ``ours`` (float32) are compared with robosuite's goals, and the latter stepped from each state."""
     from jepa_envs.datasets.convert_abs_actions import delta_to_abs_by_replay
     from jepa_envs.datasets.hdf5 import demo_names
     from jepa_envs.tasks.robomimic_env import RobomimicEnv, env_args_from_hdf5
+
+    env_args = env_args_from_hdf5(refit)
+    env = RobomimicEnv.from_env_args(env_args, image_size=SIZE)
+    delta_env = RobomimicEnv.from_env_args(env_args, image_size=SIZE, action_mode="delta")
+    env.set_render_images(False)
+    delta_env.set_render_images(False)
+    rows = []
+    try:
+        with h5py.File(refit) as f, h5py.File(ours) as o:
+            for name in demo_names(f["data"]):
+                model = f["data"][name].attrs["model_file"]
+                states, deltas = f["data"][name]["states"][()], f["data"][name]["actions"][()]
+                info, rm = peer("replay", py, work, f"lift-{name}", env_args, model, states, deltas, ())
+                delta_env.reset(seed=0, options={"model": model, "state": states[0]})
+                converted = delta_to_abs_by_replay(delta_env.backend, states, deltas)
+                written = o["data"][name]["actions"][()]
+                reached, _ = replay_ours(env, model, states, written)
+                gap = np.abs(reached - rm["next_states"]).max(axis=1)
+                rows.append({"demo": name, "steps": len(states), "robomimic": info,
+                             "converted": action_diff(converted, rm, deltas),
+                             "written_float32": action_diff(written, rm, deltas),
+                             "state_first": float(gap[0]), "state_later": float(gap[1:].max())})
+    finally:
+        env.close()
+        delta_env.close()
+    return rows
+
+
+def check_datasets(py: str, work: Path, demos: int, steps: int | None = None) -> dict:
+    """(2) and the human-demonstration half of (3)."""
+    from jepa_envs.datasets.hdf5 import demo_names
     from jepa_policy.demo.pick import human_demos_file
 
     raw = work / "lift_demo.hdf5"   # robosuite's file, its first `demos` demonstrations (their first `steps` steps)
@@ -311,30 +344,8 @@ def check_datasets(py: str, work: Path, demos: int, steps: int | None = None) ->
                                        "state_error": max(e["state_error"] for e in report["episodes"]),
                                        **compare_files(work / "ours.hdf5", theirs)}}
     # 3. the actions render-dataset wrote (float32) and the conversion itself (float64), against robomimic's replay
-    env_args = env_args_from_hdf5(refit)
-    env = RobomimicEnv.from_env_args(env_args, image_size=SIZE)
-    delta_env = RobomimicEnv.from_env_args(env_args, image_size=SIZE, action_mode="delta")
-    env.set_render_images(False)
-    delta_env.set_render_images(False)
-    rows = []
-    try:
-        with h5py.File(refit) as f, h5py.File(work / "ours.hdf5") as o:
-            for name in demo_names(f["data"]):
-                model = f["data"][name].attrs["model_file"]
-                states, deltas = f["data"][name]["states"][()], f["data"][name]["actions"][()]
-                info, rm = peer("replay", py, work, f"lift-{name}", env_args, model, states, deltas, ())
-                result["robomimic"] = info
-                delta_env.reset(seed=0, options={"model": model, "state": states[0]})
-                converted = delta_to_abs_by_replay(delta_env.backend, states, deltas)
-                written = o["data"][name]["actions"][()]
-                reached, _ = replay_ours(env, model, states, written)
-                gap = np.abs(reached - rm["next_states"]).max(axis=1)
-                rows.append({"demo": name, "steps": len(states), "converted": action_diff(converted, rm, deltas),
-                             "written_float32": action_diff(written, rm, deltas),
-                             "state_first": float(gap[0]), "state_later": float(gap[1:].max())})
-    finally:
-        env.close()
-        delta_env.close()
+    rows = human_actions(py, work, refit, work / "ours.hdf5")
+    result["robomimic"] = rows[0].pop("robomimic")
     result["actions"] = rows
     result["ok"] = (all(f["ok"] for f in result["files"].values())
                     and all(action_ok(r["converted"]) for r in rows))
