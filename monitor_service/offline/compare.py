@@ -34,6 +34,10 @@ pooled across checkpoints):
   balanced accuracy, the Clopper-Pearson interval of the false-alert rate; detection time: for natural failures
   the lead before the episode's end (env steps), for faults the delay after the onset (env steps, and in
   decisions of ``n_action_steps``); an alert raised before a fault's onset is no detection of it.
+
+One module of about 690 lines on purpose: reading the records, ranking (per regime, per failure kind, paired),
+cross-fitted detection and the tables that print them share one ``Episode`` model and are read together when a
+published figure is questioned; the text functions (from ``_auc`` on) are the last quarter.
 """
 from __future__ import annotations
 
