@@ -14,7 +14,8 @@ pytest.importorskip("robosuite", reason="robosuite is part of the [sim] extra")
 
 import jepa_envs  # noqa: E402,F401  registers the ids
 from jepa_envs.datasets.convert_abs_actions import delta_to_abs_by_replay  # noqa: E402
-from jepa_envs.tasks.robomimic_env import RobomimicEnv, robomimic_env_args  # noqa: E402
+from jepa_envs.tasks.robomimic_env import robomimic_env_args  # noqa: E402
+from jepa_envs.tasks.robosuite_common import set_control_delta  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[3]
 ROBOMIMIC_PYTHON = ROOT / ".cache" / "interop" / "robomimic" / "bin" / "python"
@@ -33,7 +34,6 @@ def _interop():
 def test_robomimic_sees_our_lift_states_as_we_do_and_its_replay_sets_our_absolute_goals(tmp_path):
     check = _interop()
     env = gym.make("JEPA/Lift-v0", image_size=check.SIZE).unwrapped
-    delta_env = RobomimicEnv("Lift", image_size=check.SIZE, action_mode="delta")
     spec = env.task_spec
     keys = (*spec.image_keys, *spec.lowdim_keys)
     try:
@@ -53,11 +53,10 @@ def test_robomimic_sees_our_lift_states_as_we_do_and_its_replay_sets_our_absolut
         assert all(r["ok"] for r in rows.values()), rows
         assert all(rows[k]["equal"] for k in spec.image_keys)   # the same pixels, flipped upright alike
         assert all(rows[k]["float32_of_theirs"] for k in spec.lowdim_keys)   # robosuite's values as float32
-        delta_env.set_render_images(False)
-        delta_env.reset(seed=3, options={"model": model, "state": states[0]})
-        actions = check.action_diff(delta_to_abs_by_replay(delta_env.backend, states, deltas), theirs, deltas)
+        set_control_delta(env.backend, True)   # the conversion reads the goals robosuite's delta controller sets
+        absolute = delta_to_abs_by_replay(env.backend, states, deltas)
+        actions = check.action_diff(absolute, theirs, deltas)
         assert check.action_ok(actions), actions
         assert actions["later"]["position_max_m"] == 0.0
     finally:
         env.close()
-        delta_env.close()
