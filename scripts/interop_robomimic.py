@@ -135,8 +135,8 @@ def action_diff(absolute: np.ndarray, rm: dict, deltas: np.ndarray) -> dict:
     if k < len(absolute):
         later["orientation_max_rad"] = goal_diff(absolute[k:], rm["goal_pos"][k:], rm["goal_ori"][k:])[
             "orientation_max_rad"]
-    else:
-        later["orientation_max_rad"] = 0.0
+    else:   # no rotation delta at all: every orientation is step 0's, compared below
+        later["orientation_max_rad"] = None
     carried = [goal_diff(absolute[t:t + 1], rm["goal_pos"][t:t + 1], rm["goal_ori"][t:t + 1])["orientation_max_rad"]
                for t in range(1, k)]
     gram = np.einsum("nij,nkj->nik", rm["goal_ori"], rm["goal_ori"])
@@ -152,7 +152,8 @@ def action_diff(absolute: np.ndarray, rm: dict, deltas: np.ndarray) -> dict:
 
 
 def action_ok(a: dict) -> bool:
-    return (a["later"]["position_max_m"] <= GOAL_TOL and a["later"]["orientation_max_rad"] <= GOAL_ORI_TOL
+    ori = a["later"]["orientation_max_rad"]
+    return (a["later"]["position_max_m"] <= GOAL_TOL and (ori is None or ori <= GOAL_ORI_TOL)
             and a["robosuite_goal_rule_max_m"] <= GOAL_TOL and a["controller_reread_later"] and a["first_explained"]
             and a["orientation_carried_is_step0s"])
 
