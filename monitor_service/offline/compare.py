@@ -316,8 +316,11 @@ def paired_differences(episodes: list[Episode], signals, cut: int | None, n_boot
             if pairs.size == 0 or len(set(pairs[:, 2])) < 2:
                 out[ours][other] = {"difference": None, "ci": None, "reason": "both classes needed"}
                 continue
-            out[ours][other] = stats.paired_auroc_difference(pairs[:, 0], pairs[:, 1], pairs[:, 2].astype(int),
-                                                            n_bootstrap, seed)
+            try:
+                out[ours][other] = stats.paired_auroc_difference(pairs[:, 0], pairs[:, 1], pairs[:, 2].astype(int),
+                                                                n_bootstrap, seed)
+            except ValueError as exc:   # e.g. an episode score that overflowed: no figure, and why
+                out[ours][other] = {"difference": None, "ci": None, "reason": str(exc)}
     return out
 
 

@@ -217,20 +217,21 @@ async function refresh() {
       h("td", {}, e.alert_note)));
   }
 
-  const traj = document.getElementById("trajectories");
-  traj.replaceChildren();
-  for (const t of tasks) {
-    const details = await Promise.all(liveOf[t].slice(0, TRAJECTORIES_PER_TASK).map((e) =>
-      api(`/v1/episodes/${encodeURIComponent(e.id)}`)));
+  // every task's charts are built first and swapped in at once: a reader never sees a half-drawn section
+  const details = await Promise.all(tasks.map((t) => Promise.all(liveOf[t].slice(0, TRAJECTORIES_PER_TASK).map((e) =>
+    api(`/v1/episodes/${encodeURIComponent(e.id)}`)))));
+  const drawn = [];
+  tasks.forEach((t, i) => {
     const box = h("div", { class: "chart", "data-task": t });
-    for (const d of details) {
+    for (const d of details[i]) {
       for (const [signal, pts] of Object.entries(d.signal_risk || {})) {
         if (d.rule !== null && pts.length) box.append(trajectoryChart(d, signal));
       }
     }
-    if (box.children.length) traj.append(h("h3", {}, t), box);
-  }
-  if (!traj.children.length) traj.append(h("p", {}, "No live episode has a scored decision under a usable calibration."));
+    if (box.children.length) drawn.push(h("h3", {}, t), box);
+  });
+  document.getElementById("trajectories").replaceChildren(...(drawn.length ? drawn :
+    [h("p", {}, "No live episode has a scored decision under a usable calibration.")]));
 }
 
 async function acknowledge(id) {
