@@ -58,29 +58,38 @@ def _auroc_from_positive_rank_sums(rank_sums: np.ndarray, n1: int, n0: int) -> n
     return (rank_sums - n1 * (n1 + 1) / 2) / (n1 * n0)
 
 
+def _stratified_bootstrap_aurocs(signals: list[np.ndarray], labels: np.ndarray, n_resamples: int,
+                                 seed: int) -> np.ndarray:
+    """AUROC of each signal on ``n_resamples`` stratified resamples of the episodes, shape (signals, resamples).
+
+    Each resample draws the failures from the failures and the successes from the successes with replacement
+    (both classes kept at the data's sizes); every signal is read on the same resampled episodes."""
+    rng = np.random.default_rng(seed)
+    pos, neg = np.flatnonzero(labels == 1), np.flatnonzero(labels == 0)
+    n1, n0 = pos.size, neg.size
+    out = np.empty((len(signals), n_resamples))
+    for start in range(0, n_resamples, _CHUNK):
+        m = min(_CHUNK, n_resamples - start)
+        idx = np.concatenate([pos[rng.integers(0, n1, size=(m, n1))], neg[rng.integers(0, n0, size=(m, n0))]], axis=1)
+        for i, values in enumerate(signals):
+            ranks = rankdata(values[idx], axis=1)
+            out[i, start : start + m] = _auroc_from_positive_rank_sums(ranks[:, :n1].sum(axis=1), n1, n0)
+    return out
+
+
+def _percentile_interval(values: np.ndarray, level: float) -> tuple[float, float]:
+    tail = (1.0 - level) / 2 * 100
+    low, high = np.percentile(values, [tail, 100 - tail])
+    return float(low), float(high)
+
+
 def bootstrap_auroc_ci(
     scores: np.ndarray, labels: np.ndarray, n_resamples: int = 10_000, seed: int = 0, level: float = 0.95
 ) -> tuple[float, float]:
-    """Stratified episode-level percentile bootstrap CI of the AUROC.
-
-    Each resample draws the failures from the failures and the successes from the successes with replacement,
-    so every resample keeps both classes and the class sizes of the data.
-    """
+    """Stratified episode-level percentile bootstrap CI of the AUROC (``_stratified_bootstrap_aurocs``): every
+    resample keeps both classes and the class sizes of the data."""
     scores, labels = _check(scores, labels)
-    rng = np.random.default_rng(seed)
-    pos, neg = scores[labels == 1], scores[labels == 0]
-    n1, n0 = pos.size, neg.size
-    out = np.empty(n_resamples)
-    for start in range(0, n_resamples, _CHUNK):
-        b = min(_CHUNK, n_resamples - start)
-        sample = np.concatenate(
-            [pos[rng.integers(0, n1, size=(b, n1))], neg[rng.integers(0, n0, size=(b, n0))]], axis=1
-        )
-        ranks = rankdata(sample, axis=1)
-        out[start : start + b] = _auroc_from_positive_rank_sums(ranks[:, :n1].sum(axis=1), n1, n0)
-    tail = (1.0 - level) / 2 * 100
-    low, high = np.percentile(out, [tail, 100 - tail])
-    return float(low), float(high)
+    return _percentile_interval(_stratified_bootstrap_aurocs([scores], labels, n_resamples, seed)[0], level)
 
 
 def paired_auroc_difference(
@@ -93,20 +102,10 @@ def paired_auroc_difference(
     """
     a, labels = _check(a, labels)
     b, _ = _check(b, labels)
-    rng = np.random.default_rng(seed)
-    pos, neg = np.flatnonzero(labels == 1), np.flatnonzero(labels == 0)
-    n1, n0 = pos.size, neg.size
-    out = np.empty(n_resamples)
-    for start in range(0, n_resamples, _CHUNK):
-        m = min(_CHUNK, n_resamples - start)
-        idx = np.concatenate([pos[rng.integers(0, n1, size=(m, n1))], neg[rng.integers(0, n0, size=(m, n0))]], axis=1)
-        auc_a = _auroc_from_positive_rank_sums(rankdata(a[idx], axis=1)[:, :n1].sum(axis=1), n1, n0)
-        auc_b = _auroc_from_positive_rank_sums(rankdata(b[idx], axis=1)[:, :n1].sum(axis=1), n1, n0)
-        out[start : start + m] = auc_a - auc_b
-    tail = (1.0 - level) / 2 * 100
-    low, high = np.percentile(out, [tail, 100 - tail])
-    return {"difference": auroc(a, labels) - auroc(b, labels), "ci": [float(low), float(high)],
-            "n": int(labels.size), "n_failure": int(n1)}
+    auc_a, auc_b = _stratified_bootstrap_aurocs([a, b], labels, n_resamples, seed)
+    low, high = _percentile_interval(auc_a - auc_b, level)
+    return {"difference": auroc(a, labels) - auroc(b, labels), "ci": [low, high],
+            "n": int(labels.size), "n_failure": int(labels.sum())}
 
 
 def permutation_p_value(scores: np.ndarray, labels: np.ndarray, n_resamples: int = 10_000, seed: int = 0) -> float:
