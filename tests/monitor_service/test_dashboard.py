@@ -15,9 +15,11 @@ from monitor_service.cli import main
 from monitor_service.db import Alert, ApiKey, make_engine, make_sessionmaker
 from monitor_service.server import start_server
 
-CHROMIUM = "/usr/bin/chromium"
-ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
-        "--disable-background-networking", "--disable-component-update", "--disable-sync"]
+_spec = importlib.util.spec_from_file_location(
+    "dashboard_screenshot", Path(__file__).parents[2] / "scripts" / "dashboard_screenshot.py")
+shot = importlib.util.module_from_spec(_spec)
+_spec.loader.exec_module(shot)
+CHROMIUM, ARGS = shot.CHROMIUM, shot.ARGS   # the browser and flags the screenshot script uses
 
 pytestmark = [
     pytest.mark.browser,
@@ -149,10 +151,6 @@ def test_dashboard_shows_three_tasks_each_with_its_own_threshold_alerts_and_traj
     assert main(argv) == 2, "a second study into the same kept database is refused"
     study = json.loads((tmp_path / "study.json").read_text())
 
-    spec = importlib.util.spec_from_file_location(
-        "dashboard_screenshot", Path(__file__).parents[2] / "scripts" / "dashboard_screenshot.py")
-    shot = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(shot)
     png = tmp_path / "dashboard.png"
     checked = shot.screenshot(f"sqlite:///{keep / 'tasks_study.db'}", png)
     assert set(checked) == {"PushT", "Lift", "Can"}
