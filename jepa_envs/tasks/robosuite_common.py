@@ -342,12 +342,16 @@ class RobosuiteTaskEnv(JEPAEnv):
     def step(self, action):
         if self.render_images:
             self._make_gl_current()
-        _, reward, _done, _info = self.backend.step(self.to_native(action))
+        native = self.to_native(action)
+        self.backend.step(native)
         # MuJoCo's step leaves positions (xpos, sites) computed for the state before its integration: forward to
-        # the final state, then read every observation from it (see __init__)
+        # the final state, then read every observation, the success and the reward from it (see __init__).
+        # robosuite's own step computed its reward before that forward, from the old positions: on the step that
+        # succeeds it could still be 0 while success is read as True (an episode's max reward 0 on a success)
         self.backend.sim.forward()
         raw = self.backend._get_observations(force_update=True)
         success = bool(self._success_fn())
+        reward = self.backend.reward(native)
         info = {"is_success": success}
         if self._outcome is not None:
             info["failure_kind"] = self._outcome.update(success)

@@ -92,6 +92,26 @@ def test_the_cli_knows_every_expert():
     assert set(ROBOSUITE_EXPERT_TASKS) == set(EXPERTS)
 
 
+def test_the_sparse_reward_is_read_from_the_same_state_as_success_on_every_step(envs):
+    """robosuite computes its reward before the forward that our step runs; the step that first succeeds could
+    return reward 0 with is_success True, so a successful episode's max reward was 0 (12 of Lift JEPA's 188
+    successes). Seed 2's expert is such an episode: robosuite's own reward on its success step is 0."""
+    task = "Lift"
+    env = envs(task)
+    expert = expert_for(task, seed=2)
+    env.reset(seed=2)
+    expert.reset(env)
+    rewards, successes = [], []
+    for _ in range(env.task_spec.max_episode_steps):
+        _, reward, terminated, _, info = env.step(expert.act(env))
+        rewards.append(reward)
+        successes.append(info["is_success"])
+        if terminated:
+            break
+    assert successes[-1], "the scripted expert should succeed from seed 2"
+    assert rewards == [float(s) for s in successes]
+
+
 @pytest.mark.parametrize("task", ["Lift", "Can"])
 def test_each_kept_demo_ends_in_success_and_seeds_differ(task, lift_raw, can_raw, envs):
     episodes, env_args = lift_raw if task == "Lift" else can_raw
