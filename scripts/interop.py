@@ -6,18 +6,22 @@ LeRobot (its own dataset code, LeRobot 0.4.4, in its venv):
   2. A dataset written by LeRobot's ``LeRobotDataset.create / add_frame / save_episode / finalize`` is imported
      with `jepa-envs lerobot import` and compared with what was added; `jepa-policy train --dataset ROOT`
      trains from it.
+  3. lerobot/pusht's layout written by LeRobot itself (``check_lerobot_layout`` in scripts/interop_pusht.py).
 openpi (the published ``openpi-client``, in its venv): see ``check_openpi``.
 
-Prints one table per check and writes interop_out/interop.json. Exit 1 when any check fails.
+Prints one table per check and writes interop_out/<part>.json (lerobot.json, openpi.json) with its wall time and the
+run id scripts/interop.sh gives (``INTEROP_RUN_ID``). Exit 1 when any check fails.
 """
 from __future__ import annotations
 
 import argparse
 import json
+import os
 import shutil
 import subprocess
 import sys
 import tempfile
+import time
 from pathlib import Path
 
 import h5py
@@ -144,17 +148,30 @@ def main() -> int:
     work = Path(tempfile.mkdtemp(prefix="jepa-interop-"))
     try:
         if args.only in (None, "lerobot"):
+            from interop_pusht import check_lerobot_layout, print_lerobot_layout
+            started = time.perf_counter()
             report["lerobot"] = check_lerobot(args.lerobot_python, work)
             print_lerobot(report["lerobot"])
+            (work / "layout").mkdir()
+            layout = report["lerobot"]["lerobot_pusht_layout"] = check_lerobot_layout(args.lerobot_python,
+                                                                                      work / "layout")
+            print_lerobot_layout(layout)
+            report["lerobot"]["ok"] = report["lerobot"]["ok"] and layout["ok"]
+            report["lerobot"]["seconds"] = round(time.perf_counter() - started, 1)
         if args.only in (None, "openpi"):
             from interop_openpi import check_openpi, print_openpi
+            started = time.perf_counter()
             report["openpi"] = check_openpi(args.openpi_python, work)
+            report["openpi"]["seconds"] = round(time.perf_counter() - started, 1)
             print_openpi(report["openpi"])
     finally:
         shutil.rmtree(work, ignore_errors=True)
-    (out / "interop.json").write_text(json.dumps(report, indent=2, default=str))
+    for part, result in report.items():
+        result["run_id"] = os.environ.get("INTEROP_RUN_ID")
+        (out / f"{part}.json").write_text(json.dumps(result, indent=2, default=str))
     ok = all(part["ok"] for part in report.values())
-    print(f"interop: {'all checks passed' if ok else 'FAILED'} (details in {out / 'interop.json'})")
+    print(f"interop: {'all checks passed' if ok else 'FAILED'} (details in "
+          f"{', '.join(str(out / f'{part}.json') for part in report)})")
     return 0 if ok else 1
 
 

@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
 # `make interop`: check our LeRobot and openpi integrations against the real libraries users run, each in a venv
-# of its own (their pins clash with ours), then run scripts/interop.py. Idempotent: a second run only checks.
+# of its own (their pins clash with ours), then run the checks (scripts/interop*.py) and print one summary table
+# (scripts/interop_summary.py). Idempotent: a second run only checks.
 #
 #   LeRobot 0.4.4 (the newest release for Python 3.11, LeRobotDataset v3.0) pins torch < 2.11; it is installed
 #   with --no-deps beside torch 2.13.0 and torchvision 0.28.0 from PyPI (its dataset code imports torchvision,
@@ -86,11 +87,37 @@ if ! "$ROBOMIMIC/bin/python" -c "import robomimic.scripts.dataset_states_to_obs,
   [ -f "$SITE/robomimic/macros_private.py" ] || "$ROBOMIMIC/bin/python" -m robomimic.scripts.setup_macros >/dev/null
 fi
 
-status=0
-python3 scripts/interop_pusht.py --gym-pusht-python "$GYM_PUSHT/bin/python" \
-  --lerobot-python "$LEROBOT/bin/python" --table docs/pusht_parity.md || status=1
-python3 scripts/interop.py --lerobot-python "$LEROBOT/bin/python" --openpi-python "$OPENPI/bin/python" "$@" || status=1
-python3 scripts/interop_lerobot_policy.py --lerobot-venv "$LEROBOT" || status=1
-python3 scripts/interop_robomimic.py --robomimic-python "$ROBOMIMIC/bin/python" --table docs/robomimic_parity.md \
-  || status=1
-exit $status
+# Each part runs through `part`, which keeps its output in interop_out/parts/NAME.log and writes its exit status, wall
+# time and the load before and after to interop_out/parts/NAME.json with this run's id; each part's script writes its
+# own result with the id too, and scripts/interop_summary.py prints one table of this run's parts (a part with no
+# result of this run is a FAIL, never an earlier run's pass).
+OUT=interop_out
+export PYTHONUNBUFFERED=1 INTEROP_RUN_ID
+INTEROP_RUN_ID="$(date -u +%Y%m%dT%H%M%SZ)-$$"
+mkdir -p "$OUT/parts"
+LOAD_START=$(cut -d' ' -f1-3 /proc/loadavg)
+STARTED=$SECONDS
+part() {
+  local name=$1 start=$SECONDS load rc
+  shift
+  load=$(cut -d' ' -f1-3 /proc/loadavg)
+  echo "[interop] $name: $*"
+  set +e
+  "$@" 2>&1 | tee "$OUT/parts/$name.log"
+  rc=${PIPESTATUS[0]}
+  set -e
+  printf '{"part": "%s", "run_id": "%s", "exit": %d, "seconds": %d, "load_before": "%s", "load_after": "%s"}\n' \
+    "$name" "$INTEROP_RUN_ID" "$rc" $((SECONDS - start)) "$load" "$(cut -d' ' -f1-3 /proc/loadavg)" \
+    > "$OUT/parts/$name.json"
+}
+part lerobot-data python3 scripts/interop.py --only lerobot --lerobot-python "$LEROBOT/bin/python" \
+  --openpi-python "$OPENPI/bin/python" --out "$OUT"
+part lerobot-plugin python3 scripts/interop_lerobot_policy.py --lerobot-venv "$LEROBOT" --work "$OUT/lerobot_policy"
+part openpi python3 scripts/interop.py --only openpi --lerobot-python "$LEROBOT/bin/python" \
+  --openpi-python "$OPENPI/bin/python" --out "$OUT"
+part gym-pusht python3 scripts/interop_pusht.py --gym-pusht-python "$GYM_PUSHT/bin/python" \
+  --table docs/pusht_parity.md --out "$OUT"
+part robomimic python3 scripts/interop_robomimic.py --robomimic-python "$ROBOMIMIC/bin/python" \
+  --table docs/robomimic_parity.md --out "$OUT"
+python3 scripts/interop_summary.py --run-id "$INTEROP_RUN_ID" --seconds $((SECONDS - STARTED)) --load "$LOAD_START" \
+  --out "$OUT"

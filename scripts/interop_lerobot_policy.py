@@ -12,7 +12,8 @@ In order, each step timed (scripts/interop.sh runs it after building the venv):
      max |z_hat difference|; ``jepa-policy eval`` runs it on our PushTStandard with the future latent scored;
   5. a checkpoint of ours (``jepa-policy train``) converted with ``python -m lerobot_policy_jepa.convert``: the same
      comparison, and ``lerobot-eval`` runs it.
-Prints the numbers as JSON and writes them to WORK/lerobot_policy.json. Exit 1 when a check fails.
+Prints the numbers as JSON and writes them to WORK/lerobot_policy.json (with its wall time and the run id
+scripts/interop.sh gives, ``INTEROP_RUN_ID``). Exit 1 when a check fails.
 """
 from __future__ import annotations
 
@@ -96,7 +97,8 @@ def lerobot_train(venv: Path, root: Path, out: Path, steps: int, batch: int, arm
     checkpoint = out / "checkpoints" / f"{steps:06d}" / "pretrained_model"
     if not checkpoint.is_dir():
         raise RuntimeError(f"lerobot-train wrote no {checkpoint}:\n{log[-3000:]}")
-    return {"command": " ".join(cmd), "seconds": seconds, "losses": losses, "checkpoint": str(checkpoint)}
+    return {"command": " ".join(cmd), "steps": steps, "seconds": seconds, "losses": losses,
+            "checkpoint": str(checkpoint)}
 
 
 def lerobot_eval(venv: Path, policy: Path, out: Path, episodes: int) -> dict:
@@ -211,7 +213,8 @@ def main() -> int:
         raise SystemExit(f"{venv} has no lerobot-train; build it with `make interop` (scripts/interop.sh)")
     shutil.rmtree(work, ignore_errors=True)
     work.mkdir(parents=True)
-    result: dict = {}
+    started = time.perf_counter()
+    result: dict = {"run_id": os.environ.get("INTEROP_RUN_ID")}   # scripts/interop.sh's, for its summary
     root, episodes, result["dataset_seconds"] = write_dataset(str(venv / "bin" / "python"), work, args.demos)
     result["dataset"] = {"episodes": len(episodes), "frames": int(sum(len(e["actions"]) for e in episodes))}
     obs_file = observations(episodes, args.observations, work / "observations.npz")
@@ -238,6 +241,7 @@ def main() -> int:
               result["mip_lerobot_to_ours"]["max_abs_action_diff"] == 0.0,
               result["eval_lerobot"]["episodes"] == args.episodes]
     result["ok"] = all(checks)
+    result["seconds"] = round(time.perf_counter() - started, 1)
     print(json.dumps(result, indent=2))
     (work / "lerobot_policy.json").write_text(json.dumps(result, indent=2))
     return 0 if result["ok"] else 1

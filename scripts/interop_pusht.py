@@ -14,7 +14,8 @@ Per step: the simulated state, coverage, reward, termination/success, n_contacts
     python scripts/interop_pusht.py --gym-pusht-python .cache/interop/gym_pusht/bin/python \\
         [--seeds 50] [--steps 300] [--table docs/pusht_parity.md] [--fixture tests/jepa_envs/tasks/data/...]
 
-Prints the parity table and the speed table, writes interop_out/pusht.json, optionally the markdown table and a
+Prints the parity table and the speed table, writes interop_out/pusht.json (with its wall time and the run id
+scripts/interop.sh gives, ``INTEROP_RUN_ID``), optionally the markdown table and a
 small reference file of gym-pusht's own outputs for the unit tests. Exit 1 when a check fails.
 """
 from __future__ import annotations
@@ -26,6 +27,7 @@ import os
 import subprocess
 import sys
 import tempfile
+import time
 from pathlib import Path
 
 import numpy as np
@@ -434,6 +436,7 @@ def main() -> int:
     out.mkdir(exist_ok=True)
     ok = True
     if not args.skip_parity:
+        started = time.perf_counter()
         result = check_pusht(args.gym_pusht_python, args.seeds, args.steps, args.workers, args.bench_rounds,
                              args.bench_steps, args.fixture)
         result["sizes"] = check_sizes(args.gym_pusht_python)
@@ -441,6 +444,8 @@ def main() -> int:
                                             for r in result["sizes"])
         print_pusht(result)
         print("\n".join(sizes_lines(result["sizes"])))
+        result["seconds"] = round(time.perf_counter() - started, 1)
+        result["run_id"] = os.environ.get("INTEROP_RUN_ID")   # scripts/interop.sh's, for its summary
         (out / "pusht.json").write_text(json.dumps(result, indent=2, default=str))
         if args.table:
             write_table(args.table, result, [f"--seeds {args.seeds} --steps {args.steps}"])

@@ -19,7 +19,8 @@ builds it; robosuite 1.4.1 and mujoco 3.3.7 there as here) through scripts/inter
     python scripts/interop_robomimic.py --robomimic-python .cache/interop/robomimic/bin/python \\
         [--steps 20] [--demos 3] [--demo-steps N] [--tasks Lift Can Square] [--table docs/robomimic_parity.md]
 
-Prints one table, writes interop_out/robomimic.json and optionally the markdown table. Exit 1 when a check fails.
+Prints one table, writes interop_out/robomimic.json (with its wall time and the run id scripts/interop.sh gives,
+``INTEROP_RUN_ID``) and optionally the markdown table. Exit 1 when a check fails.
 """
 from __future__ import annotations
 
@@ -481,6 +482,7 @@ def main() -> int:
             result["datasets"] = check_datasets(args.robomimic_python, Path(tmp), args.demos, args.demo_steps)
     result["seconds"] = round(time.perf_counter() - started, 1)
     result["ok"] = all(r["ok"] for r in result["tasks"].values()) and result.get("datasets", {}).get("ok", True)
+    result["run_id"] = os.environ.get("INTEROP_RUN_ID")   # scripts/interop.sh's, for its summary
     print("\n".join(table_lines(result)))
     (out / "robomimic.json").write_text(json.dumps(result, indent=2, default=str))
     if args.table:
