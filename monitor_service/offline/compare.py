@@ -58,6 +58,10 @@ RATIO = scoring.RATIO
 OURS = "nmse"
 PREFIX = 10            # decisions of the length-controlled view (80 env steps of PushT)
 N_ACTION_STEPS = 8     # env steps between decisions (the paper's chunk execution)
+# a fault is caught promptly when its alert is known within this many decisions after the onset (issue 48's goal);
+# over whole episodes any rule that keeps alerting catches a long faulted failure at last, so the prompt figures
+# are the ones a random score does not reach by the failures' length alone
+PROMPT_DECISIONS = 2
 RULES = {"default": rules.RuleParams("band", 5, 2), "fast": rules.RuleParams("band", 1, 1)}
 
 
@@ -430,6 +434,11 @@ def detection_figures(episodes: list[Episode], judged: dict[int, dict], regime: 
         out["delay_steps"] = _quartiles(delays)
         out["delay_decisions"] = _quartiles([d / N_ACTION_STEPS for d in delays])
         out["pre_onset_alerts"] = sum(1 for i in failed if judged[i]["alerted"] and not alerted(i, episodes[i]))
+        prompt = sum(1 for d in delays if d <= PROMPT_DECISIONS * N_ACTION_STEPS)
+        out["prompt_alerts"] = prompt
+        out["prompt_tpr"] = prompt / len(failed) if failed else None
+        out["prompt_balanced_accuracy"] = (None if out["prompt_tpr"] is None or tnr is None
+                                           else (out["prompt_tpr"] + tnr) / 2)
     return out
 
 
@@ -569,8 +578,9 @@ def detection_table(result: dict, view: str, rule: str, regime: str) -> list[str
         timing = "lead before the end, steps" if regime == "natural" else "delay after onset, decisions"
         lines += [f"**{group}**, {regime}, {view}, rule {rule}", "",
                   f"| detector | TPR | TNR (false alerts [95% CI]) | balanced acc. | {timing}, median (IQR) |"
-                  + (" alerts on this regime's successes |" if regime != "natural" else ""),
-                  "|---|---|---|---|---|" + ("---|" if regime != "natural" else "")]
+                  + (f" caught within {PROMPT_DECISIONS} decisions (balanced acc.) | alerts on this regime's "
+                     "successes |" if regime != "natural" else ""),
+                  "|---|---|---|---|---|" + ("---|---|" if regime != "natural" else "")]
         for name, per in rows.items():
             r = per.get(regime)
             if r is None:
@@ -583,7 +593,9 @@ def detection_table(result: dict, view: str, rule: str, regime: str) -> list[str
             bacc = "n/a" if r["balanced_accuracy"] is None else f"{r['balanced_accuracy']:.3f}"
             row = f"| {name} | {_rate(r['true_alerts'], r['failures'])} | {tnr} | {bacc} | {t} |"
             if regime != "natural":
-                row += f" {_rate(r['regime_success_alerts'], r['regime_successes'])} |"
+                pb = r.get("prompt_balanced_accuracy")
+                row += (f" {_rate(r['prompt_alerts'], r['failures'])} ({'n/a' if pb is None else f'{pb:.3f}'}) |"
+                        f" {_rate(r['regime_success_alerts'], r['regime_successes'])} |")
             lines.append(row)
         lines.append("")
     return lines
@@ -614,16 +626,25 @@ def best_rows(result: dict, view: str, rule: str) -> list[dict]:
             real = {s: r for s, r in ranks.items() if r.get("auroc") is not None and s not in CONTROLS}
             det = {n: per[regime] for n, per in rows.items()
                    if per.get(regime, {}).get("balanced_accuracy") is not None and not is_control(n)}
+            prompt = {n: r for n, r in det.items() if r.get("prompt_balanced_accuracy") is not None}
             best_signal = max(real, key=lambda s: real[s]["auroc"]) if real else None
             best_det = max(det, key=lambda n: det[n]["balanced_accuracy"]) if det else None
-            chance = None
-            if best_det is not None:
-                name = f"{RANDOM} {RULES[rule].kind}" + (" [labelled]" if "[labelled]" in best_det else "")
-                chance = rows.get(name, {}).get(regime)
+            best_prompt = max(prompt, key=lambda n: prompt[n]["prompt_balanced_accuracy"]) if prompt else None
+
+            def chance(detector):
+                """The chance row with ``detector``'s calibration (conformal or labelled)."""
+                if detector is None:
+                    return None
+                name = f"{RANDOM} {RULES[rule].kind}" + (" [labelled]" if "[labelled]" in detector else "")
+                return rows.get(name, {}).get(regime)
+
             out.append({"group": group, "regime": regime, "best_signal": best_signal,
                         "best_auroc": real[best_signal] if best_signal else None,
                         "nmse_auroc": ranks.get(OURS), "random_auroc": ranks.get(RANDOM), "best_detector": best_det,
-                        "best_detection": det[best_det] if best_det else None, "chance_detection": chance})
+                        "best_detection": det[best_det] if best_det else None, "chance_detection": chance(best_det),
+                        "best_prompt_detector": best_prompt,
+                        "best_prompt_detection": prompt[best_prompt] if best_prompt else None,
+                        "chance_prompt_detection": chance(best_prompt)})
     return out
 
 
@@ -667,6 +688,15 @@ def summary_text(result: dict) -> str:
                     lines.append(f"    [{rule}] {row['regime']:<16} best {row['best_detector']}: balanced acc "
                                  f"{d['balanced_accuracy']:.3f} (TPR {_rate(d['true_alerts'], d['failures'])}, "
                                  f"false alerts {_rate(d['false_alerts'], d['successes'])}){when}{chance}")
+                    p, pc = row["best_prompt_detection"], row["chance_prompt_detection"]
+                    if p is not None:
+                        chance = "" if not pc or pc.get("prompt_balanced_accuracy") is None else \
+                            f"; chance row {pc['prompt_balanced_accuracy']:.3f}"
+                        lines.append(f"    [{rule}] {row['regime']:<16} within {PROMPT_DECISIONS} decisions of the "
+                                     f"onset, best {row['best_prompt_detector']}: balanced acc "
+                                     f"{p['prompt_balanced_accuracy']:.3f} (caught "
+                                     f"{_rate(p['prompt_alerts'], p['failures'])}, false alerts "
+                                     f"{_rate(p['false_alerts'], p['successes'])}){chance}")
     return "\n".join(lines)
 
 

@@ -237,6 +237,28 @@ def test_episode_scores_aggregate_as_documented():
         cmp.episode_score(v, "sum")
 
 
+def test_a_fault_is_caught_promptly_only_when_its_alert_comes_within_two_decisions_of_the_onset():
+    """Over whole episodes a late alert still counts as detection (a long faulted failure is caught at last by any
+    rule that keeps alerting); the prompt figures count only alerts known within PROMPT_DECISIONS of the onset."""
+    rows = natural()
+    rows += faulted(range(20), "prompt", lambda i, s, g: 5 + g.random() if s > ONSET else g.random())
+    late = ONSET + (cmp.PROMPT_DECISIONS + 2) * cmp.N_ACTION_STEPS
+    rows += faulted(range(20, 40), "late", lambda i, s, g: 5 + g.random() if s > late else g.random())
+    result = run(rows, signals=["stac", "random"], views=("whole",))
+    stac = single(result["groups"]["jepa:jepa.pt"]["views"]["whole"], "fast", "stac")
+    tnr = stac["prompt"]["tnr"]
+    assert stac["prompt"]["tpr"] == stac["late"]["tpr"] == 1.0
+    assert stac["prompt"]["prompt_alerts"] == 20 and stac["prompt"]["prompt_balanced_accuracy"] == (1 + tnr) / 2
+    assert stac["late"]["prompt_alerts"] == 0 and stac["late"]["prompt_balanced_accuracy"] == tnr / 2
+    rows_by_regime = {r["regime"]: r for r in cmp.best_rows(result, "whole", "fast")}
+    assert rows_by_regime["prompt"]["best_prompt_detection"]["prompt_alerts"] == 20
+    assert rows_by_regime["natural"]["best_prompt_detector"] is None      # no onset, no promptness
+    text = cmp.summary_text(result)
+    assert "prompt           within 2 decisions of the onset" in text and "(caught 20/20=1.00" in text
+    (row,) = [r for r in cmp.detection_table(result, "whole", "fast", "late") if r.startswith("| stac band |")]
+    assert f"| 0/20=0.00 ({stac['late']['prompt_balanced_accuracy']:.3f}) |" in row
+
+
 def test_the_best_rows_leave_the_controls_out_and_show_the_chance_row_beside():
     assert cmp.is_control("random band [labelled]") and cmp.is_control("fiper(nmse_persistence+stac) band")
     assert not cmp.is_control("bonferroni(nmse+stac) band") and not cmp.is_control("rnd band")
