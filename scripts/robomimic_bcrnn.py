@@ -16,10 +16,14 @@ of our longest Lift arm (27 minutes of one core), and robomimic's own ``RolloutP
    where our data or the budget need it (``DEVIATIONS``), then ``python -m robomimic.scripts.train`` in
    robomimic's venv, one thread (``OMP_NUM_THREADS=1``), stopped when the budget is spent; robomimic saves a
    checkpoint every epoch (``EPOCH_STEPS`` gradient steps), and the last one saved within the budget is evaluated;
-3. ``eval``: robomimic's ``policy_from_checkpoint`` -> ``RolloutPolicy`` in its venv, fed our env's observations
-   through robomimic's ``process_obs_dict`` (what its own ``EnvRobosuite`` does), on the 200 seeds; the first
-   observation of seed 0 is first checked to equal the demonstrations' demo_0 (no convention mismatch);
-4. ``summary``: ``docs/results/lift-bcrnn/`` (``summary.json``, ``records.jsonl.gz``, ``config.json``).
+3. ``heldout``: the RolloutPolicy's actions along the pick job's 20 held-out scripted demonstrations against the
+   recorded ones (position, orientation and gripper errors, as the pick job reports them for our arms);
+4. ``eval``: robomimic's ``policy_from_checkpoint`` -> ``RolloutPolicy`` in its venv, fed our env's observations
+   through robomimic's ``process_obs_dict`` (what its own ``EnvRobosuite`` does), on the 200 seeds, one episode
+   after the other, appended to ``demo_out/Lift-bcrnn/eval_final.jsonl`` so that a stopped evaluation resumes; the
+   first observation of demo_0's seed is first checked to equal demo_0's (no convention mismatch);
+5. ``summary``: ``docs/results/lift-bcrnn/`` (``summary.json``, ``records_final.jsonl.gz``, ``config.json``) from
+   what is evaluated so far (``complete`` says whether all 200 seeds are).
 
 robomimic's venv is the one ``make interop`` builds (``scripts/interop.sh``: ``.cache/interop/robomimic``).
 Its ``train.py`` and our env need four more packages there, installed without changing any installed version::
@@ -27,9 +31,11 @@ Its ``train.py`` and our env need four more packages there, installed without ch
     env PIP_FIND_LINKS= PIP_CONFIG_FILE=/dev/null .cache/interop/robomimic/bin/pip install \\
         psutil imageio==2.38.2 tensorboardX gymnasium==1.4.0
 
-Commands (about 27 minutes of training and up to an hour of evaluation on one core; reruns reuse what exists)::
+Commands (27 minutes of training; at load 6 on 2 cores a failed episode takes about 2 minutes, 200 of them
+about 6.5 hours; reruns reuse what exists)::
 
-    nice -n 5 python scripts/robomimic_bcrnn.py all          # convert, train, eval, summary
+    nice -n 5 python scripts/robomimic_bcrnn.py all          # convert, train, heldout, eval, summary
+    nice -n 5 python scripts/robomimic_bcrnn.py eval         # resume the evaluation, then the summary
     python scripts/robomimic_bcrnn.py eval --checkpoint PATH --name NAME   # another checkpoint
     python scripts/robomimic_bcrnn.py summary                # docs/results/lift-bcrnn/ from what is evaluated
 
@@ -56,12 +62,13 @@ VENV_PYTHON = ROOT / ".cache/interop/robomimic/bin/python"
 SOURCE = ROOT / "demo_out/Lift/data/lift_train_200demos_64px.hdf5"
 WORK = ROOT / "demo_out/Lift-bcrnn"
 DATASET = WORK / "lift_200demos_64px_robomimic.hdf5"
+HELD_OUT = ROOT / "demo_out/Lift/data/lift_heldout_20demos_64px.hdf5"   # the pick job's 20 held-out demonstrations
 CONFIG = WORK / "bc_rnn_image.json"
 RESULTS = ROOT / "docs/results/lift-bcrnn"
 EXPERIMENT = "lift_bc_rnn_image"
 
 BUDGET_S = 27 * 60        # our longest Lift arm at 4,000 steps (JEPA, 26.8 min on one core)
-EPOCH_STEPS = 10          # gradient steps per robomimic epoch: a checkpoint every epoch (about 3 min of one core)
+EPOCH_STEPS = 10          # gradient steps per robomimic epoch: a checkpoint every epoch (2-2.5 min of one core)
 MAX_EPOCHS = 10_000       # never reached: the budget stops the run
 EVAL_SEED, EPISODES = 200_000, 200
 IMAGE_SIZE = 64
@@ -78,7 +85,7 @@ DEVIATIONS = {
     "experiment.rollout.enabled: true -> false": "evaluated afterwards on our env and seeds; robomimic's rollouts "
                                                  "every 20 epochs would spend the budget",
     "experiment.epoch_every_n_steps: 500 -> 10, save.every_n_epochs: 20 -> 1, train.num_epochs: 600 -> 10000":
-        "a checkpoint every 10 gradient steps (one step takes 10-20 s on one core); the 27-minute budget, not "
+        "a checkpoint every 10 gradient steps (one step takes 10-15 s on one core); the 27-minute budget, not "
         "the epoch count, ends the run",
     "observation.encoder.rgb.obs_randomizer_kwargs.crop_height/width: 76 -> 58": "our images are 64 px, not 84",
     "actions: 10-D absolute (position, 6-D rotation, gripper), position mapped onto [-1, 1]":
@@ -299,6 +306,58 @@ def evaluate(checkpoint: Path, out: Path, seed: int = EVAL_SEED, episodes: int =
     env.close()
 
 
+def heldout_actions(checkpoint: Path, out: Path, dataset: Path = HELD_OUT) -> None:
+    """Run in robomimic's venv: the RolloutPolicy's actions along each held-out scripted demonstration (its
+    recorded observations, the LSTM's state carried as in a rollout) beside the recorded actions (``out``, npz)."""
+    import h5py
+    import torch
+    import robomimic.utils.file_utils as FileUtils
+    import robomimic.utils.obs_utils as ObsUtils
+
+    torch.set_num_threads(1)
+    policy, ckpt = FileUtils.policy_from_checkpoint(ckpt_path=str(checkpoint), device=torch.device("cpu"),
+                                                    verbose=False)
+    obs_keys = list(ckpt["shape_metadata"]["all_obs_keys"])
+    with h5py.File(DATASET, "r") as f:
+        low = np.asarray(f["data"].attrs["action_position_low"])
+        high = np.asarray(f["data"].attrs["action_position_high"])
+    predicted, recorded = [], []
+    with h5py.File(dataset, "r") as f:
+        for name in f["data"]:
+            demo = f[f"data/{name}"]
+            obs = {k: demo[f"obs/{k}"][:] for k in obs_keys}
+            policy.start_episode()
+            for t in range(len(demo["actions"])):
+                action = np.asarray(policy(ob=ObsUtils.process_obs_dict({k: v[t] for k, v in obs.items()})))
+                action[POSITION] = unscale_position(action[POSITION], low, high)
+                predicted.append(action)
+            recorded.append(demo["actions"][:])
+    np.savez(out, predicted=np.stack(predicted), recorded=np.concatenate(recorded))
+
+
+def heldout_errors(checkpoint: Path, out: Path) -> dict:
+    """``heldout_actions`` in robomimic's venv, then the errors in the terms of the pick job's ``action_errors``:
+    position (cm), orientation (degrees), gripper sign agreement."""
+    from jepa_envs.tasks.rotations import rot6d_to_matrix
+
+    if not out.exists():
+        raw = out.with_suffix(".npz")
+        venv(str(Path(__file__).resolve()), "_heldout", str(checkpoint.resolve()), str(raw))
+        arrays = np.load(raw)
+        predicted, recorded = arrays["predicted"].astype(np.float64), arrays["recorded"].astype(np.float64)
+        pos = np.linalg.norm(predicted[:, :3] - recorded[:, :3], axis=1) * 100
+        rel = np.einsum("nij,nik->njk", rot6d_to_matrix(predicted[:, 3:9]), rot6d_to_matrix(recorded[:, 3:9]))
+        angle = np.degrees(np.arccos(np.clip((np.trace(rel, axis1=1, axis2=2) - 1) / 2, -1, 1)))
+        grip = np.sign(predicted[:, 9]) == np.sign(recorded[:, 9])
+        out.write_text(json.dumps({
+            "checkpoint": str(checkpoint.resolve().relative_to(ROOT)), "dataset": str(HELD_OUT.relative_to(ROOT)),
+            "steps": int(len(recorded)),
+            "position_cm": {"median": float(np.median(pos)), "p90": float(np.percentile(pos, 90))},
+            "orientation_deg": {"median": float(np.median(angle)), "p90": float(np.percentile(angle, 90))},
+            "gripper_agreement": float(grip.mean())}, indent=1) + "\n")
+    return json.loads(out.read_text())
+
+
 def run_eval(checkpoint: Path, out: Path) -> list[dict]:
     """``evaluate`` in robomimic's venv (resuming ``out``); its lines."""
     venv(str(Path(__file__).resolve()), "_eval", str(checkpoint.resolve()), str(out))
@@ -335,6 +394,8 @@ def summarize(training: dict, evaluations: dict[str, list[dict]]) -> dict:
         "train_loss_per_epoch": training["train_loss_per_epoch"],
         "deviations_from_robomimic_config": DEVIATIONS,
         "results": results,
+        "heldout_action_errors": {p.stem.removeprefix("heldout_"): json.loads(p.read_text())
+                                  for p in sorted(WORK.glob("heldout_*.json"))},
         "first_observation_check": evaluations[next(iter(evaluations))][0]["check"],
     }
     (RESULTS / "summary.json").write_text(json.dumps(summary, indent=1) + "\n")
@@ -350,7 +411,8 @@ def existing_evaluations() -> dict[str, list[dict]]:
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("step", choices=["all", "convert", "train", "eval", "summary", "_config", "_eval"])
+    parser.add_argument("step", choices=["all", "convert", "train", "heldout", "eval", "summary", "_config",
+                                                    "_eval", "_heldout"])
     parser.add_argument("rest", nargs="*", help=argparse.SUPPRESS)
     parser.add_argument("--checkpoint", type=Path, help="eval: this checkpoint instead of the last in the budget")
     parser.add_argument("--name", default="final", help="eval: the results' name (records_NAME.jsonl.gz)")
@@ -361,14 +423,19 @@ def main(argv: list[str] | None = None) -> None:
     if args.step == "_eval":
         evaluate(Path(args.rest[0]), Path(args.rest[1]))
         return
+    if args.step == "_heldout":
+        heldout_actions(Path(args.rest[0]), Path(args.rest[1]))
+        return
     convert()
     if args.step == "convert":
         return
     training = train()
     if args.step == "train":
         return
-    if args.step != "summary":
-        checkpoint = args.checkpoint or ROOT / training["final_checkpoint"]["path"]
+    checkpoint = args.checkpoint or ROOT / training["final_checkpoint"]["path"]
+    if args.step in ("all", "heldout"):
+        heldout_errors(checkpoint, WORK / f"heldout_{args.name}.json")
+    if args.step in ("all", "eval"):
         run_eval(checkpoint, WORK / f"eval_{args.name}.jsonl")
     summarize(training, existing_evaluations())
 
