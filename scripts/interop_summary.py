@@ -156,7 +156,8 @@ def table(rows: list[dict]) -> list[str]:
     lines = ["| part | result | key numbers | wall time |", "|---|---|---|---|"]
     for r in rows:
         seconds = "-" if r["seconds"] is None else f"{r['seconds']:,} s"
-        lines.append(f"| {r['name']} | {'pass' if r['ok'] else 'FAIL'} | {r['numbers']} | {seconds} |")
+        numbers = r["numbers"].replace("|", "\\|")   # |x| inside a markdown cell
+        lines.append(f"| {r['name']} | {'pass' if r['ok'] else 'FAIL'} | {numbers} | {seconds} |")
     return lines
 
 

@@ -68,3 +68,4 @@ def test_the_table_lists_every_part_from_the_files_and_fails_the_missing_ones(tm
     lines = s.table(rows)
     assert len(lines) == 2 + 5 and lines[4].startswith("| openpi | pass |") and lines[4].endswith("| 42 s |")
     assert lines[2] == "| LeRobot data | FAIL | did not run in this run | - |"
+    assert "max \\|served - in-process action\\| 0" in lines[4]   # escaped inside the markdown cell
