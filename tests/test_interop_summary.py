@@ -1,18 +1,15 @@
 """`make interop`'s summary (scripts/interop_summary.py): a part that crashed or did not run is a FAIL with its reason,
 and a result of an earlier run is never shown as this run's. Needs none of the interop venvs."""
-import importlib.util
 import json
 from pathlib import Path
+from script_loader import load_script
 
 ROOT = Path(__file__).resolve().parents[1]
 RUN = "20261206T180000Z-1"
 
 
 def _summary():
-    spec = importlib.util.spec_from_file_location("interop_summary", ROOT / "scripts" / "interop_summary.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load_script("interop_summary")
 
 
 def _openpi(run_id=RUN, ok=True):

@@ -4,11 +4,11 @@ the same checkpoint's in-process ``Policy.act`` bit for bit, across two episodes
 built (`make interop` builds it, then runs the same check on whole episodes)."""
 from __future__ import annotations
 
-import importlib.util
 from pathlib import Path
 
 import pytest
 from _serve_helpers import checkpoint, serve  # noqa: F401 (fixtures)
+from script_loader import load_script
 
 from jepa_policy.policy import Policy
 
@@ -21,10 +21,7 @@ pytestmark = [pytest.mark.timeout(300),
 
 
 def _interop_openpi():
-    spec = importlib.util.spec_from_file_location("interop_openpi", ROOT / "scripts" / "interop_openpi.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load_script("interop_openpi")
 
 
 def test_the_documented_openpi_loop_equals_in_process_act(serve, checkpoint):

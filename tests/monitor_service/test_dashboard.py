@@ -1,24 +1,20 @@
 """The dashboard in headless Debian Chromium against a real uvicorn server: data and risk trajectories shown,
 charts labelled, the alert life cycle (acknowledge only on open alerts), gaps shown, the key kept in
 sessionStorage and taken from the URL fragment in one step."""
-import importlib.util
 import json
 import os
-from pathlib import Path
 
 import httpx
 import numpy as np
 import pytest
 from monitor_testkit import ADMIN, DIM, episode_records, latent_records, write_records
+from script_loader import load_script
 
 from monitor_service.cli import main
 from monitor_service.db import Alert, ApiKey, make_engine, make_sessionmaker
 from monitor_service.server import start_server
 
-_spec = importlib.util.spec_from_file_location(
-    "dashboard_screenshot", Path(__file__).parents[2] / "scripts" / "dashboard_screenshot.py")
-shot = importlib.util.module_from_spec(_spec)
-_spec.loader.exec_module(shot)
+shot = load_script("dashboard_screenshot")
 CHROMIUM, ARGS = shot.CHROMIUM, shot.ARGS   # the browser and flags the screenshot script uses
 
 pytestmark = [

@@ -4,11 +4,11 @@ its replay of delta actions are our absolute actions. Skipped until that venv is
 runs the same checks on Lift, Can and Square and on robosuite's human Lift demonstrations:
 scripts/interop_robomimic.py).
 """
-import importlib.util
 from pathlib import Path
 
 import gymnasium as gym
 import pytest
+from script_loader import load_script
 
 pytest.importorskip("robosuite", reason="robosuite is part of the [sim] extra")
 
@@ -25,10 +25,7 @@ pytestmark = [pytest.mark.robosuite,
 
 
 def _interop():
-    spec = importlib.util.spec_from_file_location("interop_robomimic", ROOT / "scripts" / "interop_robomimic.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load_script("interop_robomimic")
 
 
 def test_robomimic_sees_our_lift_states_as_we_do_and_its_replay_sets_our_absolute_goals(tmp_path):
