@@ -31,8 +31,8 @@ Its ``train.py`` and our env need four more packages there, installed without ch
     env PIP_FIND_LINKS= PIP_CONFIG_FILE=/dev/null .cache/interop/robomimic/bin/pip install \\
         psutil imageio==2.38.2 tensorboardX gymnasium==1.4.0
 
-Commands (27 minutes of training; at load 6 on 2 cores a failed episode takes about 2 minutes, 200 of them
-about 6.5 hours; reruns reuse what exists)::
+Commands (27 minutes of training; at load 1-9 on 2 cores a failed episode's 400 steps took 45-204 s, median 73 s,
+so 200 of them take about 4 hours; reruns reuse what exists)::
 
     nice -n 5 python scripts/robomimic_bcrnn.py all          # convert, train, heldout, eval, summary
     nice -n 5 python scripts/robomimic_bcrnn.py eval         # resume the evaluation, then the summary
