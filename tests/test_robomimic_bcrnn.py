@@ -2,7 +2,6 @@
 (its dataset, built by train.py's ``load_data_for_training`` from the script's config, returns the file's images,
 proprioception and actions), and the evaluation's inverse mapping gives back the demonstrations' absolute actions.
 The robomimic half runs in robomimic's venv (``make interop`` builds it) and is skipped where it is absent."""
-import importlib.util
 import json
 import subprocess
 from pathlib import Path
@@ -12,16 +11,14 @@ import numpy as np
 import pytest
 
 from jepa_envs.datasets.hdf5 import write_dataset
+from script_loader import load_script
 
 ROOT = Path(__file__).resolve().parents[1]
 SCRIPT = ROOT / "scripts" / "robomimic_bcrnn.py"
 
 
 def _script():
-    spec = importlib.util.spec_from_file_location("robomimic_bcrnn", SCRIPT)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load_script("robomimic_bcrnn")
 
 
 def _demos(path: Path) -> Path:
