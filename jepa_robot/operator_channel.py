@@ -304,20 +304,26 @@ class OperatorChannel:
             # the latch's generation as this request is read: a clear_estop among them releases only the latch
             # as it was then, not one pressed by an e-stop read after it in this same turn
             later.append((frames[0], route, parts, mac, self.estop.generation))
-        refused = dropped + too_long
+        # counted before this turn's requests are handled: a status read among them (a client that got its
+        # refusal and asked at once) sees the refusal's counter
+        self._add_counts(operator_dropped=dropped, operator_too_many_frames=too_long)
+        rate_limited = 0
         for identity, route, parts, mac, generation in later:
             if self._peer_over_rate(identity, now):   # this connection's own limit: told so, unread
-                refused += 1
+                rate_limited += 1
                 self._send(route, _OPERATOR_RATE_LIMITED, mac)
                 continue
             self._handle(route, *self._decode(parts, mac), mac, now, generation)
-        if refused:
+        self._add_counts(operator_rate_limited=rate_limited)
+        return dropped + too_long + rate_limited
+
+    def _add_counts(self, **counts: int) -> None:
+        """Add the non-zero ``counts`` to the channel's counters."""
+        if any(counts.values()):
             with self._lock:
-                for name, count in (("operator_dropped", dropped), ("operator_too_many_frames", too_long),
-                                    ("operator_rate_limited", refused - dropped - too_long)):
+                for name, count in counts.items():
                     if count:
                         self.counters[name] += count
-        return refused
 
     def _handle(self, route: list[bytes], message: dict | None, refusal: dict | None, mac: bytes | None,
                 now: float, generation: int) -> None:

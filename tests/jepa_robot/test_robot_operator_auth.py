@@ -410,3 +410,36 @@ def test_the_estop_path_runs_at_the_real_time_priority_asked_for(tmp_path):
             assert op.estop()["held"]
     finally:
         bridge.close()
+
+
+def test_a_status_read_in_the_same_turn_as_a_refusal_counts_that_refusal(robot, ctx, monkeypatch):
+    """A message of too many frames and two statuses sent right behind it on one socket are read in one turn of
+    the operator channel. The refusal is counted before the turn's requests are handed to the bridge's loop, so the
+    first status already shows it. Before, the counters were added after the whole turn: the loop could answer a
+    status of that turn first (seen once under load, in the memory-bomb test). The turn is held here on its last
+    request, as a preempted operator thread would be, to make that order certain."""
+    bridge = robot.bridge()
+    channel = bridge._operator
+    checks = []
+    real = channel._peer_over_rate
+
+    def held_on_the_second(identity, now):
+        checks.append(identity)
+        if len(checks) == 2:
+            time.sleep(0.5)   # the loop answers the first status meanwhile
+        return real(identity, now)
+
+    monkeypatch.setattr(channel, "_peer_over_rate", held_on_the_second)
+    raw = raw_socket(ctx, zmq.DEALER, bridge.operator_endpoint)
+    status = P.encode({"type": P.OP_STATUS})
+    raw.send_multipart([b"a", b"b", b"c"])
+    raw.send_multipart([status])
+    raw.send_multipart([status])
+    time.sleep(0.2)   # all three wait before the channel's next turn reads them
+    refusal = recv_reply(raw)
+    assert refusal["code"] == "bad_message" and "at most 2" in refusal["message"], refusal
+    first = recv_reply(raw)
+    assert first["type"] == P.RESULT and first["ok"], first
+    assert first["status"]["counters"]["operator_too_many_frames"] == 1, first
+    assert len(checks) == 2, "the two statuses were not read in one turn"
+    raw.close(linger=0)
