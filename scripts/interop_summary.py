@@ -123,7 +123,7 @@ def part_row(part: str, run_id: str, record: dict | None, result: dict | None, l
         return row
     try:
         row["numbers"] = NUMBERS[part](result)
-    except (KeyError, TypeError, ValueError, IndexError) as e:
+    except (KeyError, TypeError, ValueError, IndexError, AttributeError) as e:
         row["numbers"] = f"result unreadable ({type(e).__name__}: {e})"
         return row
     row["ok"] = bool(result.get("ok")) and record["exit"] == 0
@@ -133,10 +133,12 @@ def part_row(part: str, run_id: str, record: dict | None, result: dict | None, l
 
 
 def _json(path: Path) -> dict | None:
+    """The JSON object in ``path``; None when it is missing, unreadable or not an object (a FAIL row then)."""
     try:
-        return json.loads(path.read_text())
-    except (FileNotFoundError, json.JSONDecodeError):
+        value = json.loads(path.read_text())
+    except (FileNotFoundError, UnicodeDecodeError, json.JSONDecodeError):
         return None
+    return value if isinstance(value, dict) else None
 
 
 def _last_line(path: Path) -> str:

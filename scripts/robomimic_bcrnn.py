@@ -79,7 +79,6 @@ DEVIATIONS = {
     "train.data / output_dir / experiment.name": "our converted demonstrations and our output folder",
     "train.cuda: true -> false": "trained on one CPU core, as our arms are",
     "train.num_data_workers: 2 -> 0": "one core: data workers would be a second and third process",
-    "train.hdf5_load_next_obs: true -> false": "BC reads no next observation and our file holds none",
     "experiment.validate: true -> false (no train/valid filter keys)": "all 200 demonstrations train, as for our "
                                                                        "arms; nothing selects on validation",
     "experiment.rollout.enabled: true -> false": "evaluated afterwards on our env and seeds; robomimic's rollouts "
@@ -162,7 +161,7 @@ def write_config(dataset: Path = DATASET, path: Path = CONFIG) -> Path:
         config.train.output_dir = str(WORK / "trained_models")
         config.train.cuda = False
         config.train.num_data_workers = 0
-        config.train.hdf5_load_next_obs = False
+        config.train.hdf5_load_next_obs = False   # robomimic's BC default already; our file holds no next_obs
         config.experiment.validate = False
         config.train.hdf5_filter_key = None
         config.train.hdf5_validation_filter_key = None

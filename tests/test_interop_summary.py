@@ -66,3 +66,18 @@ def test_the_table_lists_every_part_from_the_files_and_fails_the_missing_ones(tm
     assert len(lines) == 2 + 5 and lines[4].startswith("| openpi | pass |") and lines[4].endswith("| 42 s |")
     assert lines[2] == "| LeRobot data | FAIL | did not run in this run | - |"
     assert "max \\|served - in-process action\\| 0" in lines[4]   # escaped inside the markdown cell
+
+
+def test_a_result_that_is_not_an_object_or_has_wrong_types_is_a_fail_not_a_crash(tmp_path):
+    s = _summary()
+    (tmp_path / "parts").mkdir()
+    (tmp_path / "parts" / "openpi.json").write_text(json.dumps(_record()))
+    (tmp_path / "openpi.json").write_text(json.dumps([RUN, True]))          # valid JSON, not an object
+    (tmp_path / "parts" / "gym-pusht.json").write_text(json.dumps({**_record(), "part": "gym-pusht"}))
+    (tmp_path / "pusht.json").write_bytes(b"\xff\xfe not text")
+    rows = {r["part"]: r for r in s.collect(tmp_path, RUN)}
+    assert not rows["openpi"]["ok"] and rows["openpi"]["numbers"] == "no result (exit 0)"
+    assert not rows["gym-pusht"]["ok"] and rows["gym-pusht"]["numbers"].startswith("no result")
+    # a list where the robomimic part writes its per-task object: AttributeError, read as unreadable
+    wrong = s.part_row("robomimic", RUN, {**_record(), "part": "robomimic"}, {"run_id": RUN, "ok": True, "tasks": []})
+    assert not wrong["ok"] and wrong["numbers"].startswith("result unreadable"), wrong
