@@ -248,27 +248,34 @@ def first_observation_check(env, obs_keys: list[str]) -> dict:
     return {"max_abs_difference": diffs, "shape_dtype_env_vs_demo": shapes}
 
 
+def _load_rollout_policy(checkpoint: Path):
+    """Run in robomimic's venv: robomimic's ``RolloutPolicy`` of ``checkpoint`` on one CPU thread, its observation
+    keys, and the converted file's ``env_args`` and position range (to undo ``scale_position``)."""
+    import h5py
+    import torch
+    import robomimic.utils.file_utils as FileUtils
+
+    torch.set_num_threads(1)
+    policy, ckpt = FileUtils.policy_from_checkpoint(ckpt_path=str(checkpoint), device=torch.device("cpu"),
+                                                    verbose=False)
+    with h5py.File(DATASET, "r") as f:
+        env_args = json.loads(f["data"].attrs["env_args"])
+        low = np.asarray(f["data"].attrs["action_position_low"])
+        high = np.asarray(f["data"].attrs["action_position_high"])
+    return policy, list(ckpt["shape_metadata"]["all_obs_keys"]), env_args, low, high
+
+
 def evaluate(checkpoint: Path, out: Path, seed: int = EVAL_SEED, episodes: int = EPISODES) -> None:
     """Run in robomimic's venv: rollouts of robomimic's RolloutPolicy on our env, one JSON line each, appended to
     ``out`` (its first line: the first-observation check); seeds already in ``out`` are skipped, so a stopped
     evaluation resumes where it stopped."""
     import gymnasium as gym
-    import h5py
-    import torch
-    import robomimic.utils.file_utils as FileUtils
     import robomimic.utils.obs_utils as ObsUtils
 
     import jepa_envs  # noqa: F401  (registers JEPA/Lift-v0)
     from jepa_envs.tasks.outcomes import failure_kind_name
 
-    torch.set_num_threads(1)
-    policy, ckpt = FileUtils.policy_from_checkpoint(ckpt_path=str(checkpoint), device=torch.device("cpu"),
-                                                    verbose=False)
-    obs_keys = list(ckpt["shape_metadata"]["all_obs_keys"])
-    with h5py.File(DATASET, "r") as f:
-        env_args = json.loads(f["data"].attrs["env_args"])
-        low = np.asarray(f["data"].attrs["action_position_low"])
-        high = np.asarray(f["data"].attrs["action_position_high"])
+    policy, obs_keys, env_args, low, high = _load_rollout_policy(checkpoint)
     env = gym.make("JEPA/Lift-v0", env_args=env_args, image_size=IMAGE_SIZE)
     done = set()
     if out.exists():
@@ -309,17 +316,9 @@ def heldout_actions(checkpoint: Path, out: Path, dataset: Path = HELD_OUT) -> No
     """Run in robomimic's venv: the RolloutPolicy's actions along each held-out scripted demonstration (its
     recorded observations, the LSTM's state carried as in a rollout) beside the recorded actions (``out``, npz)."""
     import h5py
-    import torch
-    import robomimic.utils.file_utils as FileUtils
     import robomimic.utils.obs_utils as ObsUtils
 
-    torch.set_num_threads(1)
-    policy, ckpt = FileUtils.policy_from_checkpoint(ckpt_path=str(checkpoint), device=torch.device("cpu"),
-                                                    verbose=False)
-    obs_keys = list(ckpt["shape_metadata"]["all_obs_keys"])
-    with h5py.File(DATASET, "r") as f:
-        low = np.asarray(f["data"].attrs["action_position_low"])
-        high = np.asarray(f["data"].attrs["action_position_high"])
+    policy, obs_keys, _, low, high = _load_rollout_policy(checkpoint)
     predicted, recorded = [], []
     with h5py.File(dataset, "r") as f:
         for name in f["data"]:
