@@ -306,7 +306,8 @@ class OperatorChannel:
             later.append((frames[0], route, parts, mac, self.estop.generation))
         # counted before this turn's requests are handled: a status read among them (a client that got its
         # refusal and asked at once) sees the refusal's counter
-        self._add_counts(operator_dropped=dropped, operator_too_many_frames=too_long)
+        self._count("operator_dropped", dropped)
+        self._count("operator_too_many_frames", too_long)
         rate_limited = 0
         for identity, route, parts, mac, generation in later:
             if self._peer_over_rate(identity, now):   # this connection's own limit: told so, unread
@@ -314,16 +315,8 @@ class OperatorChannel:
                 self._send(route, _OPERATOR_RATE_LIMITED, mac)
                 continue
             self._handle(route, *self._decode(parts, mac), mac, now, generation)
-        self._add_counts(operator_rate_limited=rate_limited)
+        self._count("operator_rate_limited", rate_limited)
         return dropped + too_long + rate_limited
-
-    def _add_counts(self, **counts: int) -> None:
-        """Add the non-zero ``counts`` to the channel's counters."""
-        if any(counts.values()):
-            with self._lock:
-                for name, count in counts.items():
-                    if count:
-                        self.counters[name] += count
 
     def _handle(self, route: list[bytes], message: dict | None, refusal: dict | None, mac: bytes | None,
                 now: float, generation: int) -> None:
@@ -448,9 +441,10 @@ class OperatorChannel:
                                       "FAILED: use the hardware e-stop; see the bridge log")
         return {"type": P.RESULT, "ok": True, "status": {**facts, "message": text}}
 
-    def _count(self, name: str) -> None:
-        with self._lock:
-            self.counters[name] += 1
+    def _count(self, name: str, n: int = 1) -> None:
+        if n:
+            with self._lock:
+                self.counters[name] += n
 
     def counts(self) -> dict:
         with self._lock:
