@@ -32,7 +32,7 @@ import numpy as np
 from tqdm import tqdm
 
 from monitor_service.client import MonitorClient
-from monitor_service.db import read_decisions
+from monitor_service.db import make_engine, read_decisions
 from monitor_service.encoding import MSGPACK_CONTENT_TYPE, pack
 from monitor_service.server import free_port, start_server
 
@@ -233,9 +233,9 @@ def start_floor(tmp: Path) -> tuple[subprocess.Popen, Target]:
 
 def _verify_no_lost_updates(database_url: str) -> dict:
     """Every decision row counted on its episode, every scored decision counted as scored (PostgreSQL runs)."""
-    from sqlalchemy import create_engine, text
+    from sqlalchemy import text
 
-    engine = create_engine(database_url)
+    engine = make_engine(database_url)
     with engine.connect() as conn:
         counters = conn.execute(text("SELECT id, n_decisions, n_scored FROM episodes WHERE task = 'bench'")).all()
         decisions = read_decisions(conn, [r[0] for r in counters])

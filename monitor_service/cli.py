@@ -23,7 +23,7 @@ def _settings(args, database: str | None = None):
     url = getattr(args, "database_url", None)
     if url is not None and not url.strip():
         raise ValueError("--database-url is empty; give sqlite:///jepa_monitor.db, sqlite:////absolute/path.db or "
-                         "postgresql+psycopg2://user@host/db, or leave the option out (JEPA_MONITOR_DATABASE_URL)")
+                         "postgresql+psycopg://user@host/db, or leave the option out (JEPA_MONITOR_DATABASE_URL)")
     if url:
         overrides["database_url"] = url
     settings = MonitorSettings(**overrides)

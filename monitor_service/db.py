@@ -142,7 +142,7 @@ def fold_decisions(rows) -> list[dict]:
     {"step", "horizon", "target_step", "nmse", "nmse_persistence", "scores"} each (None where absent)."""
     found: dict[int, dict] = {}
     for decisions, scores, rescored in rows:
-        if scores is not None and not isinstance(scores, dict):   # JSON: text on SQLite, decoded by psycopg2
+        if scores is not None and not isinstance(scores, dict):   # JSON: text on SQLite, decoded by psycopg
             scores = json.loads(scores)
         if decisions is not None:
             for step, horizon, nmse, pers in np.frombuffer(decisions, dtype=DECISION_ENTRY).tolist():
@@ -239,15 +239,26 @@ def sqlite_file(url: str) -> Path | None:
     return Path(parsed.database)
 
 
+PG_DRIVER = "psycopg"   # psycopg 3: binary parameters (docs/monitor.md, "Tests and benchmark")
+
+
+def postgres_url(url: str) -> str:
+    """A PostgreSQL URL without a driver (``postgresql://``, libpq's own form) as psycopg 3's; others unchanged."""
+    if url.startswith("postgresql://"):
+        return f"postgresql+{PG_DRIVER}://" + url.split("://", 1)[1]
+    return url
+
+
 def check_database_url(url: str, *, create: bool = False) -> None:
     """Refuse, with one line naming the fix, a URL that cannot be parsed, an SQLite file in a folder that does not
     exist, an SQLite file that does not exist (unless ``create``: `jepa-monitor db upgrade` or `serve --create`;
-    otherwise a mistyped name would serve a fresh, empty database) and a PostgreSQL URL whose driver is missing."""
+    otherwise a mistyped name would serve a fresh, empty database) and a PostgreSQL URL for another driver than
+    psycopg 3 or whose driver is missing (``postgresql://`` without a driver means psycopg 3)."""
     try:
-        parsed = make_url(url)
+        parsed = make_url(postgres_url(url))
     except ArgumentError:
         raise ValueError(f"database URL {url!r} is not a valid URL; use sqlite:///relative.db, "
-                         "sqlite:////absolute/path.db or postgresql+psycopg2://user:password@host/database") from None
+                         "sqlite:////absolute/path.db or postgresql+psycopg://user:password@host/database") from None
     backend = parsed.get_backend_name()
     if backend == "sqlite":
         path = sqlite_file(url)
@@ -263,13 +274,18 @@ def check_database_url(url: str, *, create: bool = False) -> None:
         return
     if backend != "postgresql":
         raise ValueError(f"database URL {url!r} is neither SQLite nor PostgreSQL; use sqlite:///path.db or "
-                         "postgresql+psycopg2://user@host/db")
+                         "postgresql+psycopg://user@host/db")
+    driver = parsed.get_driver_name()
+    if driver != PG_DRIVER:
+        raise ValueError(f"the database URL {parsed.drivername}:// names the {driver} driver; the monitor talks to "
+                         f"PostgreSQL through psycopg 3 (latents go as binary parameters: about a quarter of the "
+                         f"database's CPU per batch of psycopg2's escaped literals). Write "
+                         f"{parsed.set(drivername='postgresql+' + PG_DRIVER).render_as_string(hide_password=True)}")
     try:
         parsed.get_dialect().import_dbapi()
     except ImportError as exc:
         raise ValueError(f"the database URL {parsed.drivername}:// needs the {exc.name or 'its'} driver, which is not "
-                         "installed; write postgresql+psycopg2://... (psycopg2-binary comes with the monitor extra)"
-                         ) from None
+                         "installed; pip install 'psycopg[binary]' (it comes with the monitor extra)") from None
 
 
 def make_engine(url: str) -> Engine:
@@ -298,7 +314,7 @@ def make_engine(url: str) -> Engine:
             conn.exec_driver_sql("BEGIN" if conn.get_execution_options().get("read_only") else "BEGIN IMMEDIATE")
 
         return engine
-    return create_engine(url, pool_pre_ping=True, pool_size=10, max_overflow=20)
+    return create_engine(postgres_url(url), pool_pre_ping=True, pool_size=10, max_overflow=20)
 
 
 def make_sessionmaker(engine: Engine, read_only: bool = False) -> sessionmaker:

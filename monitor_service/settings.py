@@ -68,7 +68,7 @@ class MonitorSettings(BaseSettings):
         if not (url.startswith("sqlite") or url.startswith("postgresql")):
             raise ValueError(
                 f"database_url {url!r} is neither SQLite nor PostgreSQL; use sqlite:///path.db or "
-                "postgresql+psycopg2://user@host/db"
+                "postgresql+psycopg://user@host/db"
             )
         return url
 

@@ -24,7 +24,9 @@ EPISODE_COLUMNS = ("id, task, robot, checkpoint, group_name, held_out, success, 
 
 
 class Sql:
-    """Statements in the database's own parameter style (sqlite3: ?, psycopg2: %s), on a raw DB-API cursor."""
+    """Statements in the database's own parameter style (sqlite3: ?, psycopg 3: %s), on a raw DB-API cursor.
+    psycopg 3 binds parameters on the server and sends bytes in binary: a request's latents travel as they are,
+    not as an escaped literal the server has to parse."""
 
     def __init__(self, dialect: str):
         self.dialect = dialect
@@ -48,16 +50,6 @@ class Sql:
             conn.rollback()
         elif conn.in_transaction:
             cur.execute("ROLLBACK")
-
-    def insert_many(self, cur, table: str, columns: str, rows: list[tuple]) -> None:
-        """One statement for all rows: sqlite3's executemany runs it in C; psycopg2's executemany would send one
-        statement per row, so PostgreSQL gets a single multi-row INSERT (execute_values)."""
-        if self.dialect == "sqlite":
-            marks = ", ".join("?" * (columns.count(",") + 1))
-            cur.executemany(f"INSERT INTO {table} ({columns}) VALUES ({marks})", rows)
-        else:
-            from psycopg2.extras import execute_values
-            execute_values(cur, f"INSERT INTO {table} ({columns}) VALUES %s", rows, page_size=len(rows))
 
     def insert_one(self, cur, table: str, columns: str, row: tuple) -> None:
         marks = ", ".join([self.mark] * (columns.count(",") + 1))
@@ -185,7 +177,7 @@ def active_calibration(sql: Sql, cur, task: str, checkpoint: str | None) -> tupl
         cur.execute(sql.q(f"SELECT id, result FROM calibrations WHERE task = ? AND {cond} AND active = ?"
                           " ORDER BY id DESC"), (task, True) if ckpt is None else (task, ckpt, True))
         row = cur.fetchone()
-        if row is not None:   # JSON column: text on SQLite, already decoded by psycopg2
+        if row is not None:   # JSON column: text on SQLite, already decoded by psycopg
             return row[0], row[1] if isinstance(row[1], dict) else json.loads(row[1])
     return None, None
 

@@ -26,7 +26,7 @@ pytestmark = pytest.mark.skipif(
 
 @pytest.fixture(scope="module")
 def pg_url():
-    pytest.importorskip("psycopg2", reason="psycopg2-binary is not installed")
+    pytest.importorskip("psycopg", reason="psycopg 3 is not installed (it comes with the monitor extra)")
     # Directly under /tmp: pytest's own temp root is private to root, which the postgres user cannot enter.
     root = Path(tempfile.mkdtemp(prefix="jepa-monitor-pg-"))
     # PostgreSQL refuses to run as root: run it as the postgres system user then.
@@ -41,7 +41,7 @@ def pg_url():
     subprocess.run(prefix + [f"{PG_BIN}/pg_ctl", "-D", str(data), "-o", opts, "-l", str(log), "-w", "start"],
                    check=True, capture_output=True)
     try:
-        yield f"postgresql+psycopg2://postgres@127.0.0.1:{port}/postgres"
+        yield f"postgresql+psycopg://postgres@127.0.0.1:{port}/postgres"
     finally:
         subprocess.run(prefix + [f"{PG_BIN}/pg_ctl", "-D", str(data), "-m", "immediate", "-w", "stop"],
                        capture_output=True)

@@ -97,7 +97,7 @@ def test_restore_refuses_a_file_that_is_not_a_monitor_backup(tmp_path):
     with pytest.raises(SystemExit, match="not an SQLite database"):
         main(["--database-url", f"sqlite:///{tmp_path}/m.db", "db", "restore", str(tmp_path / "text.db")])
     with pytest.raises(SystemExit, match="pg_dump"):
-        main(["--database-url", "postgresql+psycopg2://u@h/db", "db", "backup", str(tmp_path / "b.db")])
+        main(["--database-url", "postgresql+psycopg://u@h/db", "db", "backup", str(tmp_path / "b.db")])
 
 
 def test_console_blocks_name_real_files_and_commands():

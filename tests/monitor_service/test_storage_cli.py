@@ -97,9 +97,11 @@ BAD_DATABASES = [
     (["--database-url", "sqlite:///{d}/mistyped.db", "serve", "--port", "9"], "serve --create"),
     (["--database-url", "sqlite:///{d}/no/such/folder/m.db", "db", "upgrade"], "mkdir -p {d}/no/such/folder"),
     (["--database-url", "sqlite:///{d}/no/such/folder/m.db", "serve", "--create"], "mkdir -p"),
-    (["--database-url", "postgresql://monitor@127.0.0.1:9/monitor", "db", "upgrade"], "postgresql+psycopg2://"),
-    (["--database-url", "postgresql+psycopg2://monitor@127.0.0.1:9/monitor", "db", "upgrade"],
+    (["--database-url", "postgresql+psycopg2://monitor:secret@127.0.0.1:9/monitor", "db", "upgrade"],
+     "Write postgresql+psycopg://monitor:***@127.0.0.1:9/monitor"),
+    (["--database-url", "postgresql+psycopg://monitor@127.0.0.1:9/monitor", "db", "upgrade"],
      "that the database server runs"),
+    (["--database-url", "postgresql://monitor@127.0.0.1:9/monitor", "db", "upgrade"], "that the database server runs"),
     (["--database-url", "sqlite:/m.db", "db", "upgrade"], "not a valid URL"),
     (["--database-url", "sqlite:/m.db", "tasks", "list"], "sqlite:////absolute/path.db"),
 ]
