@@ -7,6 +7,8 @@ scores it. Modes, each with the same bodies against the service and against the 
   connections, as a fleet of robots would send them;
 - batches of ``--batch`` decisions (each with its target) per msgpack request;
 - the MonitorClient's own batching, end to end.
+Service and floor alternate in ``--rounds`` rounds per mode, so that both meet the same load on a shared machine;
+the ratios printed are the medians of the rounds' ratios.
 The load comes from threads of this process on keep-alive connections; the server's CPU per request is read
 from /proc (steadier than wall latency on a shared machine); the load average is printed with the numbers.
 Every 2xx is committed and its alerts evaluated. With ``--servers 2`` on a PostgreSQL URL two server processes
@@ -170,13 +172,53 @@ def load(targets: list[Target], binary: bool, batch: int, dim: int, concurrency:
     if not latencies:
         raise RuntimeError(f"no request was answered in {seconds:g} s (load average {os.getloadavg()[0]:.1f}); "
                            "run the bench with more --seconds or on a quieter machine")
+    cpu = sum(cpu1) - sum(cpu0) if all(c is not None for c in cpu0 + cpu1) else None
+    return _row(counts, elapsed, latencies, cpu)
+
+
+def _row(counts: dict, elapsed: float, latencies: list[float], cpu_s: float | None) -> dict:
     lat = np.asarray(latencies) * 1000
     row = {"requests_per_s": counts["requests"] / elapsed, "decisions_per_s": counts["decisions"] / elapsed,
            "records_per_s": counts["records"] / elapsed, "p50_ms": float(np.percentile(lat, 50)),
            "p99_ms": float(np.percentile(lat, 99)), **counts, "seconds": elapsed}
-    if all(c is not None for c in cpu0 + cpu1):
-        row["server_cpu_ms_per_request"] = (sum(cpu1) - sum(cpu0)) * 1000 / max(1, counts["requests"])
+    if cpu_s is not None:
+        row["server_cpu_ms_per_request"] = cpu_s * 1000 / max(1, counts["requests"])
+    row["_latencies"], row["_cpu_s"] = latencies, cpu_s
     return row
+
+
+def _merged(rows: list[dict]) -> dict:
+    """One row from several rounds of the same mode: totals over all of them."""
+    counts = {k: sum(r[k] for r in rows) for k in ("requests", "decisions", "records")}
+    cpu = None if any(r["_cpu_s"] is None for r in rows) else sum(r["_cpu_s"] for r in rows)
+    row = _row(counts, sum(r["seconds"] for r in rows), [x for r in rows for x in r["_latencies"]], cpu)
+    return _public(row)
+
+
+def _public(row: dict) -> dict:
+    return {k: v for k, v in row.items() if not k.startswith("_")}
+
+
+def side_by_side(targets: list[Target], floor_target: Target | None, binary: bool, batch: int, dim: int,
+                 concurrency: int, seconds: float, rounds: int) -> dict:
+    """The service and the floor in alternating rounds of ``seconds / rounds`` each, so that both see the same
+    load on a shared machine; per-round ratios (floor's CPU per request / the service's, the service's requests
+    per second / the floor's) and their medians beside the totals."""
+    ours, theirs = [], []
+    rounds = rounds if floor_target is not None else 1
+    for _ in range(rounds):
+        ours.append(load(targets, binary, batch, dim, concurrency, seconds / rounds, "svc"))
+        if floor_target is not None:
+            theirs.append(load([floor_target], binary, batch, dim, concurrency, seconds / rounds, "floor"))
+    out = {"service": _merged(ours), "floor": _merged(theirs) if theirs else None, "rounds": rounds}
+    if theirs:
+        out["throughput_ratio_per_round"] = [o["requests_per_s"] / t["requests_per_s"] for o, t in zip(ours, theirs)]
+        out["throughput_ratio_median"] = float(np.median(out["throughput_ratio_per_round"]))
+        if all("server_cpu_ms_per_request" in r for r in ours + theirs):
+            out["cpu_ratio_per_round"] = [t["server_cpu_ms_per_request"] / o["server_cpu_ms_per_request"]
+                                          for o, t in zip(ours, theirs)]
+            out["cpu_ratio_median"] = float(np.median(out["cpu_ratio_per_round"]))
+    return out
 
 
 def client_end_to_end(target: Target, dim: int, decisions: int, seconds: float) -> dict:
@@ -246,7 +288,8 @@ def _verify_no_lost_updates(database_url: str) -> dict:
     return {"episodes": len(rows), "decisions": sum(r[3] for r in rows), "mismatched_episodes": len(bad)}
 
 
-def _line(mode: str, ours: dict, floor: dict | None) -> str:
+def _line(mode: str, measured: dict) -> str:
+    ours, floor = measured["service"], measured["floor"]
     cpu = ours.get("server_cpu_ms_per_request")
     text = (f"{mode:<34}{ours['requests_per_s']:>8.0f} req/s {ours['decisions_per_s']:>8.0f} dec/s "
             f"p50 {ours['p50_ms']:6.2f} p99 {ours['p99_ms']:6.2f} ms" + (f"  CPU {cpu:.2f} ms/req" if cpu else ""))
@@ -254,17 +297,23 @@ def _line(mode: str, ours: dict, floor: dict | None) -> str:
         floor_cpu = floor.get("server_cpu_ms_per_request")
         text += (f" | floor {floor['requests_per_s']:>7.0f} req/s p99 {floor['p99_ms']:6.2f} ms"
                  + (f" CPU {floor_cpu:.2f} ms/req" if floor_cpu else "")
-                 + f" | ratio {ours['requests_per_s'] / floor['requests_per_s']:.2f}")
+                 + f" | ratio {measured['throughput_ratio_median']:.2f}")
+        if "cpu_ratio_median" in measured:
+            text += f", CPU ratio {measured['cpu_ratio_median']:.2f}"
+        if measured["rounds"] > 1:
+            text += f" (medians of {measured['rounds']} alternating rounds)"
     return text
 
 
 def run_bench(dim: int = 1024, seconds: float = 8.0, concurrency: int = 8, batch: int = 64, batch_concurrency: int = 2,
               host: str | None = None, port: int | None = None, admin_key: str | None = None,
               database_url: str | None = None, servers: int = 1, workers: int = 1, client_decisions: int = 20_000,
-              floor: bool = True, progress: bool = False, out=None) -> dict:
-    """Run every mode against the service (started here, or at ``host:port``) and the floor; print each row to
-    ``out`` (default stdout) as it is measured (``progress``: a bar of the modes on stderr) and return every
-    number."""
+              floor: bool = True, rounds: int = 4, progress: bool = False, out=None) -> dict:
+    """Run every mode against the service (started here, or at ``host:port``) and the floor, in ``rounds``
+    alternating rounds that together last ``seconds``; print each row to ``out`` (default stdout) as it is measured
+    (``progress``: a bar of the modes on stderr) and return every number."""
+    if rounds < 1:
+        raise ValueError(f"rounds must be at least 1, got {rounds}")
     results: dict = {"dim": dim, "load_average_before": os.getloadavg(), "modes": {}}
 
     def echo(text: str) -> None:
@@ -304,10 +353,9 @@ def run_bench(dim: int = 1024, seconds: float = 8.0, concurrency: int = 8, batch
         bar = stack.enter_context(tqdm(total=len(modes) + bool(client_decisions), desc="jepa-monitor bench",
                                        unit="mode", disable=not progress, file=sys.stderr))
         for name, binary, size, conns in modes:
-            ours = load(targets, binary, size, dim, conns, seconds, "svc")
-            theirs = load([floor_target], binary, size, dim, conns, seconds, "floor") if floor_target else None
-            results["modes"][name] = {"service": ours, "floor": theirs}
-            echo(_line(name, ours, theirs))
+            measured = side_by_side(targets, floor_target, binary, size, dim, conns, seconds, rounds)
+            results["modes"][name] = measured
+            echo(_line(name, measured))
             bar.update()
         if client_decisions:
             row = client_end_to_end(targets[0], dim, client_decisions, seconds)

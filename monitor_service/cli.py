@@ -274,7 +274,7 @@ def cmd_bench(args) -> int:
                         batch_concurrency=args.batch_concurrency, host=args.host, port=args.port,
                         admin_key=args.admin_key, database_url=args.database_url, servers=args.servers,
                         workers=args.workers, client_decisions=args.client_decisions, floor=not args.no_floor,
-                        progress=not args.no_progress, out=sys.stderr if args.json else sys.stdout)
+                        rounds=args.rounds, progress=not args.no_progress, out=sys.stderr if args.json else sys.stdout)
     if args.out:
         Path(args.out).write_text(json.dumps(results, indent=2))
     if args.json:
@@ -515,7 +515,9 @@ def build_parser() -> argparse.ArgumentParser:
 
     s = sub.add_parser("bench", help="ingest throughput and latency against real servers, beside the framework's floor")
     s.add_argument("--dim", type=int, default=1024, help="latent dimension (default 1024: two 512-d cameras)")
-    s.add_argument("--seconds", type=float, default=8.0, help="duration of each mode")
+    s.add_argument("--seconds", type=float, default=8.0, help="duration of each mode (service and floor each)")
+    s.add_argument("--rounds", type=int, default=4,
+                   help="alternating service/floor rounds per mode, so that both see the same load (default 4)")
     s.add_argument("--concurrency", type=int, default=8, help="connections sending one record per request")
     s.add_argument("--batch", type=int, default=64, help="decisions (each with its target) per batched request")
     s.add_argument("--batch-concurrency", type=int, default=2, help="connections sending batches")

@@ -212,6 +212,10 @@ def test_bench_compares_the_service_with_the_floor_in_one_run(capsys):
         ours, floor = modes[name]["service"], modes[name]["floor"]
         assert ours["requests"] > 0 and floor["requests"] > 0 and ours["p99_ms"] >= ours["p50_ms"] > 0
         assert ours["server_cpu_ms_per_request"] > 0
+        # service and floor alternate: a ratio per round, the printed one their median
+        assert modes[name]["rounds"] == 4 and len(modes[name]["cpu_ratio_per_round"]) == 4
+        assert modes[name]["throughput_ratio_median"] == float(np.median(modes[name]["throughput_ratio_per_round"]))
+        assert not any(k.startswith("_") for k in ours)   # the rounds' raw latencies are not kept in the JSON
     assert modes["msgpack, 8 decisions/request x1"]["service"]["decisions"] == \
         8 * modes["msgpack, 8 decisions/request x1"]["service"]["requests"]
     assert modes["MonitorClient end to end"]["decisions"] == 40
