@@ -171,7 +171,7 @@ def load(targets: list[Target], binary: bool, batch: int, dim: int, concurrency:
         raise RuntimeError(f"the server refused a request: {errors[0]}")
     if not latencies:
         raise RuntimeError(f"no request was answered in {seconds:g} s (load average {os.getloadavg()[0]:.1f}); "
-                           "run the bench with more --seconds or on a quieter machine")
+                           "run the bench with more --seconds, fewer --rounds or on a quieter machine")
     cpu = sum(cpu1) - sum(cpu0) if all(c is not None for c in cpu0 + cpu1) else None
     return _row(counts, elapsed, latencies, cpu)
 
@@ -215,9 +215,14 @@ def side_by_side(targets: list[Target], floor_target: Target | None, binary: boo
         out["throughput_ratio_per_round"] = [o["requests_per_s"] / t["requests_per_s"] for o, t in zip(ours, theirs)]
         out["throughput_ratio_median"] = float(np.median(out["throughput_ratio_per_round"]))
         if all("server_cpu_ms_per_request" in r for r in ours + theirs):
-            out["cpu_ratio_per_round"] = [t["server_cpu_ms_per_request"] / o["server_cpu_ms_per_request"]
-                                          for o, t in zip(ours, theirs)]
-            out["cpu_ratio_median"] = float(np.median(out["cpu_ratio_per_round"]))
+            # /proc counts CPU in clock ticks (10 ms): a short round can read 0 on either side; no ratio then
+            per_round = [t["server_cpu_ms_per_request"] / o["server_cpu_ms_per_request"]
+                         if o["server_cpu_ms_per_request"] > 0 and t["server_cpu_ms_per_request"] > 0 else None
+                         for o, t in zip(ours, theirs)]
+            out["cpu_ratio_per_round"] = per_round
+            measured = [r for r in per_round if r is not None]
+            if measured:
+                out["cpu_ratio_median"] = float(np.median(measured))
     return out
 
 

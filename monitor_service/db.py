@@ -27,6 +27,8 @@ from sqlalchemy.engine import Engine, make_url
 from sqlalchemy.exc import ArgumentError
 from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column, sessionmaker
 
+from monitor_service.settings import redacted
+
 MIGRATIONS_DIR = Path(__file__).parent / "migrations"
 
 
@@ -243,9 +245,11 @@ PG_DRIVER = "psycopg"   # psycopg 3: binary parameters (docs/monitor.md, "Tests 
 
 
 def postgres_url(url: str) -> str:
-    """A PostgreSQL URL without a driver (``postgresql://``, libpq's own form) as psycopg 3's; others unchanged."""
-    if url.startswith("postgresql://"):
-        return f"postgresql+{PG_DRIVER}://" + url.split("://", 1)[1]
+    """A PostgreSQL URL without a driver (``postgresql://`` or ``postgres://``, libpq's own forms) as psycopg 3's;
+    others unchanged."""
+    for scheme in ("postgresql://", "postgres://"):
+        if url.startswith(scheme):
+            return f"postgresql+{PG_DRIVER}://" + url[len(scheme):]
     return url
 
 
@@ -257,7 +261,7 @@ def check_database_url(url: str, *, create: bool = False) -> None:
     try:
         parsed = make_url(postgres_url(url))
     except ArgumentError:
-        raise ValueError(f"database URL {url!r} is not a valid URL; use sqlite:///relative.db, "
+        raise ValueError(f"database URL {redacted(url)!r} is not a valid URL; use sqlite:///relative.db, "
                          "sqlite:////absolute/path.db or postgresql+psycopg://user:password@host/database") from None
     backend = parsed.get_backend_name()
     if backend == "sqlite":
@@ -273,14 +277,15 @@ def check_database_url(url: str, *, create: bool = False) -> None:
                              "(or `jepa-monitor serve --create`), or fix the path if it is mistyped")
         return
     if backend != "postgresql":
-        raise ValueError(f"database URL {url!r} is neither SQLite nor PostgreSQL; use sqlite:///path.db or "
+        raise ValueError(f"database URL {redacted(url)!r} is neither SQLite nor PostgreSQL; use sqlite:///path.db or "
                          "postgresql+psycopg://user@host/db")
     driver = parsed.get_driver_name()
     if driver != PG_DRIVER:
+        why = (" (latents go as binary parameters: about a quarter of the database's CPU per batch of psycopg2's "
+               "escaped literals)") if driver == "psycopg2" else " (synchronous, with binary parameters)"
+        fixed = redacted(parsed.set(drivername="postgresql+" + PG_DRIVER).render_as_string(hide_password=False))
         raise ValueError(f"the database URL {parsed.drivername}:// names the {driver} driver; the monitor talks to "
-                         f"PostgreSQL through psycopg 3 (latents go as binary parameters: about a quarter of the "
-                         f"database's CPU per batch of psycopg2's escaped literals). Write "
-                         f"{parsed.set(drivername='postgresql+' + PG_DRIVER).render_as_string(hide_password=True)}")
+                         f"PostgreSQL through psycopg 3{why}. Write {fixed}")
     try:
         parsed.get_dialect().import_dbapi()
     except ImportError as exc:

@@ -223,6 +223,21 @@ def test_bench_compares_the_service_with_the_floor_in_one_run(capsys):
     assert "| floor" in text and "| ratio" in text and "load average" in text
 
 
+def test_bench_rounds_whose_cpu_reads_zero_ticks_give_no_cpu_ratio(monkeypatch):
+    """/proc counts CPU in clock ticks: a short round may read 0 on one side. That round has no CPU ratio; the
+    median is over the others (no division by zero)."""
+    from monitor_service import bench
+
+    cpu = iter([0.0, 5.0, 4.0, 2.0, 5.0, 0.0])   # service, floor, service, floor, ...
+    def fake_load(targets, binary, batch, dim, concurrency, seconds, tag):
+        return bench._row({"requests": 10, "decisions": 10, "records": 10}, 1.0, [0.001] * 10,
+                          next(cpu) * 10 / 1000)
+    monkeypatch.setattr(bench, "load", fake_load)
+    out = bench.side_by_side([bench.Target("http://x", "k")], bench.Target("http://y", ""), True, 0, 8, 1, 3.0, 3)
+    assert out["cpu_ratio_per_round"] == [None, 0.5, None] and out["cpu_ratio_median"] == 0.5
+    assert out["throughput_ratio_per_round"] == [1.0, 1.0, 1.0]
+
+
 def test_bench_command_prints_json_with_json_and_writes_it_with_out(tmp_path, capsys):
     from monitor_service.cli import main
 

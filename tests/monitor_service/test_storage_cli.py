@@ -99,9 +99,14 @@ BAD_DATABASES = [
     (["--database-url", "sqlite:///{d}/no/such/folder/m.db", "serve", "--create"], "mkdir -p"),
     (["--database-url", "postgresql+psycopg2://monitor:secret@127.0.0.1:9/monitor", "db", "upgrade"],
      "Write postgresql+psycopg://monitor:***@127.0.0.1:9/monitor"),
+    (["--database-url", "postgresql+psycopg2://monitor@127.0.0.1:9/monitor?password=secret", "db", "upgrade"],
+     "Write postgresql+psycopg://monitor@127.0.0.1:9/monitor?password=***"),
     (["--database-url", "postgresql+psycopg://monitor@127.0.0.1:9/monitor", "db", "upgrade"],
      "that the database server runs"),
     (["--database-url", "postgresql://monitor@127.0.0.1:9/monitor", "db", "upgrade"], "that the database server runs"),
+    (["--database-url", "postgres://monitor@127.0.0.1:9/monitor", "db", "upgrade"], "that the database server runs"),
+    (["--database-url", "postgresql+asyncpg://monitor@127.0.0.1:9/monitor", "db", "upgrade"],
+     "psycopg 3 (synchronous"),
     (["--database-url", "sqlite:/m.db", "db", "upgrade"], "not a valid URL"),
     (["--database-url", "sqlite:/m.db", "tasks", "list"], "sqlite:////absolute/path.db"),
 ]
@@ -119,6 +124,24 @@ def test_a_bad_database_is_refused_in_one_line_and_nothing_is_created(tmp_path, 
     assert code == 2 and fix.format(d=folder) in err, err
     assert len(err.strip().splitlines()) == 1 and "Traceback" not in err
     assert list(folder.iterdir()) == [], "a refused database must leave nothing behind"
+
+
+SECRET_URLS = [
+    "postgresql+psycopg2://monitor:s3cret@127.0.0.1:9/monitor",           # another driver
+    "postgresql+psycopg2://monitor@127.0.0.1:9/monitor?password=s3cret",  # the password as libpq's parameter
+    "mysql://monitor:s3cret@127.0.0.1:9/monitor",                         # neither SQLite nor PostgreSQL
+    "postgresql+psycopg://monitor:s3cret@127.0.0.1:9/monitor",            # no server there
+    "postgresql+psycopg://monitor@127.0.0.1:9/monitor?sslpassword=s3cret",
+]
+
+
+@pytest.mark.parametrize("url", SECRET_URLS)
+def test_a_refused_database_url_never_prints_its_password(tmp_path, monkeypatch, capsys, url):
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.delenv("JEPA_MONITOR_DATABASE_URL", raising=False)
+    assert main(["--database-url", url, "db", "upgrade"]) == 2
+    err = capsys.readouterr().err
+    assert "s3cret" not in err and len(err.strip().splitlines()) == 1, err
 
 
 def test_db_upgrade_or_serve_create_make_the_database(tmp_path, capsys):
