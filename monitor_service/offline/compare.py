@@ -33,13 +33,18 @@ pooled across checkpoints):
   only (conformal, FAIL-Detect's and FIPER's way) or on labelled successes and failures (Youden); TPR, TNR,
   balanced accuracy, the Clopper-Pearson interval of the false-alert rate; detection time: for natural failures
   the lead before the episode's end (env steps), for faults the delay after the onset (env steps, and in
-  decisions of ``n_action_steps``); an alert raised before a fault's onset is no detection of it.
+  decisions of ``n_action_steps``); an alert raised before a fault's onset is no detection of it. A fault's
+  failure counts as caught promptly when its alert is known within ``PROMPT_DECISIONS`` decisions of the onset;
+  with latents in the records, ``prompt_ceiling`` says how many of them no detector could catch so, because they
+  looked exactly like their succeeding natural twin until then.
 
 One module of about 690 lines on purpose: reading the records, ranking (per regime, per failure kind, paired),
 cross-fitted detection and the tables that print them share one ``Episode`` model and are read together when a
 published figure is questioned; the text functions (from ``_auc`` on) are the last quarter.
 """
 from __future__ import annotations
+
+import hashlib
 
 from collections import defaultdict
 from dataclasses import dataclass, field
@@ -159,9 +164,49 @@ def episode_of(row: dict, where: str = "") -> Episode:
     regime = str(row.get("regime", RECORD_DEFAULTS["regime"]))
     group = str(row.get("group") or f"{row.get('arm', 'policy')}:{row.get('checkpoint', '')}")
     onset = row.get("fault_onset")
+    extra = {"arm": row.get("arm"), "failure_kind": row.get("failure_kind")}
+    seen = observed_latents(decisions)
+    if seen:
+        extra["seen"] = seen
     return Episode(seed, success, length, regime, group, steps, known, values,
-                   None if onset is None else int(onset),
-                   extra={"arm": row.get("arm"), "failure_kind": row.get("failure_kind")})
+                   None if onset is None else int(onset), extra=extra)
+
+
+def observed_latents(decisions: list[dict]) -> dict[int, bytes]:
+    """{env step: a digest of the latent observed there} from records written with ``--keep-latents`` (``z_now``
+    at each decision's step, ``z_real`` at its target step); empty without them. Two episodes with equal digests
+    up to a step looked the same to the policy and to every signal computed from what it saw."""
+    seen: dict[int, bytes] = {}
+    for d in decisions:
+        for key, step in (("z_now", d.get("step")), ("z_real", d.get("target_step"))):
+            z = d.get(key)
+            if isinstance(z, list) and isinstance(step, int):
+                seen.setdefault(step, hashlib.blake2b(np.asarray(z, dtype="<f4").tobytes(), digest_size=16).digest())
+    return seen
+
+
+def prompt_ceiling(episodes: list[Episode], regime: str) -> dict | None:
+    """How many of a fault's failures any detector could catch within ``PROMPT_DECISIONS`` decisions of the onset
+    without a false alert: a faulted failure whose observations equal, at every step of that window, those of its
+    natural twin (same group and seed, so the same fold and calibration) that succeeded cannot be told from that
+    success in time; whatever alerts on it in the window alerts on the success too. None when the records carry
+    no latents (``jepa-policy eval --keep-latents``)."""
+    twins = {(e.group, e.seed): e for e in episodes if e.regime == "natural"}
+    failed = [e for e in episodes if e.regime == regime and not e.success and e.onset is not None]
+    if not failed or any("seen" not in e.extra for e in failed):
+        return None
+    end = PROMPT_DECISIONS * N_ACTION_STEPS
+    hidden = 0
+    for e in failed:
+        twin = twins.get((e.group, e.seed))
+        if twin is None or not twin.success or "seen" not in twin.extra:
+            continue
+        window = [s for s in e.extra["seen"] if e.onset < s <= e.onset + end]
+        if window and all(twin.extra["seen"].get(s) == e.extra["seen"][s] for s in window):
+            hidden += 1
+    tpr = (len(failed) - hidden) / len(failed)
+    return {"failures": len(failed), "hidden_failures": hidden, "prompt_tpr_ceiling": tpr,
+            "prompt_balanced_accuracy_ceiling": (tpr + 1) / 2}
 
 
 def load_records(paths, where: dict | None = None) -> list[Episode]:
@@ -473,6 +518,9 @@ def compare(episodes: list[Episode], alpha: float = 0.1, folds: int = 5, prefix:
             g["episodes"][regime] = {"episodes": len(rs), "successes": sum(e.success for e in rs),
                                      "failures": sum(not e.success for e in rs),
                                      "onset": _quartiles([e.onset for e in rs if e.onset is not None])}
+            ceiling = prompt_ceiling(members, regime) if regime != "natural" else None
+            if ceiling is not None:
+                g["episodes"][regime]["prompt_ceiling"] = ceiling
         for view in views:
             eps, cut = view_of(members, view, prefix)
             v = {"episodes": len(eps), "decisions": cut, "ranking": {}, "detection": {}}
@@ -692,11 +740,16 @@ def summary_text(result: dict) -> str:
                     if p is not None:
                         chance = "" if not pc or pc.get("prompt_balanced_accuracy") is None else \
                             f"; chance row {pc['prompt_balanced_accuracy']:.3f}"
+                        top = g["episodes"].get(row["regime"], {}).get("prompt_ceiling")
+                        ceiling = "" if not top or not top["hidden_failures"] else \
+                            (f"; at most {top['prompt_balanced_accuracy_ceiling']:.3f} for any detector: "
+                             f"{top['hidden_failures']} failure(s) look like their succeeding natural twin until "
+                             f"then")
                         lines.append(f"    [{rule}] {row['regime']:<16} within {PROMPT_DECISIONS} decisions of the "
                                      f"onset, best {row['best_prompt_detector']}: balanced acc "
                                      f"{p['prompt_balanced_accuracy']:.3f} (caught "
                                      f"{_rate(p['prompt_alerts'], p['failures'])}, false alerts "
-                                     f"{_rate(p['false_alerts'], p['successes'])}){chance}")
+                                     f"{_rate(p['false_alerts'], p['successes'])}){chance}{ceiling}")
     return "\n".join(lines)
 
 

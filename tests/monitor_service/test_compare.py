@@ -353,3 +353,44 @@ def test_failure_kinds_rank_apart_and_ours_is_differenced_with_others_on_the_sam
     assert "## Paired AUROC differences" in md and "| stac |" in md
     assert "dropped (40 failures): best nmse 1.000" in cmp.summary_text(result)
     assert run(natural(), signals=["nmse"])["groups"]["jepa:jepa.pt"]["views"]["prefix"]["ranking_by_kind"] == {}
+
+
+def with_latents(row, shift_from=None):
+    """The record with ``z_now`` / ``z_real`` as ``--keep-latents`` writes them: a latent that is a function of
+    (seed, step) only, shifted from env step ``shift_from`` on (the fault's visible effect); STAC is computed from
+    the latent seen at the decision, as a signal of what the policy saw is."""
+    def z(step):
+        base = np.random.default_rng([row["seed"], step]).standard_normal(8)
+        return (base + (5.0 if shift_from is not None and step >= shift_from else 0.0)).astype(np.float32)
+    for i, d in enumerate(row["decisions"]):
+        d["z_now"], d["z_real"] = z(d["step"]).tolist(), z(d["target_step"]).tolist()
+        if i:
+            d["scores"]["stac"] = float(np.asarray(d["z_now"]).sum())
+    return row
+
+
+def test_a_faulted_failure_that_looks_like_its_succeeding_twin_until_the_window_ends_caps_every_detector():
+    """Faulted failures whose latents equal their natural twin's through PROMPT_DECISIONS decisions after the onset
+    cannot be caught in time without the same alert on the twin: with a succeeding twin they lower the ceiling;
+    with a failing twin they do not. A signal of what was seen stays under the ceiling; records without latents
+    get no ceiling."""
+    window_end = ONSET + cmp.PROMPT_DECISIONS * cmp.N_ACTION_STEPS
+    rows = [with_latents(r) for r in natural()]
+    hidden_seeds = {1, 2, 4, 5, 7, 8, 10}        # twins succeed (seed % 3 != 0); visible only after the window
+    late_but_twin_failed = {3, 6, 9}               # the same, but their twins failed: no false alert possible
+    for seed in range(1, 31):
+        late = seed in hidden_seeds or seed in late_but_twin_failed
+        rows.append(with_latents(record(seed, False, 38, "slip", ONSET),
+                                 shift_from=window_end + 2 if late else ONSET + 2))
+    result = run(rows, signals=["stac"], views=("whole",))
+    g = result["groups"]["jepa:jepa.pt"]
+    ceiling = g["episodes"]["slip"]["prompt_ceiling"]
+    assert ceiling == {"failures": 30, "hidden_failures": 7, "prompt_tpr_ceiling": 23 / 30,
+                       "prompt_balanced_accuracy_ceiling": (23 / 30 + 1) / 2}
+    stac = single(g["views"]["whole"], "fast", "stac")["slip"]
+    assert stac["prompt_alerts"] <= 30 - 7 and stac["prompt_balanced_accuracy"] <= \
+        ceiling["prompt_balanced_accuracy_ceiling"]
+    assert "7 failure(s) look like their succeeding natural twin until then" in cmp.summary_text(result)
+    bare = run([{**r, "decisions": [{k: v for k, v in d.items() if k not in ("z_now", "z_real")}
+                                    for d in r["decisions"]]} for r in rows], signals=["stac"], views=("whole",))
+    assert "prompt_ceiling" not in bare["groups"]["jepa:jepa.pt"]["episodes"]["slip"]
