@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import datetime as dt
 import json
+import re
 from pathlib import Path
 
 import numpy as np
@@ -26,8 +27,6 @@ from sqlalchemy import (
 from sqlalchemy.engine import Engine, make_url
 from sqlalchemy.exc import ArgumentError
 from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column, sessionmaker
-
-from monitor_service.settings import redacted
 
 MIGRATIONS_DIR = Path(__file__).parent / "migrations"
 
@@ -239,6 +238,15 @@ def sqlite_file(url: str) -> Path | None:
     if parsed.get_backend_name() != "sqlite" or parsed.database in (None, "", ":memory:"):
         return None
     return Path(parsed.database)
+
+
+_URL_USER_SECRET = re.compile(r"(//[^/@:?#]*:)[^/@?#]*@")
+_URL_QUERY_SECRET = re.compile(r"(?i)([?&](?:ssl)?password=)[^&#]*")
+
+
+def redacted(url: str) -> str:
+    """A database URL as it may be printed: a password, in the user part or in the query string, as ***."""
+    return _URL_QUERY_SECRET.sub(r"\1***", _URL_USER_SECRET.sub(r"\1***@", url))
 
 
 PG_DRIVER = "psycopg"   # psycopg 3: binary parameters (docs/monitor.md, "Tests and benchmark")

@@ -4,7 +4,6 @@ from __future__ import annotations
 import difflib
 import math
 import os
-import re
 from typing import Literal
 
 from pydantic import Field, field_validator
@@ -68,19 +67,10 @@ class MonitorSettings(BaseSettings):
     def _known_backend(cls, url: str) -> str:
         if not (url.startswith("sqlite") or url.startswith("postgres")):
             raise ValueError(
-                f"database_url {redacted(url)!r} is neither SQLite nor PostgreSQL; use sqlite:///path.db or "
-                "postgresql+psycopg://user@host/db"
+                f"database_url starts with {url.split('://', 1)[0][:40]!r}, neither SQLite nor PostgreSQL; use "
+                "sqlite:///path.db or postgresql+psycopg://user@host/db"
             )
         return url
-
-
-_URL_USER_SECRET = re.compile(r"(//[^/@:?#]*:)[^/@?#]*@")
-_URL_QUERY_SECRET = re.compile(r"(?i)([?&](?:ssl)?password=)[^&#]*")
-
-
-def redacted(url: str) -> str:
-    """A database URL as it may be printed: a password, in the user part or in the query string, as ***."""
-    return _URL_QUERY_SECRET.sub(r"\1***", _URL_USER_SECRET.sub(r"\1***@", url))
 
 
 PREFIX = "JEPA_MONITOR_"
