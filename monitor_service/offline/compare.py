@@ -45,7 +45,6 @@ published figure is questioned; the text functions (from ``_auc`` on) are the la
 from __future__ import annotations
 
 import hashlib
-
 from collections import defaultdict
 from dataclasses import dataclass, field
 from pathlib import Path
