@@ -36,9 +36,11 @@ pooled across checkpoints):
   decisions of ``n_action_steps``); an alert raised before a fault's onset is no detection of it. A fault's
   failure counts as caught promptly when its alert is known within ``PROMPT_DECISIONS`` decisions of the onset;
   with latents in the records, ``prompt_ceiling`` says how many of them no detector could catch so, because they
-  looked exactly like their succeeding natural twin until then.
+  looked exactly like their succeeding natural twin until then. The summary also names, per fault, the best
+  detector meeting the goal as written (balanced accuracy >= 0.90 with a median delay <= ``PROMPT_DECISIONS``),
+  which counts late catches toward the balanced accuracy and is therefore weaker than the prompt figure.
 
-One module of about 690 lines on purpose: reading the records, ranking (per regime, per failure kind, paired),
+One module of about 810 lines on purpose: reading the records, ranking (per regime, per failure kind, paired),
 cross-fitted detection and the tables that print them share one ``Episode`` model and are read together when a
 published figure is questioned; the text functions (from ``_auc`` on) are the last quarter.
 """
@@ -66,6 +68,9 @@ N_ACTION_STEPS = 8     # env steps between decisions (the paper's chunk executio
 # over whole episodes any rule that keeps alerting catches a long faulted failure at last, so the prompt figures
 # are the ones a random score does not reach by the failures' length alone
 PROMPT_DECISIONS = 2
+# issue 48's goal as written: balanced accuracy >= this with a median detection delay <= PROMPT_DECISIONS. Weaker
+# than the prompt figure (a late catch counts toward the balanced accuracy), so both are reported
+GOAL_BALANCED_ACCURACY = 0.90
 RULES = {"default": rules.RuleParams("band", 5, 2), "fast": rules.RuleParams("band", 1, 1)}
 
 
@@ -677,6 +682,9 @@ def best_rows(result: dict, view: str, rule: str) -> list[dict]:
             best_signal = max(real, key=lambda s: real[s]["auroc"]) if real else None
             best_det = max(det, key=lambda n: det[n]["balanced_accuracy"]) if det else None
             best_prompt = max(prompt, key=lambda n: prompt[n]["prompt_balanced_accuracy"]) if prompt else None
+            meets = {n: r for n, r in det.items() if meets_goal(r)}
+            best_goal = max(meets, key=lambda n: (meets[n]["balanced_accuracy"], -meets[n]["delay_decisions"]
+                                                  ["median"])) if meets else None
 
             def chance(detector):
                 """The chance row with ``detector``'s calibration (conformal or labelled)."""
@@ -691,8 +699,18 @@ def best_rows(result: dict, view: str, rule: str) -> list[dict]:
                         "best_detection": det[best_det] if best_det else None, "chance_detection": chance(best_det),
                         "best_prompt_detector": best_prompt,
                         "best_prompt_detection": prompt[best_prompt] if best_prompt else None,
-                        "chance_prompt_detection": chance(best_prompt)})
+                        "chance_prompt_detection": chance(best_prompt),
+                        "best_goal_detector": best_goal,
+                        "best_goal_detection": meets[best_goal] if best_goal else None})
     return out
+
+
+def meets_goal(r: dict) -> bool:
+    """Whether one detector's figures on a fault meet the goal as written: balanced accuracy >=
+    ``GOAL_BALANCED_ACCURACY`` and a median delay after the onset of at most ``PROMPT_DECISIONS`` decisions."""
+    q = r.get("delay_decisions")
+    return (r.get("balanced_accuracy") is not None and q is not None
+            and r["balanced_accuracy"] >= GOAL_BALANCED_ACCURACY and q["median"] <= PROMPT_DECISIONS)
 
 
 def summary_text(result: dict) -> str:
@@ -749,6 +767,14 @@ def summary_text(result: dict) -> str:
                                      f"{p['prompt_balanced_accuracy']:.3f} (caught "
                                      f"{_rate(p['prompt_alerts'], p['failures'])}, false alerts "
                                      f"{_rate(p['false_alerts'], p['successes'])}){chance}{ceiling}")
+                        m = row["best_goal_detection"]
+                        lines.append(f"    [{rule}] {row['regime']:<16} balanced acc >= {GOAL_BALANCED_ACCURACY:.2f} "
+                                     f"with median delay <= {PROMPT_DECISIONS} decisions: "
+                                     + ("no detector" if m is None else
+                                        f"{row['best_goal_detector']} ({m['balanced_accuracy']:.3f}, TPR "
+                                        f"{_rate(m['true_alerts'], m['failures'])}, false alerts "
+                                        f"{_rate(m['false_alerts'], m['successes'])}, median delay "
+                                        f"{m['delay_decisions']['median']:.2f})"))
     return "\n".join(lines)
 
 
