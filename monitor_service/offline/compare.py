@@ -34,13 +34,16 @@ pooled across checkpoints):
   balanced accuracy, the Clopper-Pearson interval of the false-alert rate; detection time: for natural failures
   the lead before the episode's end (env steps), for faults the delay after the onset (env steps, and in
   decisions of ``n_action_steps``); an alert raised before a fault's onset is no detection of it. A fault's
+  failures are those of its episodes that failed while their natural twin succeeded (``is_positive``): one whose
+  twin failed too would have failed anyway (on Lift most are never grasped, before or after a gripper slip that
+  then changes nothing); they are counted beside (``twin_failed_too``), not as the fault's. A fault's
   failure counts as caught promptly when its alert is known within ``PROMPT_DECISIONS`` decisions of the onset;
   with latents in the records, ``prompt_ceiling`` says how many of them no detector could catch so, because they
   looked exactly like their succeeding natural twin until then. The summary also names, per fault, the best
   detector meeting the goal as written (balanced accuracy >= 0.90 with a median delay <= ``PROMPT_DECISIONS``),
   which counts late catches toward the balanced accuracy and is therefore weaker than the prompt figure.
 
-One module of about 810 lines on purpose: reading the records, ranking (per regime, per failure kind, paired),
+One module of about 830 lines on purpose: reading the records, ranking (per regime, per failure kind, paired),
 cross-fitted detection and the tables that print them share one ``Episode`` model and are read together when a
 published figure is questioned; the text functions (from ``_auc`` on) are the last quarter.
 """
@@ -196,7 +199,7 @@ def prompt_ceiling(episodes: list[Episode], regime: str) -> dict | None:
     success in time; whatever alerts on it in the window alerts on the success too. None when the records carry
     no latents (``jepa-policy eval --keep-latents``)."""
     twins = {(e.group, e.seed): e for e in episodes if e.regime == "natural"}
-    failed = [e for e in episodes if e.regime == regime and not e.success and e.onset is not None]
+    failed = [e for e in episodes if is_positive(e, regime) and e.onset is not None]
     if not failed or any("seen" not in e.extra for e in failed):
         return None
     end = PROMPT_DECISIONS * N_ACTION_STEPS
@@ -265,6 +268,23 @@ def assign_folds(episodes: list[Episode], k: int, seed: int = 0) -> None:
             e.fold = twins.get((e.group, e.seed), e.seed % k)
 
 
+def mark_twin_outcomes(episodes: list[Episode]) -> None:
+    """Each faulted episode learns whether its natural twin (same group and seed) failed: ``extra["twin_failed"]``
+    True or False, absent without a twin."""
+    twins = {(e.group, e.seed): e.success for e in episodes if e.regime == "natural"}
+    for e in episodes:
+        if e.regime != "natural" and (e.group, e.seed) in twins:
+            e.extra["twin_failed"] = not twins[(e.group, e.seed)]
+
+
+def is_positive(e: Episode, regime: str) -> bool:
+    """Whether ``e`` is one of ``regime``'s failures to detect: a natural failure; or a faulted failure whose
+    natural twin did not fail too. A faulted episode whose twin (the same seed without the fault) failed would have
+    failed without the fault: its failure is the policy's own, not the fault's, and no alert after the onset
+    could be a detection of the fault (on Lift, every failure under the gripper slip was such a one)."""
+    return e.regime == regime and not e.success and not e.extra.get("twin_failed", False)
+
+
 AGGREGATES = ("mean", "max", "median", "max3")
 
 
@@ -308,7 +328,7 @@ def ranking(episodes: list[Episode], signals, regime: str, cut: int | None, n_bo
     """AUROC [95 % CI] per signal: the regime's failures against the natural successes (``with_roc``: and the ROC
     curve's points, for figures); ``stacked`` (its members and ``stacked_scores`` of these episodes): also the
     ``stack`` row."""
-    positives = [e for e in episodes if e.regime == regime and not e.success]
+    positives = [e for e in episodes if is_positive(e, regime)]
     negatives = [e for e in episodes if e.regime == "natural" and e.success]
     out = {}
     for signal in signals:
@@ -461,7 +481,7 @@ def detection_figures(episodes: list[Episode], judged: dict[int, dict], regime: 
         return e.onset is None or e.regime == "natural" or j["known_at"] > e.onset
 
     clean = [i for i, e in enumerate(episodes) if e.regime == "natural" and e.success and i in judged]
-    failed = [i for i, e in enumerate(episodes) if e.regime == regime and not e.success and i in judged]
+    failed = [i for i, e in enumerate(episodes) if is_positive(e, regime) and i in judged]
     kept = [i for i, e in enumerate(episodes) if e.regime == regime and e.success and i in judged]
     fa = sum(alerted(i, episodes[i]) for i in clean)
     ta = sum(alerted(i, episodes[i]) for i in failed)
@@ -504,6 +524,7 @@ def compare(episodes: list[Episode], alpha: float = 0.1, folds: int = 5, prefix:
     if unknown:
         raise ValueError(f"unknown rule setting(s) {unknown}; choose from {sorted(RULES)}")
     assign_folds(episodes, folds, seed)
+    mark_twin_outcomes(episodes)
     result: dict = {"settings": {"alpha": alpha, "folds": folds, "prefix": prefix, "seed": seed,
                                  "n_bootstrap": n_bootstrap, "rules": {r: RULES[r].to_dict() for r in rule_names},
                                  "ranking_score": f"{aggregate} of the signal over the view's decisions",
@@ -521,6 +542,8 @@ def compare(episodes: list[Episode], alpha: float = 0.1, folds: int = 5, prefix:
             rs = [e for e in members if e.regime == regime]
             g["episodes"][regime] = {"episodes": len(rs), "successes": sum(e.success for e in rs),
                                      "failures": sum(not e.success for e in rs),
+                                     "twin_failed_too": sum(not e.success and e.extra.get("twin_failed", False)
+                                                            for e in rs),
                                      "onset": _quartiles([e.onset for e in rs if e.onset is not None])}
             ceiling = prompt_ceiling(members, regime) if regime != "natural" else None
             if ceiling is not None:
@@ -720,7 +743,9 @@ def summary_text(result: dict) -> str:
     lines.append(f"alpha {s['alpha']}, {s['folds']} folds (stratified; faults in their natural twin's fold), "
                  f"prefix {s['prefix']} decisions; ranking score: {s['ranking_score']}; negatives: {s['negatives']}")
     for group, g in result["groups"].items():
-        counts = ", ".join(f"{r} {c['episodes']} ({c['failures']} failed)" for r, c in g["episodes"].items())
+        counts = ", ".join(f"{r} {c['episodes']} ({c['failures']} failed"
+                           + (f", {c['twin_failed_too']} of them as their natural twin did: not counted as the "
+                              "fault's" if c.get("twin_failed_too") else "") + ")" for r, c in g["episodes"].items())
         lines.append(f"\n{group}: {counts}")
         for view, v in g["views"].items():
             nat = v["ranking"]["natural"]

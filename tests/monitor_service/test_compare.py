@@ -63,7 +63,8 @@ def test_a_separating_signal_ranks_and_detects_every_failure_and_the_random_row_
     rows = natural(stac=lambda failed, i, s, g: (2.0 if failed else 0.0) + g.random())
     result = run(rows, rule_names=("default", "fast"), signals=["stac", "random", "absent"])
     g = result["groups"]["jepa:jepa.pt"]
-    assert g["episodes"]["natural"] == {"episodes": 90, "successes": 60, "failures": 30, "onset": None}
+    assert g["episodes"]["natural"] == {"episodes": 90, "successes": 60, "failures": 30, "twin_failed_too": 0,
+                                        "onset": None}
     assert g["signals"] == ["stac", "random"]      # a signal the records lack is left out
     for view in ("prefix", "whole"):
         v = g["views"][view]
@@ -98,6 +99,12 @@ def test_the_prefix_view_reads_only_the_first_decisions_of_the_episodes_that_rea
     assert d["true_alerts"] == 0 and single(whole, "fast", "stac")["natural"]["true_alerts"] == 30
 
 
+def kept(n, start=0):
+    """The first ``n`` seeds from ``start`` whose natural episode succeeds (``natural()`` fails every third): a
+    faulted failure on them is the fault's, not one its twin shares."""
+    return [s for s in range(start, start + 2 * n) if s % 3][:n]
+
+
 def faulted(seeds, regime, stac, nmse=None, success=False):
     """Faulted twins of natural seeds: failures of 38 decisions, or successes as long as the natural ones."""
     return [record(s, success, 12 + s % 10 if success else 38, regime, ONSET, stac=stac, nmse=nmse) for s in seeds]
@@ -106,10 +113,10 @@ def faulted(seeds, regime, stac, nmse=None, success=False):
 def test_fault_delay_counts_from_the_onset_and_an_alert_before_it_detects_nothing():
     rows = natural()
     # the fault lifts STAC and NMSE from its onset on: the first decision after step 30 is step 32
-    rows += faulted(range(20), "block_displaced", lambda i, s, g: 5 + g.random() if s > ONSET else g.random(),
+    rows += faulted(kept(20), "block_displaced", lambda i, s, g: 5 + g.random() if s > ONSET else g.random(),
                     nmse=lambda i, s, g: 5 + g.random() if s + 4 > ONSET else g.random())
     # a spike before the onset only, then quiet: the first alert comes before the onset
-    rows += faulted(range(20, 40), "early_spike", lambda i, s, g: 9.0 if s < ONSET else 0.01 * g.random())
+    rows += faulted(kept(20, 30), "early_spike", lambda i, s, g: 9.0 if s < ONSET else 0.01 * g.random())
     # a harmless shift: successes under the fault, read for their alert rate
     rows += faulted(range(40, 60), "background_tint", lambda i, s, g: g.random(), success=True)
     g = run(rows, signals=["stac", "nmse"])["groups"]["jepa:jepa.pt"]
@@ -120,7 +127,9 @@ def test_fault_delay_counts_from_the_onset_and_an_alert_before_it_detects_nothin
     assert stac["block_displaced"]["delay_steps"]["median"] == 2          # known at step 32
     assert stac["block_displaced"]["delay_decisions"]["median"] == 2 / 8
     nmse = single(whole, "fast", "nmse")["block_displaced"]
-    assert nmse["tpr"] == 1.0 and nmse["delay_steps"]["median"] == (32 + 4) - ONSET   # known at its target step 36
+    # every one is caught at its target step 36, or was alerted on by the noise before the onset (no detection)
+    assert nmse["true_alerts"] + nmse["pre_onset_alerts"] == 20 and nmse["true_alerts"] >= 17
+    assert nmse["delay_steps"]["median"] == (32 + 4) - ONSET
     spike = stac["early_spike"]
     assert spike["true_alerts"] == 0 and spike["pre_onset_alerts"] == 20 and spike["delay_steps"] is None
     benign = stac["background_tint"]
@@ -175,7 +184,7 @@ def test_checkpoints_are_never_pooled():
 
 def test_the_command_writes_json_and_markdown_and_refuses_bad_input_in_one_line(tmp_path, capsys):
     rows = natural(stac=lambda failed, i, s, g: g.random() + 2 * failed)
-    rows += faulted(range(10), "block_displaced", lambda i, s, g: 5 + g.random() if s > ONSET else g.random())
+    rows += faulted(kept(10), "block_displaced", lambda i, s, g: 5 + g.random() if s > ONSET else g.random())
     path = tmp_path / "records.jsonl.gz"
     with gzip.open(path, "wt") as f:
         f.writelines(json.dumps(r) + "\n" for r in rows)
@@ -241,9 +250,9 @@ def test_a_fault_is_caught_promptly_only_when_its_alert_comes_within_two_decisio
     """Over whole episodes a late alert still counts as detection (a long faulted failure is caught at last by any
     rule that keeps alerting); the prompt figures count only alerts known within PROMPT_DECISIONS of the onset."""
     rows = natural()
-    rows += faulted(range(20), "prompt", lambda i, s, g: 5 + g.random() if s > ONSET else g.random())
+    rows += faulted(kept(20), "prompt", lambda i, s, g: 5 + g.random() if s > ONSET else g.random())
     late = ONSET + (cmp.PROMPT_DECISIONS + 2) * cmp.N_ACTION_STEPS
-    rows += faulted(range(20, 40), "late", lambda i, s, g: 5 + g.random() if s > late else g.random())
+    rows += faulted(kept(20, 30), "late", lambda i, s, g: 5 + g.random() if s > late else g.random())
     result = run(rows, signals=["stac", "random"], views=("whole",))
     stac = single(result["groups"]["jepa:jepa.pt"]["views"]["whole"], "fast", "stac")
     tnr = stac["prompt"]["tnr"]
@@ -380,12 +389,12 @@ def with_latents(row, shift_from=None):
 def test_a_faulted_failure_that_looks_like_its_succeeding_twin_until_the_window_ends_caps_every_detector():
     """Faulted failures whose latents equal their natural twin's through PROMPT_DECISIONS decisions after the onset
     cannot be caught in time without the same alert on the twin: with a succeeding twin they lower the ceiling;
-    with a failing twin they do not. A signal of what was seen stays under the ceiling; records without latents
+    with a failing twin they are not the fault's failures at all. A signal of what was seen stays under the ceiling; records without latents
     get no ceiling."""
     window_end = ONSET + cmp.PROMPT_DECISIONS * cmp.N_ACTION_STEPS
     rows = [with_latents(r) for r in natural()]
     hidden_seeds = {1, 2, 4, 5, 7, 8, 10}        # twins succeed (seed % 3 != 0); visible only after the window
-    late_but_twin_failed = {3, 6, 9}               # the same, but their twins failed: no false alert possible
+    late_but_twin_failed = {3, 6, 9}               # the same, but their twins failed: not the fault's failures
     for seed in range(1, 31):
         late = seed in hidden_seeds or seed in late_but_twin_failed
         rows.append(with_latents(record(seed, False, 38, "slip", ONSET),
@@ -393,12 +402,40 @@ def test_a_faulted_failure_that_looks_like_its_succeeding_twin_until_the_window_
     result = run(rows, signals=["stac"], views=("whole",))
     g = result["groups"]["jepa:jepa.pt"]
     ceiling = g["episodes"]["slip"]["prompt_ceiling"]
-    assert ceiling == {"failures": 30, "hidden_failures": 7, "prompt_tpr_ceiling": 23 / 30,
-                       "prompt_balanced_accuracy_ceiling": (23 / 30 + 1) / 2}
+    assert g["episodes"]["slip"]["twin_failed_too"] == 10          # seeds 3, 6, ..., 30
+    assert ceiling == {"failures": 20, "hidden_failures": 7, "prompt_tpr_ceiling": 13 / 20,
+                       "prompt_balanced_accuracy_ceiling": (13 / 20 + 1) / 2}
     stac = single(g["views"]["whole"], "fast", "stac")["slip"]
-    assert stac["prompt_alerts"] <= 30 - 7 and stac["prompt_balanced_accuracy"] <= \
+    assert stac["failures"] == 20 and stac["prompt_alerts"] <= 20 - 7 and stac["prompt_balanced_accuracy"] <= \
         ceiling["prompt_balanced_accuracy_ceiling"]
     assert "7 failure(s) look like their succeeding natural twin until then" in cmp.summary_text(result)
     bare = run([{**r, "decisions": [{k: v for k, v in d.items() if k not in ("z_now", "z_real")}
                                     for d in r["decisions"]]} for r in rows], signals=["stac"], views=("whole",))
     assert "prompt_ceiling" not in bare["groups"]["jepa:jepa.pt"]["episodes"]["slip"]
+
+
+def test_a_faulted_failure_whose_natural_twin_failed_too_is_not_the_faults_to_detect():
+    """Under Lift's gripper slip every failure was one its natural twin (the same seed without the fault) shared:
+    never grasped, so the weakened gripper changed nothing. Such failures are the policy's own: they are counted
+    beside, and neither ranked nor detected as the fault's. A signal that rises only where the fault changed the
+    outcome then reads as a perfect detector of the fault."""
+    rows = natural()
+    # the fault's own failures (twin succeeded) light STAC up after the onset; the shared ones stay quiet
+    rows += faulted(kept(12), "slip", lambda i, s, g: 5 + g.random() if s > ONSET else g.random())
+    shared = [s for s in range(36) if s % 3 == 0]                      # twins failed
+    rows += faulted(shared, "slip", lambda i, s, g: g.random())
+    rows += faulted(shared[:5], "never_mattered", lambda i, s, g: g.random())
+    result = run(rows, signals=["stac"], views=("whole",))
+    g = result["groups"]["jepa:jepa.pt"]
+    assert g["episodes"]["slip"]["failures"] == 24 and g["episodes"]["slip"]["twin_failed_too"] == 12
+    whole = g["views"]["whole"]
+    assert whole["ranking"]["slip"]["stac"]["failures"] == 12 and whole["ranking"]["slip"]["stac"]["auroc"] == 1.0
+    d = single(whole, "fast", "stac")["slip"]
+    assert d["failures"] == 12 and d["true_alerts"] == 12 and d["prompt_alerts"] == 12
+    gone = single(whole, "fast", "stac")["never_mattered"]
+    assert gone["failures"] == 0 and gone["tpr"] is None and gone["balanced_accuracy"] is None
+    text = cmp.summary_text(result)
+    assert "slip 24 (24 failed, 12 of them as their natural twin did: not counted as the fault's)" in text
+    # without the natural episodes nobody knows what the twin did: every failure counts, as before
+    alone = run([r for r in rows if r["regime"] != "natural"] + natural()[:2], signals=["stac"], views=("whole",))
+    assert alone["groups"]["jepa:jepa.pt"]["episodes"]["slip"]["twin_failed_too"] == 1   # only seeds 0 and 1 have twins; 0 failed
