@@ -270,11 +270,15 @@ def assign_folds(episodes: list[Episode], k: int, seed: int = 0) -> None:
 
 def mark_twin_outcomes(episodes: list[Episode]) -> None:
     """Each faulted episode learns whether its natural twin (same group and seed) failed: ``extra["twin_failed"]``
-    True or False, absent without a twin."""
-    twins = {(e.group, e.seed): e.success for e in episodes if e.regime == "natural"}
+    True or False, absent without a twin. A seed whose natural episode was recorded more than once (a re-roll)
+    counts as failed if any copy failed: then the fault cannot be said to have made the difference."""
+    twins: dict[tuple[str, int], bool] = {}
+    for e in episodes:
+        if e.regime == "natural":
+            twins[(e.group, e.seed)] = twins.get((e.group, e.seed), False) or not e.success
     for e in episodes:
         if e.regime != "natural" and (e.group, e.seed) in twins:
-            e.extra["twin_failed"] = not twins[(e.group, e.seed)]
+            e.extra["twin_failed"] = twins[(e.group, e.seed)]
 
 
 def is_positive(e: Episode, regime: str) -> bool:

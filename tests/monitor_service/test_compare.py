@@ -436,6 +436,11 @@ def test_a_faulted_failure_whose_natural_twin_failed_too_is_not_the_faults_to_de
     assert gone["failures"] == 0 and gone["tpr"] is None and gone["balanced_accuracy"] is None
     text = cmp.summary_text(result)
     assert "slip 24 (24 failed, 12 of them as their natural twin did: not counted as the fault's)" in text
+    # a seed recorded twice without the fault, once failing: the fault cannot be said to have made the difference
+    reroll = natural()[1:2]
+    reroll[0]["success"], reroll[0]["length"] = False, 300
+    twice = run(rows + reroll, signals=["stac"], views=("whole",))
+    assert twice["groups"]["jepa:jepa.pt"]["episodes"]["slip"]["twin_failed_too"] == 13      # seed 1 joins them
     # without the natural episodes nobody knows what the twin did: every failure counts, as before
     alone = run([r for r in rows if r["regime"] != "natural"] + natural()[:2], signals=["stac"], views=("whole",))
     assert alone["groups"]["jepa:jepa.pt"]["episodes"]["slip"]["twin_failed_too"] == 1   # only seeds 0 and 1 have twins; 0 failed
