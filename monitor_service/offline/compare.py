@@ -20,7 +20,8 @@ episodes still running after them: every episode of this view has the same numbe
 cannot rank failures by their length; PushT's failures are all 300-step time-outs).
 
 Regimes: ``natural`` (the unfaulted episodes; positives their failures) and each fault (positives the faulted
-episodes that failed; benign faults are read for their alert rate). The negatives of every regime are the
+episodes that failed where their natural twin did not: see below; benign faults are read for their alert rate on
+the successes the fault reached). The negatives of every regime are the
 natural successes, so TNR = 1 - the false-alert rate on clean successes.
 
 Figures per signal x regime x view (per checkpoint: calibrations are per checkpoint, and raw scores are never
@@ -36,7 +37,9 @@ pooled across checkpoints):
   decisions of ``n_action_steps``); an alert raised before a fault's onset is no detection of it. A fault's
   failures are those of its episodes that failed while their natural twin succeeded (``is_positive``): one whose
   twin failed too would have failed anyway (on Lift most are never grasped, before or after a gripper slip that
-  then changes nothing); they are counted beside (``twin_failed_too``), not as the fault's. A fault's
+  then changes nothing); they are counted beside (``twin_failed_too``, with the alerts raised on them after the
+  onset: a fault may still have changed how they failed), not as the fault's; so are failures without a twin in
+  the records (``no_twin``), which still count as the fault's. A fault's
   failure counts as caught promptly when its alert is known within ``PROMPT_DECISIONS`` decisions of the onset;
   with latents in the records, ``prompt_ceiling`` says how many of them no detector could catch so, because they
   looked exactly like their succeeding natural twin until then. The summary also names, per fault, the best
@@ -270,13 +273,15 @@ def assign_folds(episodes: list[Episode], k: int, seed: int = 0) -> None:
 
 def mark_twin_outcomes(episodes: list[Episode]) -> None:
     """Each faulted episode learns whether its natural twin (same group and seed) failed: ``extra["twin_failed"]``
-    True or False, absent without a twin. A seed whose natural episode was recorded more than once (a re-roll)
-    counts as failed if any copy failed: then the fault cannot be said to have made the difference."""
+    True or False, absent without a twin (a flag left by an earlier call is cleared). A seed whose natural episode
+    was recorded more than once (a re-roll) counts as failed if any copy failed: then the fault cannot be said to
+    have made the difference. Call it on every episode loaded, before any view drops some (``compare`` does)."""
     twins: dict[tuple[str, int], bool] = {}
     for e in episodes:
         if e.regime == "natural":
             twins[(e.group, e.seed)] = twins.get((e.group, e.seed), False) or not e.success
     for e in episodes:
+        e.extra.pop("twin_failed", None)
         if e.regime != "natural" and (e.group, e.seed) in twins:
             e.extra["twin_failed"] = twins[(e.group, e.seed)]
 
@@ -284,8 +289,10 @@ def mark_twin_outcomes(episodes: list[Episode]) -> None:
 def is_positive(e: Episode, regime: str) -> bool:
     """Whether ``e`` is one of ``regime``'s failures to detect: a natural failure; or a faulted failure whose
     natural twin did not fail too. A faulted episode whose twin (the same seed without the fault) failed would have
-    failed without the fault: its failure is the policy's own, not the fault's, and no alert after the onset
-    could be a detection of the fault (on Lift, every failure under the gripper slip was such a one)."""
+    failed without the fault: its failure is the policy's own, not the fault's to be detected by (on Lift, every
+    failure under the gripper slip was such a one, 16 of 17 identical to the twin). The fault may still have
+    changed how it failed (the cube displaced: never grasped became knocked away), so the alerts on these are
+    reported beside (``detection_figures``' ``shared_failure_alerts``)."""
     return e.regime == regime and not e.success and not e.extra.get("twin_failed", False)
 
 
@@ -486,7 +493,11 @@ def detection_figures(episodes: list[Episode], judged: dict[int, dict], regime: 
 
     clean = [i for i, e in enumerate(episodes) if e.regime == "natural" and e.success and i in judged]
     failed = [i for i, e in enumerate(episodes) if is_positive(e, regime) and i in judged]
-    kept = [i for i, e in enumerate(episodes) if e.regime == regime and e.success and i in judged]
+    shared = [i for i, e in enumerate(episodes) if e.regime == regime and not e.success and i in judged
+              and e.extra.get("twin_failed", False)]
+    # a fault's successes that it reached (their episode outlasted the onset): one that ended first never saw it
+    kept = [i for i, e in enumerate(episodes) if e.regime == regime and e.success and i in judged
+            and (e.onset is None or e.length > e.onset)]
     fa = sum(alerted(i, episodes[i]) for i in clean)
     ta = sum(alerted(i, episodes[i]) for i in failed)
     ka = sum(alerted(i, episodes[i]) for i in kept)
@@ -497,6 +508,7 @@ def detection_figures(episodes: list[Episode], judged: dict[int, dict], regime: 
            "false_alert_rate": None if tnr is None else 1 - tnr, "false_alert_ci": rules.binomial_ci(fa, len(clean)),
            "balanced_accuracy": None if tpr is None or tnr is None else (tpr + tnr) / 2,
            "regime_successes": len(kept), "regime_success_alerts": ka,
+           "shared_failures": len(shared), "shared_failure_alerts": sum(alerted(i, episodes[i]) for i in shared),
            "regime_success_alert_rate": ka / len(kept) if kept else None,
            "regime_success_alert_ci": rules.binomial_ci(ka, len(kept))}
     hits = [(judged[i], episodes[i]) for i in failed if alerted(i, episodes[i])]
@@ -532,7 +544,9 @@ def compare(episodes: list[Episode], alpha: float = 0.1, folds: int = 5, prefix:
     result: dict = {"settings": {"alpha": alpha, "folds": folds, "prefix": prefix, "seed": seed,
                                  "n_bootstrap": n_bootstrap, "rules": {r: RULES[r].to_dict() for r in rule_names},
                                  "ranking_score": f"{aggregate} of the signal over the view's decisions",
-                                 "negatives": "natural successes"},
+                                 "negatives": "natural successes",
+                                 "positives": "natural failures; a fault's failures whose natural twin (same "
+                                              "checkpoint and seed) did not fail"},
                     "groups": {}}
     groups = sorted({e.group for e in episodes})
     bar = tqdm(total=len(groups) * len(views), desc="compare", unit="view", disable=not progress)
@@ -548,6 +562,10 @@ def compare(episodes: list[Episode], alpha: float = 0.1, folds: int = 5, prefix:
                                      "failures": sum(not e.success for e in rs),
                                      "twin_failed_too": sum(not e.success and e.extra.get("twin_failed", False)
                                                             for e in rs),
+                                     "no_twin": sum(not e.success and "twin_failed" not in e.extra
+                                                    for e in rs if e.regime != "natural"),
+                                     "ended_before_onset": sum(e.onset is not None and e.length <= e.onset
+                                                               for e in rs),
                                      "onset": _quartiles([e.onset for e in rs if e.onset is not None])}
             ceiling = prompt_ceiling(members, regime) if regime != "natural" else None
             if ceiling is not None:
@@ -658,8 +676,9 @@ def detection_table(result: dict, view: str, rule: str, regime: str) -> list[str
         lines += [f"**{group}**, {regime}, {view}, rule {rule}", "",
                   f"| detector | TPR | TNR (false alerts [95% CI]) | balanced acc. | {timing}, median (IQR) |"
                   + (f" caught within {PROMPT_DECISIONS} decisions (balanced acc.) | alerts on this regime's "
-                     "successes |" if regime != "natural" else ""),
-                  "|---|---|---|---|---|" + ("---|---|" if regime != "natural" else "")]
+                     "successes (the fault reached) | alerts on failures the natural twin shares |"
+                     if regime != "natural" else ""),
+                  "|---|---|---|---|---|" + ("---|---|---|" if regime != "natural" else "")]
         for name, per in rows.items():
             r = per.get(regime)
             if r is None:
@@ -674,7 +693,8 @@ def detection_table(result: dict, view: str, rule: str, regime: str) -> list[str
             if regime != "natural":
                 pb = r.get("prompt_balanced_accuracy")
                 row += (f" {_rate(r['prompt_alerts'], r['failures'])} ({'n/a' if pb is None else f'{pb:.3f}'}) |"
-                        f" {_rate(r['regime_success_alerts'], r['regime_successes'])} |")
+                        f" {_rate(r['regime_success_alerts'], r['regime_successes'])} |"
+                        f" {_rate(r.get('shared_failure_alerts', 0), r.get('shared_failures', 0))} |")
             lines.append(row)
         lines.append("")
     return lines
@@ -749,7 +769,11 @@ def summary_text(result: dict) -> str:
     for group, g in result["groups"].items():
         counts = ", ".join(f"{r} {c['episodes']} ({c['failures']} failed"
                            + (f", {c['twin_failed_too']} of them as their natural twin did: not counted as the "
-                              "fault's" if c.get("twin_failed_too") else "") + ")" for r, c in g["episodes"].items())
+                              "fault's" if c.get("twin_failed_too") else "")
+                           + (f", {c['no_twin']} without a natural twin in the records: counted as the fault's"
+                              if c.get("no_twin") else "")
+                           + (f"; {c['ended_before_onset']} ended before the onset" if c.get("ended_before_onset")
+                              else "") + ")" for r, c in g["episodes"].items())
         lines.append(f"\n{group}: {counts}")
         for view, v in g["views"].items():
             nat = v["ranking"]["natural"]

@@ -64,7 +64,7 @@ def test_a_separating_signal_ranks_and_detects_every_failure_and_the_random_row_
     result = run(rows, rule_names=("default", "fast"), signals=["stac", "random", "absent"])
     g = result["groups"]["jepa:jepa.pt"]
     assert g["episodes"]["natural"] == {"episodes": 90, "successes": 60, "failures": 30, "twin_failed_too": 0,
-                                        "onset": None}
+                                        "no_twin": 0, "ended_before_onset": 0, "onset": None}
     assert g["signals"] == ["stac", "random"]      # a signal the records lack is left out
     for view in ("prefix", "whole"):
         v = g["views"][view]
@@ -389,8 +389,8 @@ def with_latents(row, shift_from=None):
 def test_a_faulted_failure_that_looks_like_its_succeeding_twin_until_the_window_ends_caps_every_detector():
     """Faulted failures whose latents equal their natural twin's through PROMPT_DECISIONS decisions after the onset
     cannot be caught in time without the same alert on the twin: with a succeeding twin they lower the ceiling;
-    with a failing twin they are not the fault's failures at all. A signal of what was seen stays under the ceiling; records without latents
-    get no ceiling."""
+    with a failing twin they are not the fault's failures at all. A signal of what was seen stays under the
+    ceiling; records without latents get no ceiling."""
     window_end = ONSET + cmp.PROMPT_DECISIONS * cmp.N_ACTION_STEPS
     rows = [with_latents(r) for r in natural()]
     hidden_seeds = {1, 2, 4, 5, 7, 8, 10}        # twins succeed (seed % 3 != 0); visible only after the window
@@ -425,6 +425,11 @@ def test_a_faulted_failure_whose_natural_twin_failed_too_is_not_the_faults_to_de
     shared = [s for s in range(36) if s % 3 == 0]                      # twins failed
     rows += faulted(shared, "slip", lambda i, s, g: g.random())
     rows += faulted(shared[:5], "never_mattered", lambda i, s, g: g.random())
+    # failures the twin shares, but the fault changed how: they light up after the onset, and that is reported
+    rows += faulted(shared[:6], "changed_how", lambda i, s, g: 5 + g.random() if s > ONSET else g.random())
+    # successes under a fault whose episode ended before the onset never met it: not read for its alert rate
+    rows += [record(s, True, 3, "too_late", ONSET) for s in kept(4)] + \
+        [record(s, True, 12, "too_late", ONSET) for s in kept(4, 20)]
     result = run(rows, signals=["stac"], views=("whole",))
     g = result["groups"]["jepa:jepa.pt"]
     assert g["episodes"]["slip"]["failures"] == 24 and g["episodes"]["slip"]["twin_failed_too"] == 12
@@ -432,15 +437,36 @@ def test_a_faulted_failure_whose_natural_twin_failed_too_is_not_the_faults_to_de
     assert whole["ranking"]["slip"]["stac"]["failures"] == 12 and whole["ranking"]["slip"]["stac"]["auroc"] == 1.0
     d = single(whole, "fast", "stac")["slip"]
     assert d["failures"] == 12 and d["true_alerts"] == 12 and d["prompt_alerts"] == 12
+    assert d["shared_failures"] == 12      # read beside (their alerts too), never as catches or misses
     gone = single(whole, "fast", "stac")["never_mattered"]
     assert gone["failures"] == 0 and gone["tpr"] is None and gone["balanced_accuracy"] is None
+    changed = single(whole, "fast", "stac")["changed_how"]
+    assert changed["failures"] == 0 and changed["shared_failures"] == changed["shared_failure_alerts"] == 6
+    late = single(whole, "fast", "stac")["too_late"]
+    assert late["regime_successes"] == 4 and g["episodes"]["too_late"]["ended_before_onset"] == 4
     text = cmp.summary_text(result)
     assert "slip 24 (24 failed, 12 of them as their natural twin did: not counted as the fault's)" in text
-    # a seed recorded twice without the fault, once failing: the fault cannot be said to have made the difference
+    assert "too_late 8 (0 failed; 4 ended before the onset)" in text
+    (row,) = [r for r in cmp.detection_table(result, "whole", "fast", "changed_how") if r.startswith("| stac band |")]
+    assert row.endswith("| 6/6=1.00 |")
+    # a seed recorded twice without the fault, once failing: the fault cannot be said to have made the difference,
+    # whichever copy was read first
     reroll = natural()[1:2]
     reroll[0]["success"], reroll[0]["length"] = False, 300
-    twice = run(rows + reroll, signals=["stac"], views=("whole",))
-    assert twice["groups"]["jepa:jepa.pt"]["episodes"]["slip"]["twin_failed_too"] == 13      # seed 1 joins them
+    for both in (rows + reroll, reroll + rows):
+        twice = run(both, signals=["stac"], views=("whole",))
+        assert twice["groups"]["jepa:jepa.pt"]["episodes"]["slip"]["twin_failed_too"] == 13     # seed 1 joins them
     # without the natural episodes nobody knows what the twin did: every failure counts, as before
     alone = run([r for r in rows if r["regime"] != "natural"] + natural()[:2], signals=["stac"], views=("whole",))
-    assert alone["groups"]["jepa:jepa.pt"]["episodes"]["slip"]["twin_failed_too"] == 1   # only seeds 0 and 1 have twins; 0 failed
+    slip = alone["groups"]["jepa:jepa.pt"]["episodes"]["slip"]
+    assert slip["twin_failed_too"] == 1 and slip["no_twin"] == 22     # only seeds 0 and 1 have twins; 0 failed
+    assert "22 without a natural twin in the records: counted as the fault's" in cmp.summary_text(alone)
+
+
+def test_the_goal_as_written_holds_at_its_edges():
+    """Balanced accuracy >= 0.90 and a median delay <= PROMPT_DECISIONS: both bounds included."""
+    def figures(bacc, delay):
+        return {"balanced_accuracy": bacc, "delay_decisions": None if delay is None else {"median": delay}}
+    assert cmp.meets_goal(figures(0.90, 2.0)) and cmp.meets_goal(figures(1.0, 0.0))
+    assert not cmp.meets_goal(figures(0.8999, 1.0)) and not cmp.meets_goal(figures(0.95, 2.01))
+    assert not cmp.meets_goal(figures(None, 1.0)) and not cmp.meets_goal(figures(0.95, None))
