@@ -38,8 +38,8 @@ pooled across checkpoints):
   failures are those of its episodes that failed while their natural twin succeeded (``is_positive``): one whose
   twin failed too would have failed anyway (on Lift most are never grasped, before or after a gripper slip that
   then changes nothing); they are counted beside (``twin_failed_too``, with the alerts raised on them after the
-  onset: a fault may still have changed how they failed), not as the fault's; so are failures without a twin in
-  the records (``no_twin``), which still count as the fault's. A fault's
+  onset: a fault may still have changed how they failed), not as the fault's. Failures without a twin in the
+  records still count as the fault's, and are named (``no_twin``). A fault's
   failure counts as caught promptly when its alert is known within ``PROMPT_DECISIONS`` decisions of the onset;
   with latents in the records, ``prompt_ceiling`` says how many of them no detector could catch so, because they
   looked exactly like their succeeding natural twin until then. The summary also names, per fault, the best
@@ -290,7 +290,7 @@ def is_positive(e: Episode, regime: str) -> bool:
     """Whether ``e`` is one of ``regime``'s failures to detect: a natural failure; or a faulted failure whose
     natural twin did not fail too. A faulted episode whose twin (the same seed without the fault) failed would have
     failed without the fault: its failure is the policy's own, not the fault's to be detected by (on Lift, every
-    failure under the gripper slip was such a one, 16 of 17 identical to the twin). The fault may still have
+    failure under the gripper slip was such a one, 16 of 17 seeing exactly what the twin saw). The fault may still have
     changed how it failed (the cube displaced: never grasped became knocked away), so the alerts on these are
     reported beside (``detection_figures``' ``shared_failure_alerts``)."""
     return e.regime == regime and not e.success and not e.extra.get("twin_failed", False)
