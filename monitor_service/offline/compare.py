@@ -482,9 +482,16 @@ def detection(episodes: list[Episode], signals, cut: int | None, alpha: float, p
     return {"judged": judged, "refused": refused, "specs": {s.name: s for s in specs}}
 
 
-def detection_figures(episodes: list[Episode], judged: dict[int, dict], regime: str) -> dict:
+def _last_known(e: Episode, cut: int | None) -> int:
+    """The env step by which every score of the view's decisions is known (-1 for an episode without decisions)."""
+    return max((int(k[:cut][-1]) for k in e.known_at.values() if k[:cut].size), default=-1)
+
+
+def detection_figures(episodes: list[Episode], judged: dict[int, dict], regime: str, cut: int | None = None) -> dict:
     """TPR on the regime's failures (faults: alerts known after the onset), TNR on natural successes, balanced
-    accuracy, detection time, and the alert rate of the regime's successes (the false alarms of a benign fault)."""
+    accuracy, detection time, and the alert rate of the regime's successes (the false alarms of a benign fault).
+    ``cut``: the view's decisions (None: whole episodes); a fault's failures whose onset comes at or after the last
+    decision in the view are counted (``onset_after_view``): nothing in the view can catch those."""
     def alerted(i: int, e: Episode) -> bool:
         j = judged.get(i)
         if j is None or not j["alerted"]:
@@ -519,6 +526,8 @@ def detection_figures(episodes: list[Episode], judged: dict[int, dict], regime: 
         out["delay_steps"] = _quartiles(delays)
         out["delay_decisions"] = _quartiles([d / N_ACTION_STEPS for d in delays])
         out["pre_onset_alerts"] = sum(1 for i in failed if judged[i]["alerted"] and not alerted(i, episodes[i]))
+        out["onset_after_view"] = sum(1 for i in failed if episodes[i].onset is not None
+                                      and episodes[i].onset >= _last_known(episodes[i], cut))
         prompt = sum(1 for d in delays if d <= PROMPT_DECISIONS * N_ACTION_STEPS)
         out["prompt_alerts"] = prompt
         out["prompt_tpr"] = prompt / len(failed) if failed else None
@@ -584,7 +593,7 @@ def compare(episodes: list[Episode], alpha: float = 0.1, folds: int = 5, prefix:
                 d = detection(eps, chosen, cut, alpha, RULES[rule_name], folds, seed)
                 rows = {}
                 for name, judged in d["judged"].items():
-                    rows[name] = {regime: detection_figures(eps, judged, regime) for regime in regimes}
+                    rows[name] = {regime: detection_figures(eps, judged, regime, cut) for regime in regimes}
                 v["detection"][rule_name] = {"detectors": rows, "refused": d["refused"]}
             g["views"][view] = v
             bar.update()
@@ -673,8 +682,12 @@ def detection_table(result: dict, view: str, rule: str, regime: str) -> list[str
             continue
         rows = v["detection"][rule]["detectors"]
         timing = "lead before the end, steps" if regime == "natural" else "delay after onset, decisions"
-        lines += [f"**{group}**, {regime}, {view}, rule {rule}", "",
-                  f"| detector | TPR | TNR (false alerts [95% CI]) | balanced acc. | {timing}, median (IQR) |"
+        late = next((per[regime].get("onset_after_view") for per in rows.values() if regime in per), None)
+        lines += [f"**{group}**, {regime}, {view}, rule {rule}", ""]
+        if late:
+            lines += [f"The onset comes after this view's last decision in {late} of these failures: no detector "
+                      f"can catch those here.", ""]
+        lines += [f"| detector | TPR | TNR (false alerts [95% CI]) | balanced acc. | {timing}, median (IQR) |"
                   + (f" caught within {PROMPT_DECISIONS} decisions (balanced acc.) | alerts on this regime's "
                      "successes (the fault reached) | alerts on failures the natural twin shares |"
                      if regime != "natural" else ""),
@@ -797,15 +810,22 @@ def summary_text(result: dict) -> str:
                     d = row["best_detection"]
                     if d is None:
                         continue
+                    late = d.get("onset_after_view") or 0
+                    if late and late == d["failures"]:
+                        lines.append(f"    [{rule}] {row['regime']:<16} the onset comes after this view's last "
+                                     f"decision in all {late} failures: no detector can catch them here (see the "
+                                     f"whole view)")
+                        continue
                     q = d.get("lead_steps") if row["regime"] == "natural" else d.get("delay_decisions")
                     when = "" if q is None else (f", lead {q['median']:.0f} steps" if row["regime"] == "natural"
                                                  else f", median delay {q['median']:.2f} decisions")
                     c = row["chance_detection"]
                     chance = "" if not c or c["balanced_accuracy"] is None else \
                         f"; chance row (random, same calibration) {c['balanced_accuracy']:.3f}"
+                    beyond = f"; the onset comes after this view in {late} of them" if late else ""
                     lines.append(f"    [{rule}] {row['regime']:<16} best {row['best_detector']}: balanced acc "
-                                 f"{d['balanced_accuracy']:.3f} (TPR {_rate(d['true_alerts'], d['failures'])}, "
-                                 f"false alerts {_rate(d['false_alerts'], d['successes'])}){when}{chance}")
+                                 f"{d['balanced_accuracy']:.3f} (TPR {_rate(d['true_alerts'], d['failures'])}"
+                                 f"{beyond}, false alerts {_rate(d['false_alerts'], d['successes'])}){when}{chance}")
                     p, pc = row["best_prompt_detection"], row["chance_prompt_detection"]
                     if p is not None:
                         chance = "" if not pc or pc.get("prompt_balanced_accuracy") is None else \

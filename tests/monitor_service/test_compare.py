@@ -470,3 +470,28 @@ def test_the_goal_as_written_holds_at_its_edges():
     assert cmp.meets_goal(figures(0.90, 2.0)) and cmp.meets_goal(figures(1.0, 0.0))
     assert not cmp.meets_goal(figures(0.8999, 1.0)) and not cmp.meets_goal(figures(0.95, 2.01))
     assert not cmp.meets_goal(figures(None, 1.0)) and not cmp.meets_goal(figures(0.95, None))
+
+
+def test_a_fault_whose_onset_comes_after_the_prefix_is_named_so_and_not_ranked_as_a_missed_detection():
+    """The prefix view keeps the first decisions only. A fault whose onset (env step 30) comes after the last of
+    them (decision 3 at step 16, known at 20) cannot be caught there by any detector: the count says so and the
+    summary prints that, not a best detector at chance. The whole view still catches it."""
+    rows = natural()
+    rows += faulted(kept(12), "late", lambda i, s, g: 5 + g.random() if s > ONSET else g.random())
+    # onset at step 10: inside a 3-decision prefix (decisions at 0, 8, 16)
+    rows += [record(s, False, 38, "early", 10, stac=lambda i, st, g: 5 + g.random() if st > 10 else g.random())
+             for s in kept(12)]
+    result = run(rows, signals=["stac"], prefix=3)
+    v = result["groups"]["jepa:jepa.pt"]["views"]
+    assert single(v["prefix"], "fast", "stac")["late"]["onset_after_view"] == 12
+    assert single(v["prefix"], "fast", "stac")["early"]["onset_after_view"] == 0
+    assert single(v["whole"], "fast", "stac")["late"]["onset_after_view"] == 0
+    assert single(v["whole"], "fast", "stac")["late"]["true_alerts"] == 12
+    text = cmp.summary_text(result)
+    prefix_text = text[:text.index("  whole (")]
+    assert "[fast] late             the onset comes after this view's last decision in all 12 failures" in prefix_text
+    assert "late             best" not in prefix_text and "early            best" in prefix_text
+    assert "onset comes after" not in text[text.index("  whole ("):]
+    assert "the onset comes after this view's last decision in all 12 failures" in cmp.markdown(result)
+    assert "The onset comes after this view's last decision in 12 of these failures" in \
+        "\n".join(cmp.detection_table(result, "prefix", "fast", "late"))
