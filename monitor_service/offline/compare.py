@@ -282,6 +282,7 @@ def mark_twin_outcomes(episodes: list[Episode]) -> None:
             twins[(e.group, e.seed)] = twins.get((e.group, e.seed), False) or not e.success
     for e in episodes:
         e.extra.pop("twin_failed", None)
+        e.extra["twins_marked"] = True
         if e.regime != "natural" and (e.group, e.seed) in twins:
             e.extra["twin_failed"] = twins[(e.group, e.seed)]
 
@@ -292,8 +293,14 @@ def is_positive(e: Episode, regime: str) -> bool:
     failed without the fault: its failure is the policy's own, not the fault's to be detected by (on Lift, every
     failure under the gripper slip was such a one, 16 of 17 seeing exactly what the twin saw). The fault may still have
     changed how it failed (the cube displaced: never grasped became knocked away), so the alerts on these are
-    reported beside (``detection_figures``' ``shared_failure_alerts``)."""
-    return e.regime == regime and not e.success and not e.extra.get("twin_failed", False)
+    reported beside (``detection_figures``' ``shared_failure_alerts``). A faulted episode must have been through
+    ``mark_twin_outcomes`` (a ValueError says so otherwise: unmarked, every faulted failure would count)."""
+    if e.regime != regime or e.success:
+        return False
+    if e.regime != "natural" and not e.extra.get("twins_marked"):
+        raise ValueError(f"faulted episode {e.regime}-{e.seed} was not matched with its natural twin: call "
+                         f"mark_twin_outcomes(episodes) on every loaded episode first (compare() does)")
+    return not e.extra.get("twin_failed", False)
 
 
 AGGREGATES = ("mean", "max", "median", "max3")

@@ -495,3 +495,11 @@ def test_a_fault_whose_onset_comes_after_the_prefix_is_named_so_and_not_ranked_a
     assert "the onset comes after this view's last decision in all 12 failures" in cmp.markdown(result)
     assert "The onset comes after this view's last decision in 12 of these failures" in \
         "\n".join(cmp.detection_table(result, "prefix", "fast", "late"))
+
+
+def test_a_direct_caller_who_skips_the_twin_matching_gets_an_error_not_every_faulted_failure_counted():
+    eps = [cmp.episode_of(r) for r in natural(12) + faulted(kept(3), "slip", None) + faulted([0], "slip", None)]
+    with pytest.raises(ValueError, match="mark_twin_outcomes"):
+        cmp.ranking(eps, ["stac"], "slip", None, 50, 0)
+    cmp.mark_twin_outcomes(eps)
+    assert cmp.ranking(eps, ["stac"], "slip", None, 50, 0)["stac"]["failures"] == 3   # seed 0's twin failed too
