@@ -533,6 +533,10 @@ def failure_report_lines(failure: dict) -> tuple[list[str], list[str]]:
             if d is None:
                 continue
             g = result["groups"][row["group"]]
+            if d.get("onset_after_view") and d["onset_after_view"] == d["failures"]:
+                lines.append(f"| {g['arm']} | {row['regime']} | {view} | none can catch these: the onset comes after "
+                             f"the last score known in this view in all {d['failures']} failures | | | | | | |")
+                continue
             nm = g["views"][view]["detection"]["default"]["detectors"].get("nmse band", {}).get(row["regime"])
             q = d.get("lead_steps") if row["regime"] == "natural" else d.get("delay_decisions")
             when = "-" if q is None else f"{q['median']:.3g}"

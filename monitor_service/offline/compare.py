@@ -489,16 +489,26 @@ def detection(episodes: list[Episode], signals, cut: int | None, alpha: float, p
     return {"judged": judged, "refused": refused, "specs": {s.name: s for s in specs}}
 
 
-def _last_known(e: Episode, cut: int | None) -> int:
-    """The env step by which every score of the view's decisions is known (-1 for an episode without decisions)."""
-    return max((int(k[:cut][-1]) for k in e.known_at.values() if k[:cut].size), default=-1)
+def _last_known(e: Episode, cut: int | None, signals=None) -> int:
+    """The env step by which every score of the view's decisions is known, over ``signals`` (None: all) and only
+    where a value was recorded: no detector reads anything else (-1 when there is none)."""
+    last = -1
+    for s, known in e.known_at.items():
+        if signals is not None and s not in signals:
+            continue
+        have = np.flatnonzero(np.isfinite(e.values[s][:cut]))
+        if have.size:
+            last = max(last, int(known[:cut][have[-1]]))
+    return last
 
 
-def detection_figures(episodes: list[Episode], judged: dict[int, dict], regime: str, cut: int | None = None) -> dict:
+def detection_figures(episodes: list[Episode], judged: dict[int, dict], regime: str, cut: int | None = None,
+                      signals=None) -> dict:
     """TPR on the regime's failures (faults: alerts known after the onset), TNR on natural successes, balanced
     accuracy, detection time, and the alert rate of the regime's successes (the false alarms of a benign fault).
     ``cut``: the view's decisions (None: whole episodes); a fault's failures whose onset comes at or after the last
-    decision in the view are counted (``onset_after_view``): nothing in the view can catch those."""
+    score known in the view (of ``signals``, None: all) are counted (``onset_after_view``): an alert counts only
+    when known after the onset, so nothing in the view can catch those."""
     def alerted(i: int, e: Episode) -> bool:
         j = judged.get(i)
         if j is None or not j["alerted"]:
@@ -534,7 +544,7 @@ def detection_figures(episodes: list[Episode], judged: dict[int, dict], regime: 
         out["delay_decisions"] = _quartiles([d / N_ACTION_STEPS for d in delays])
         out["pre_onset_alerts"] = sum(1 for i in failed if judged[i]["alerted"] and not alerted(i, episodes[i]))
         out["onset_after_view"] = sum(1 for i in failed if episodes[i].onset is not None
-                                      and episodes[i].onset >= _last_known(episodes[i], cut))
+                                      and episodes[i].onset >= _last_known(episodes[i], cut, signals))
         prompt = sum(1 for d in delays if d <= PROMPT_DECISIONS * N_ACTION_STEPS)
         out["prompt_alerts"] = prompt
         out["prompt_tpr"] = prompt / len(failed) if failed else None
@@ -600,7 +610,8 @@ def compare(episodes: list[Episode], alpha: float = 0.1, folds: int = 5, prefix:
                 d = detection(eps, chosen, cut, alpha, RULES[rule_name], folds, seed)
                 rows = {}
                 for name, judged in d["judged"].items():
-                    rows[name] = {regime: detection_figures(eps, judged, regime, cut) for regime in regimes}
+                    rows[name] = {regime: detection_figures(eps, judged, regime, cut, chosen)
+                                  for regime in regimes}
                 v["detection"][rule_name] = {"detectors": rows, "refused": d["refused"]}
             g["views"][view] = v
             bar.update()
@@ -692,8 +703,8 @@ def detection_table(result: dict, view: str, rule: str, regime: str) -> list[str
         late = next((per[regime].get("onset_after_view") for per in rows.values() if regime in per), None)
         lines += [f"**{group}**, {regime}, {view}, rule {rule}", ""]
         if late:
-            lines += [f"The onset comes after this view's last decision in {late} of these failures: no detector "
-                      f"can catch those here.", ""]
+            lines += [f"The onset comes after the last score known in this view in {late} of these failures: no "
+                      f"detector can catch those here.", ""]
         lines += [f"| detector | TPR | TNR (false alerts [95% CI]) | balanced acc. | {timing}, median (IQR) |"
                   + (f" caught within {PROMPT_DECISIONS} decisions (balanced acc.) | alerts on this regime's "
                      "successes (the fault reached) | alerts on failures the natural twin shares |"
@@ -819,9 +830,9 @@ def summary_text(result: dict) -> str:
                         continue
                     late = d.get("onset_after_view") or 0
                     if late and late == d["failures"]:
-                        lines.append(f"    [{rule}] {row['regime']:<16} the onset comes after this view's last "
-                                     f"decision in all {late} failures: no detector can catch them here (see the "
-                                     f"whole view)")
+                        lines.append(f"    [{rule}] {row['regime']:<16} the onset comes after the last score "
+                                     f"known in this view in all {late} failures: no detector can catch them here"
+                                     + (" (see the whole view)" if view != "whole" else ""))
                         continue
                     q = d.get("lead_steps") if row["regime"] == "natural" else d.get("delay_decisions")
                     when = "" if q is None else (f", lead {q['median']:.0f} steps" if row["regime"] == "natural"
@@ -829,7 +840,8 @@ def summary_text(result: dict) -> str:
                     c = row["chance_detection"]
                     chance = "" if not c or c["balanced_accuracy"] is None else \
                         f"; chance row (random, same calibration) {c['balanced_accuracy']:.3f}"
-                    beyond = f"; the onset comes after this view in {late} of them" if late else ""
+                    beyond = f"; the onset comes after the last score known in this view in {late} of them" \
+                        if late else ""
                     lines.append(f"    [{rule}] {row['regime']:<16} best {row['best_detector']}: balanced acc "
                                  f"{d['balanced_accuracy']:.3f} (TPR {_rate(d['true_alerts'], d['failures'])}"
                                  f"{beyond}, false alerts {_rate(d['false_alerts'], d['successes'])}){when}{chance}")

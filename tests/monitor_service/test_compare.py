@@ -473,28 +473,53 @@ def test_the_goal_as_written_holds_at_its_edges():
 
 
 def test_a_fault_whose_onset_comes_after_the_prefix_is_named_so_and_not_ranked_as_a_missed_detection():
-    """The prefix view keeps the first decisions only. A fault whose onset (env step 30) comes after the last of
-    them (decision 3 at step 16, known at 20) cannot be caught there by any detector: the count says so and the
-    summary prints that, not a best detector at chance. The whole view still catches it."""
+    """The prefix view keeps the first decisions only. A fault whose onset (env step 30) comes after the last score
+    known there (3 decisions at steps 0, 8, 16; STAC known at the step, NMSE at step + 4 = 20) cannot be caught there
+    by any detector: the count says so and the summary prints that, not a best detector at chance. The whole view
+    still catches it."""
     rows = natural()
     rows += faulted(kept(12), "late", lambda i, s, g: 5 + g.random() if s > ONSET else g.random())
-    # onset at step 10: inside a 3-decision prefix (decisions at 0, 8, 16)
+    # onset at step 10: inside a 3-decision prefix
     rows += [record(s, False, 38, "early", 10, stac=lambda i, st, g: 5 + g.random() if st > 10 else g.random())
              for s in kept(12)]
+    # half of them late: onset 10 on 6 seeds, 30 on 6 others
+    rows += [record(s, False, 38, "mixed", 10 if k < 6 else ONSET,
+                    stac=lambda i, st, g, o=10 if k < 6 else ONSET: 5 + g.random() if st > o else g.random())
+             for k, s in enumerate(kept(12))]
     result = run(rows, signals=["stac"], prefix=3)
     v = result["groups"]["jepa:jepa.pt"]["views"]
-    assert single(v["prefix"], "fast", "stac")["late"]["onset_after_view"] == 12
-    assert single(v["prefix"], "fast", "stac")["early"]["onset_after_view"] == 0
+    prefix = single(v["prefix"], "fast", "stac")
+    assert (prefix["late"]["onset_after_view"], prefix["early"]["onset_after_view"]) == (12, 0)
+    assert prefix["mixed"]["onset_after_view"] == 6
     assert single(v["whole"], "fast", "stac")["late"]["onset_after_view"] == 0
     assert single(v["whole"], "fast", "stac")["late"]["true_alerts"] == 12
     text = cmp.summary_text(result)
-    prefix_text = text[:text.index("  whole (")]
-    assert "[fast] late             the onset comes after this view's last decision in all 12 failures" in prefix_text
+    prefix_text, whole_text = text[:text.index("  whole (")], text[text.index("  whole ("):]
+    assert ("[fast] late             the onset comes after the last score known in this view in all 12 failures: no "
+            "detector can catch them here (see the whole view)") in prefix_text
     assert "late             best" not in prefix_text and "early            best" in prefix_text
-    assert "onset comes after" not in text[text.index("  whole ("):]
-    assert "the onset comes after this view's last decision in all 12 failures" in cmp.markdown(result)
-    assert "The onset comes after this view's last decision in 12 of these failures" in \
+    assert "the last score known in this view in 6 of them" in prefix_text
+    assert "onset comes after" not in whole_text
+    assert "the last score known in this view in all 12 failures" in cmp.markdown(result)
+    assert "The onset comes after the last score known in this view in 12 of these failures" in \
         "\n".join(cmp.detection_table(result, "prefix", "fast", "late"))
+
+
+@pytest.mark.parametrize("signal, onset, late", [("nmse", 19, 0), ("nmse", 20, 12), ("stac", 15, 0),
+                                                  ("stac", 16, 12), ("stac", 18, 12)])
+def test_the_onset_after_the_view_is_counted_against_the_last_score_the_chosen_signals_know(signal, onset, late):
+    """A 3-decision prefix: decisions at env steps 0, 8, 16; NMSE known at step + 4 (20), STAC at the step (16). An
+    alert counts when known after the onset, so an onset at 19 can still be caught by NMSE and one at 20 cannot;
+    with STAC alone an onset at 18 cannot, though NMSE (not chosen) is known later."""
+    rise = lambda i, s, g: 5 + g.random() if s + (4 if signal == "nmse" else 0) > onset else g.random()
+    rows = natural() + [record(s, False, 38, "shift", onset, **{signal: rise}) for s in kept(12)]
+    d = single(run(rows, signals=[signal], prefix=3)["groups"]["jepa:jepa.pt"]["views"]["prefix"], "fast",
+               signal)["shift"]
+    assert d["onset_after_view"] == late
+    if late:
+        assert d["true_alerts"] == 0
+    else:
+        assert d["true_alerts"] >= 10      # the last decision lights up after the onset
 
 
 def test_a_direct_caller_who_skips_the_twin_matching_gets_an_error_not_every_faulted_failure_counted():
@@ -503,3 +528,18 @@ def test_a_direct_caller_who_skips_the_twin_matching_gets_an_error_not_every_fau
         cmp.ranking(eps, ["stac"], "slip", None, 50, 0)
     cmp.mark_twin_outcomes(eps)
     assert cmp.ranking(eps, ["stac"], "slip", None, 50, 0)["stac"]["failures"] == 3   # seed 0's twin failed too
+
+
+def test_the_demo_report_names_a_fault_no_detector_can_catch_in_the_prefix():
+    """``jepa-demo``'s report table reads the same rows: a fault whose onset lies beyond the prefix gets a line
+    that says so, not a best detector at chance."""
+    from jepa_policy.demo.report import failure_report_lines
+    rows = natural() + faulted(kept(12), "late", lambda i, s, g: 5 + g.random() if s > ONSET else g.random())
+    result = run(rows, signals=["stac"], prefix=3, rule_names=("default",))
+    lines, _ = failure_report_lines({"result": result, "episodes": len(rows), "train_seed": 42,
+                                     "natural_episodes": 90, "seed_block": 0, "fault_episodes": 12,
+                                     "faults": ["late"]})
+    page = "\n".join(lines)
+    assert ("| jepa | late | prefix | none can catch these: the onset comes after the last score known in this view "
+            "in all 12 failures |") in page
+    assert "| jepa | late | whole | " in page and "| jepa | late | prefix | stac" not in page
