@@ -511,7 +511,8 @@ def test_the_onset_after_the_view_is_counted_against_the_last_score_the_chosen_s
     """A 3-decision prefix: decisions at env steps 0, 8, 16; NMSE known at step + 4 (20), STAC at the step (16). An
     alert counts when known after the onset, so an onset at 19 can still be caught by NMSE and one at 20 cannot;
     with STAC alone an onset at 18 cannot, though NMSE (not chosen) is known later."""
-    rise = lambda i, s, g: 5 + g.random() if s + (4 if signal == "nmse" else 0) > onset else g.random()
+    def rise(i, s, g):
+        return 5 + g.random() if s + (4 if signal == "nmse" else 0) > onset else g.random()
     rows = natural() + [record(s, False, 38, "shift", onset, **{signal: rise}) for s in kept(12)]
     d = single(run(rows, signals=[signal], prefix=3)["groups"]["jepa:jepa.pt"]["views"]["prefix"], "fast",
                signal)["shift"]
