@@ -44,7 +44,10 @@ pooled across checkpoints):
   with latents in the records, ``prompt_ceiling`` says how many of them no detector could catch so, because they
   looked exactly like their succeeding natural twin until then. The summary also names, per fault, the best
   detector meeting the goal as written (balanced accuracy >= 0.90 with a median delay <= ``PROMPT_DECISIONS``),
-  which counts late catches toward the balanced accuracy and is therefore weaker than the prompt figure.
+  which counts late catches toward the balanced accuracy and is therefore weaker than the prompt figure. In the
+  prefix view a fault's failures whose onset comes after the last score the view knows cannot be caught there: they
+  are counted (``onset_after_view``) and, when they are all of them, the summary says so instead of naming a best
+  detector.
 
 One module of about 830 lines on purpose: reading the records, ranking (per regime, per failure kind, paired),
 cross-fitted detection and the tables that print them share one ``Episode`` model and are read together when a
