@@ -49,7 +49,7 @@ pooled across checkpoints):
   are counted (``onset_after_view``) and, when they are all of them, the summary says so instead of naming a best
   detector.
 
-One module of about 830 lines on purpose: reading the records, ranking (per regime, per failure kind, paired),
+One module of about 900 lines on purpose: reading the records, ranking (per regime, per failure kind, paired),
 cross-fitted detection and the tables that print them share one ``Episode`` model and are read together when a
 published figure is questioned; the text functions (from ``_auc`` on) are the last quarter.
 """
