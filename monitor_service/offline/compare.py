@@ -703,7 +703,7 @@ def detection_table(result: dict, view: str, rule: str, regime: str) -> list[str
             continue
         rows = v["detection"][rule]["detectors"]
         timing = "lead before the end, steps" if regime == "natural" else "delay after onset, decisions"
-        late = next((per[regime].get("onset_after_view") for per in rows.values() if regime in per), None)
+        late = max((per[regime].get("onset_after_view") or 0 for per in rows.values() if regime in per), default=0)
         lines += [f"**{group}**, {regime}, {view}, rule {rule}", ""]
         if late:
             lines += [f"The onset comes after the last score known in this view in {late} of these failures: no "
