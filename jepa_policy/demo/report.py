@@ -14,7 +14,7 @@ from scipy import stats
 from jepa_envs.datasets.hdf5 import demo_names
 from monitor_service.offline.figures import delay_figure, roc_figure
 from jepa_policy.selection import wilson_ci
-from monitor_service.offline.compare import CONTROLS, best_rows, ranking_table
+from monitor_service.offline.compare import CONTROLS, best_rows, onsets_all_after_view, ranking_table
 from monitor_service.offline.study import study_episode_records
 
 EARLY_DECISIONS = 5          # paper Sec. 4.10: median NMSE of the first five decisions
@@ -533,7 +533,7 @@ def failure_report_lines(failure: dict) -> tuple[list[str], list[str]]:
             if d is None:
                 continue
             g = result["groups"][row["group"]]
-            if d.get("onset_after_view") and d["onset_after_view"] == d["failures"]:
+            if onsets_all_after_view(d):
                 lines.append(f"| {g['arm']} | {row['regime']} | {view} | none can catch these: the onset comes after "
                              f"the last score known in this view in all {d['failures']} failures | | | | | | |")
                 continue

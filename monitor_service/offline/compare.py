@@ -100,6 +100,11 @@ class Episode:
     extra: dict = field(default_factory=dict)
 
     @property
+    def fault_reached(self) -> bool:
+        """Whether the episode outlasted its fault's onset (a natural one: True); one that ended first never saw it."""
+        return self.onset is None or self.length > self.onset
+
+    @property
     def n_decisions(self) -> int:
         return int(self.steps.size)
 
@@ -276,18 +281,18 @@ def assign_folds(episodes: list[Episode], k: int, seed: int = 0) -> None:
 
 def mark_twin_outcomes(episodes: list[Episode]) -> None:
     """Each faulted episode learns whether its natural twin (same group and seed) failed: ``extra["twin_failed"]``
-    True or False, absent without a twin (a flag left by an earlier call is cleared). A seed whose natural episode
-    was recorded more than once (a re-roll) counts as failed if any copy failed: then the fault cannot be said to
-    have made the difference. Call it on every episode loaded, before any view drops some (``compare`` does)."""
+    True or False, None without a twin (natural episodes carry no flag; one left by an earlier call is cleared). A
+    seed whose natural episode was recorded more than once (a re-roll) counts as failed if any copy failed: then the
+    fault cannot be said to have made the difference. Call it on every episode loaded, before any view drops some
+    (``compare`` does)."""
     twins: dict[tuple[str, int], bool] = {}
     for e in episodes:
         if e.regime == "natural":
             twins[(e.group, e.seed)] = twins.get((e.group, e.seed), False) or not e.success
     for e in episodes:
         e.extra.pop("twin_failed", None)
-        e.extra["twins_marked"] = True
-        if e.regime != "natural" and (e.group, e.seed) in twins:
-            e.extra["twin_failed"] = twins[(e.group, e.seed)]
+        if e.regime != "natural":
+            e.extra["twin_failed"] = twins.get((e.group, e.seed))
 
 
 def is_positive(e: Episode, regime: str) -> bool:
@@ -300,10 +305,10 @@ def is_positive(e: Episode, regime: str) -> bool:
     ``mark_twin_outcomes`` (a ValueError says so otherwise: unmarked, every faulted failure would count)."""
     if e.regime != regime or e.success:
         return False
-    if e.regime != "natural" and not e.extra.get("twins_marked"):
+    if e.regime != "natural" and "twin_failed" not in e.extra:
         raise ValueError(f"faulted episode {e.regime}-{e.seed} was not matched with its natural twin: call "
                          f"mark_twin_outcomes(episodes) on every loaded episode first (compare() does)")
-    return not e.extra.get("twin_failed", False)
+    return not e.extra.get("twin_failed")
 
 
 AGGREGATES = ("mean", "max", "median", "max3")
@@ -492,6 +497,13 @@ def detection(episodes: list[Episode], signals, cut: int | None, alpha: float, p
     return {"judged": judged, "refused": refused, "specs": {s.name: s for s in specs}}
 
 
+def onsets_all_after_view(figures: dict) -> bool:
+    """Whether every one of a fault's failures in ``detection_figures``' ``figures`` has its onset after the view's
+    last known score: then no detector can catch any of them there."""
+    late = figures.get("onset_after_view") or 0
+    return bool(late) and late == figures["failures"]
+
+
 def _last_known(e: Episode, cut: int | None, signals=None) -> int:
     """The env step by which every score of the view's decisions is known, over ``signals`` (None: all) and only
     where a value was recorded: no detector reads anything else (-1 when there is none)."""
@@ -505,13 +517,14 @@ def _last_known(e: Episode, cut: int | None, signals=None) -> int:
     return last
 
 
-def detection_figures(episodes: list[Episode], judged: dict[int, dict], regime: str, cut: int | None = None,
-                      signals=None) -> dict:
+def detection_figures(episodes: list[Episode], judged: dict[int, dict], regime: str,
+                      last_known: dict[int, int] | None = None) -> dict:
     """TPR on the regime's failures (faults: alerts known after the onset), TNR on natural successes, balanced
     accuracy, detection time, and the alert rate of the regime's successes (the false alarms of a benign fault).
-    ``cut``: the view's decisions (None: whole episodes); a fault's failures whose onset comes at or after the last
-    score known in the view (of ``signals``, None: all) are counted (``onset_after_view``): an alert counts only
-    when known after the onset, so nothing in the view can catch those."""
+    ``last_known``: per episode index, the last env step at which a score of the view is known (``_last_known``,
+    once per view); with it, a fault's failures whose onset comes at or after that step are counted
+    (``onset_after_view``): an alert counts only when known after the onset, so nothing in the view can catch
+    those."""
     def alerted(i: int, e: Episode) -> bool:
         j = judged.get(i)
         if j is None or not j["alerted"]:
@@ -521,10 +534,9 @@ def detection_figures(episodes: list[Episode], judged: dict[int, dict], regime: 
     clean = [i for i, e in enumerate(episodes) if e.regime == "natural" and e.success and i in judged]
     failed = [i for i, e in enumerate(episodes) if is_positive(e, regime) and i in judged]
     shared = [i for i, e in enumerate(episodes) if e.regime == regime and not e.success and i in judged
-              and e.extra.get("twin_failed", False)]
-    # a fault's successes that it reached (their episode outlasted the onset): one that ended first never saw it
-    kept = [i for i, e in enumerate(episodes) if e.regime == regime and e.success and i in judged
-            and (e.onset is None or e.length > e.onset)]
+              and e.extra.get("twin_failed")]
+    # a fault's successes that it reached: one that ended before the onset never saw it
+    kept = [i for i, e in enumerate(episodes) if e.regime == regime and e.success and i in judged and e.fault_reached]
     fa = sum(alerted(i, episodes[i]) for i in clean)
     ta = sum(alerted(i, episodes[i]) for i in failed)
     ka = sum(alerted(i, episodes[i]) for i in kept)
@@ -546,8 +558,9 @@ def detection_figures(episodes: list[Episode], judged: dict[int, dict], regime: 
         out["delay_steps"] = _quartiles(delays)
         out["delay_decisions"] = _quartiles([d / N_ACTION_STEPS for d in delays])
         out["pre_onset_alerts"] = sum(1 for i in failed if judged[i]["alerted"] and not alerted(i, episodes[i]))
-        out["onset_after_view"] = sum(1 for i in failed if episodes[i].onset is not None
-                                      and episodes[i].onset >= _last_known(episodes[i], cut, signals))
+        if last_known is not None:
+            out["onset_after_view"] = sum(1 for i in failed if episodes[i].onset is not None
+                                          and episodes[i].onset >= last_known[i])
         prompt = sum(1 for d in delays if d <= PROMPT_DECISIONS * N_ACTION_STEPS)
         out["prompt_alerts"] = prompt
         out["prompt_tpr"] = prompt / len(failed) if failed else None
@@ -589,18 +602,18 @@ def compare(episodes: list[Episode], alpha: float = 0.1, folds: int = 5, prefix:
             rs = [e for e in members if e.regime == regime]
             g["episodes"][regime] = {"episodes": len(rs), "successes": sum(e.success for e in rs),
                                      "failures": sum(not e.success for e in rs),
-                                     "twin_failed_too": sum(not e.success and e.extra.get("twin_failed", False)
+                                     "twin_failed_too": sum(not e.success and bool(e.extra.get("twin_failed"))
                                                             for e in rs),
-                                     "no_twin": sum(not e.success and "twin_failed" not in e.extra
+                                     "no_twin": sum(not e.success and e.extra.get("twin_failed") is None
                                                     for e in rs if e.regime != "natural"),
-                                     "ended_before_onset": sum(e.onset is not None and e.length <= e.onset
-                                                               for e in rs),
+                                     "ended_before_onset": sum(not e.fault_reached for e in rs),
                                      "onset": _quartiles([e.onset for e in rs if e.onset is not None])}
             ceiling = prompt_ceiling(members, regime) if regime != "natural" else None
             if ceiling is not None:
                 g["episodes"][regime]["prompt_ceiling"] = ceiling
         for view in views:
             eps, cut = view_of(members, view, prefix)
+            last_known = {i: _last_known(e, cut, chosen) for i, e in enumerate(eps) if e.onset is not None}
             v = {"episodes": len(eps), "decisions": cut, "ranking": {}, "detection": {}}
             fused = stack_members(chosen)
             stacked = (fused, stacked_scores(eps, fused, cut, aggregate))
@@ -613,8 +626,7 @@ def compare(episodes: list[Episode], alpha: float = 0.1, folds: int = 5, prefix:
                 d = detection(eps, chosen, cut, alpha, RULES[rule_name], folds, seed)
                 rows = {}
                 for name, judged in d["judged"].items():
-                    rows[name] = {regime: detection_figures(eps, judged, regime, cut, chosen)
-                                  for regime in regimes}
+                    rows[name] = {regime: detection_figures(eps, judged, regime, last_known) for regime in regimes}
                 v["detection"][rule_name] = {"detectors": rows, "refused": d["refused"]}
             g["views"][view] = v
             bar.update()
@@ -832,7 +844,7 @@ def summary_text(result: dict) -> str:
                     if d is None:
                         continue
                     late = d.get("onset_after_view") or 0
-                    if late and late == d["failures"]:
+                    if onsets_all_after_view(d):
                         lines.append(f"    [{rule}] {row['regime']:<16} the onset comes after the last score "
                                      f"known in this view in all {late} failures: no detector can catch them here"
                                      + (" (see the whole view)" if view != "whole" else ""))
