@@ -26,11 +26,13 @@ head); and the paper's gradient share on the parameters that produce the action 
 from __future__ import annotations
 
 import math
+from collections import defaultdict
 
 import numpy as np
 import torch
 from tqdm import tqdm
 
+from jepa_envs.tasks.faults import IMAGE_FAULTS, fault_frames, faults_for
 from jepa_policy.dataset import WindowDataset
 from monitor_service.scoring import nmse_rows
 
@@ -251,4 +253,134 @@ def average_interaction(rows: list[dict]) -> dict:
             out["groups"][name][key] = float(np.mean(vals)) if vals else None
     if "cross" in rows[0]:
         out["cross"] = {k: float(np.mean([r["cross"][k] for r in rows])) for k in rows[0]["cross"]}
+    return out
+
+
+VISIBILITY_ALPHA = 0.1
+EPISODE_DECISIONS = 10   # the decisions an episode-level alpha is spread over (the prefix view's length)
+
+
+def _faulted_batch(spec, obs: dict, future: dict, fault: dict, seeds) -> tuple[dict, dict]:
+    """A batch's observation histories and future frames as ``fault`` ({"name", options}) shows them (onset before
+    the history's first frame), each window its own episode of seed ``seeds[b]``; low-dim inputs untouched."""
+    name, options = fault["name"], {k: v for k, v in fault.items() if k not in ("name", "label")}
+    keys = spec.image_keys
+    steps = obs[keys[0]].shape[1]
+    hist = {k: [] for k in keys}
+    fut = {k: [] for k in keys}
+    for b, seed in enumerate(seeds):
+        frames = [{k: obs[k][b, j].numpy() for k in keys} for j in range(steps)]
+        frames.append({k: future[k][b].numpy() for k in keys})
+        shown = fault_frames(spec, frames, name, int(seed), **options)
+        for k in keys:
+            hist[k].append(np.stack([f[k] for f in shown[:steps]]))
+            fut[k].append(shown[steps][k])
+    return ({**obs, **{k: torch.from_numpy(np.stack(v)) for k, v in hist.items()}},
+            {k: torch.from_numpy(np.stack(v)) for k, v in fut.items()})
+
+
+def _exceed(values: np.ndarray, threshold: float) -> float:
+    return float(np.mean(values > threshold))
+
+
+@torch.inference_mode()
+def visibility_audit(policy, demos, faults=None, samples: int = 1024, seed: int = 0, batch_size: int = 128,
+                     alpha: float = VISIBILITY_ALPHA, progress: bool = False) -> dict:
+    """How far each image fault moves what the monitor reads, on a fixed manifest of dataset windows, without the
+    simulator: each window's frames shown as the fault shows them (``fault_frames``; each window its own episode,
+    so the fault's draws vary over windows), beside the clean windows.
+
+    Per fault, over the windows:
+    - ``encoder``: d_NMSE(E(o_{t+k}), E(f(o_{t+k}))), the change of the realized latent itself, and its ratio to
+      the scene's own change over the k steps, d_NMSE(E(o_t), E(o_{t+k})) (``persistence``);
+    - ``straddle``: the NMSE of the clean prediction against the faulted target, what a decision scores when the
+      onset falls between it and its target (the best case of NMSE: at most one decision per onset has it);
+    - ``inside``: the NMSE of the prediction from a faulted history against the faulted target, what every later
+      decision scores;
+    - each embedding score of the checkpoint's fitted detectors (RND, PCA-kmeans, Mahalanobis) on the faulted
+      history.
+    Each is compared with the same windows' clean values: the median per-window ratio, and the fraction of
+    windows above two quantiles of the clean values: (1 - ``alpha``) (``exceed_decision``: by construction
+    ``alpha`` of the clean windows are above it, a single decision's chance of standing out at a per-decision
+    false-alarm rate of ``alpha``) and (1 - ``alpha`` / ``EPISODE_DECISIONS``) (``exceed_episode``: the budget an
+    episode-level rate of ``alpha`` leaves each of 10 decisions, closer to what the service's rules spend). A
+    fault whose rates sit near those levels is one the monitor cannot see in the decisions after its onset,
+    whatever the alert rule; high rates say it can, not that its failures will be caught (that needs rollouts:
+    ``jepa-policy eval --faults`` and ``jepa-monitor compare``). Faults that change the simulation or the actions
+    are refused (``fault_frames``).
+
+    ``faults``: names, or {"name", "label"?, options...} dicts (``jepa-policy eval --faults``' syntax parsed), e.g.
+    a larger camera shift; None: every image fault of the task at its default options. Rows are keyed by label
+    (default: the name)."""
+    model, spec = policy.model, policy.spec
+    if not model.cfg.has_future_token:
+        raise ValueError(f"arm {model.cfg.arm!r} predicts no future latent: the visibility audit reads its NMSE")
+    if not 0 < alpha < 1:
+        raise ValueError(f"alpha must lie in (0, 1), got {alpha}")
+    chosen = [f if isinstance(f, dict) else {"name": f}
+              for f in (faults or [f for f in faults_for(spec) if f in IMAGE_FAULTS])]
+    refused = [f["name"] for f in chosen if f["name"] not in IMAGE_FAULTS]
+    if refused:
+        raise ValueError(f"the visibility audit applies image faults to recorded frames; {refused} "
+                         f"{'is' if len(refused) == 1 else 'are'} not one (image faults: {IMAGE_FAULTS}); measure "
+                         "the others with jepa-policy eval --faults")
+    labelled = {str(f.get("label", f["name"])): f for f in chosen}
+    if len(labelled) < len(chosen):
+        raise ValueError("two audited faults share a label; name one with label=..., e.g. camera_shift:pixels=6,"
+                         "label=camera_6px")
+    windows = WindowDataset.from_demos(demos)
+    idx = manifest(len(windows), samples, seed)
+    first = windows[idx[:1]]["future_obs"]
+    for fault in labelled.values():   # bad options refused before any window is encoded
+        _faulted_batch(spec, {k: v[:, None] for k, v in first.items()}, first, fault, [seed])
+    detectors = policy.detectors
+
+    def to(d: dict) -> dict:
+        return {k: v.to(policy.device) for k, v in d.items()}
+
+    def scored(obs: dict) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+        _, z_hat, c = model.predict_embedded(to(obs), want_future=True)
+        extra = detectors.score(c.cpu().numpy()) if detectors is not None else {}
+        return z_hat.double().cpu().numpy(), extra
+
+    clean: dict[str, list] = defaultdict(list)
+    faulted: dict[str, dict[str, list]] = {label: defaultdict(list) for label in labelled}
+    starts = range(0, len(idx), batch_size)
+    for start in tqdm(starts, desc="visibility audit", unit="batch", disable=not progress):
+        rows = idx[start:start + batch_size]
+        batch = windows[rows]
+        obs, future = batch["obs"], batch["future_obs"]
+        z_hat, extra = scored(obs)
+        z_fut = model.encode_future(to(future)).double().cpu().numpy()
+        z_now = model.encode_future(to({k: obs[k][:, -1] for k in spec.image_keys})).double().cpu().numpy()
+        clean["nmse"].append(nmse_rows(z_hat, z_fut))
+        clean["persistence"].append(nmse_rows(z_now, z_fut))
+        for name, v in extra.items():
+            clean[name].append(np.asarray(v, np.float64))
+        for f, fault in labelled.items():
+            f_obs, f_future = _faulted_batch(spec, obs, future, fault, seed * 1_000_003 + rows)
+            zf_hat, f_extra = scored(f_obs)
+            zf_fut = model.encode_future(to(f_future)).double().cpu().numpy()
+            faulted[f]["encoder"].append(nmse_rows(z_fut, zf_fut))
+            faulted[f]["straddle"].append(nmse_rows(z_hat, zf_fut))
+            faulted[f]["inside"].append(nmse_rows(zf_hat, zf_fut))
+            for name, v in f_extra.items():
+                faulted[f][name].append(np.asarray(v, np.float64))
+    base = {k: np.concatenate(v) for k, v in clean.items()}
+    levels = {"exceed_decision": 1 - alpha, "exceed_episode": 1 - alpha / EPISODE_DECISIONS}
+    q = {k: {level: float(np.quantile(v, p)) for level, p in levels.items()} for k, v in base.items()}
+    out = {"samples": int(len(idx)), "seed": seed, "alpha": alpha, "k": int(model.cfg.future_k), "levels": levels,
+           "clean": {k: {"median": float(np.median(v)), "quantiles": q[k]} for k, v in base.items()},
+           "faults": {}}
+    for f, fault in labelled.items():
+        got = {k: np.concatenate(v) for k, v in faulted[f].items()}
+        row = {"fault": fault, "encoder_median": float(np.median(got["encoder"])),
+               "encoder_vs_persistence": float(np.median(got["encoder"] / np.maximum(base["persistence"], 1e-12)))}
+        for view in ("straddle", "inside"):
+            row[view] = {"median_ratio": float(np.median(got[view] / np.maximum(base["nmse"], 1e-12))),
+                         **{level: _exceed(got[view], t) for level, t in q["nmse"].items()}}
+        for name in sorted(base.keys() - {"nmse", "persistence"}):
+            row[name] = {"median_ratio": float(np.median(got[name] / np.maximum(np.abs(base[name]), 1e-12))),
+                         **{level: _exceed(got[name], t) for level, t in q[name].items()}}
+        out["faults"][f] = row
     return out

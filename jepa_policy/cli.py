@@ -318,7 +318,7 @@ def cmd_protocols(args) -> int:
 def cmd_audit(args) -> int:
     from jepa_envs.datasets.hdf5 import load_dataset
     from jepa_envs.datasets.lerobot import resolve_dataset
-    from jepa_policy.audit import audit_checkpoint, gradient_audit, retrieval_audit
+    from jepa_policy.audit import audit_checkpoint, gradient_audit, retrieval_audit, visibility_audit
     from jepa_policy.policy import Policy
     from jepa_policy.train import resolve_device
 
@@ -326,18 +326,23 @@ def cmd_audit(args) -> int:
     demos = load_dataset(resolve_dataset(args.dataset, policy.spec.name), task=policy.spec.name,
                          image_size=policy.spec.image_size)
     kinds = args.kind.split(",")
-    unknown = sorted(set(kinds) - {"collapse", "retrieval", "gradients"})
+    unknown = sorted(set(kinds) - {"collapse", "retrieval", "gradients", "visibility"})
     if unknown:
-        raise ValueError(f"unknown audit(s) {unknown}; choose from collapse, retrieval, gradients")
+        raise ValueError(f"unknown audit(s) {unknown}; choose from collapse, retrieval, gradients, visibility")
     report = {"checkpoint": str(args.checkpoint), "arm": policy.model.cfg.arm}
     progress = not args.no_progress
     if "collapse" in kinds:
-        report["collapse"] = audit_checkpoint(policy, demos, samples=args.samples, seed=args.seed, progress=progress)
+        report["collapse"] = audit_checkpoint(policy, demos, samples=args.samples or 4096, seed=args.seed,
+                                              progress=progress)
     if "retrieval" in kinds:
-        report["retrieval"] = retrieval_audit(policy, demos, samples=args.samples, pool=args.pool, seed=args.seed,
-                                              permutations=args.permutations, progress=progress)
+        report["retrieval"] = retrieval_audit(policy, demos, samples=args.samples or 4096, pool=args.pool,
+                                              seed=args.seed, permutations=args.permutations, progress=progress)
     if "gradients" in kinds:
         report["gradients"] = gradient_audit(policy, demos, batches=args.batches, seed=args.seed, progress=progress)
+    if "visibility" in kinds:
+        faults = [_fault_spec(x) for x in args.faults.split(";") if x.strip()] if args.faults else None
+        report["visibility"] = visibility_audit(policy, demos, faults=faults, samples=args.samples or 1024,
+                                                seed=args.seed, progress=progress)
     print(json.dumps(report, indent=2))
     return 0
 
@@ -540,8 +545,14 @@ def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
     p.add_argument("--checkpoint", required=True, help="a `jepa-policy train` checkpoint (.pt)")
     p.add_argument("--dataset", required=True, help="the demonstrations it was trained on (the sample manifest)")
     p.add_argument("--kind", default="collapse,retrieval,gradients",
-                   help="comma-separated: collapse (Sec. 4.9), retrieval (Sec. 4.9), gradients (Sec. 4.5)")
-    p.add_argument("--samples", type=int, default=4096, help="windows in the fixed manifest (paper: 4,096)")
+                   help="comma-separated: collapse (Sec. 4.9), retrieval (Sec. 4.9), gradients (Sec. 4.5); also "
+                        "visibility: how far each image fault moves the NMSE and embedding scores the monitor reads")
+    p.add_argument("--faults", default=None, metavar="NAME[:k=v,...][;NAME...]",
+                   help="the visibility audit's image faults, as eval --faults names them, e.g. "
+                        "'camera_shift;camera_shift:pixels=6,label=camera_6px' (default: every image fault of the "
+                        "task at its default options)")
+    p.add_argument("--samples", type=int, default=None,
+                   help="windows in the fixed manifest (default 4,096, the paper's; the visibility audit: 1,024)")
     p.add_argument("--pool", type=int, default=256, help="retrieval candidates per query (paper: 256)")
     p.add_argument("--permutations", type=int, default=1000, help="label permutations of the retrieval null")
     p.add_argument("--batches", type=int, default=8, help="batches averaged by the gradient audit")

@@ -1,5 +1,7 @@
 """The paper's audits: collapse statistics (Sec. 4.9) against direct eigen-decompositions and known spectra,
 retrieval against brute force, the gradient interaction against the arms' known gradient routes (Sec. 4.5)."""
+import json
+
 import numpy as np
 import pytest
 import torch
@@ -8,6 +10,7 @@ from _model_helpers import make_batch, tiny_model
 from jepa_policy.audit import (audit_checkpoint, candidate_pools, centred_spectrum, gradient_interaction, manifest,
                                nmse_matrix, retrieval_stats, spectral_stats)
 from jepa_policy.dataset import WindowDataset
+from monitor_service.scoring import nmse_rows
 
 
 def test_spectrum_equals_eigenvalues_of_centred_gram():
@@ -149,3 +152,104 @@ def test_collapse_audit_views_on_a_trained_checkpoint(pusht_demo_file, tmp_path)
         reps = policy.model.representations(obs)
         c, _ = policy.model._encode(obs)
     assert torch.equal(reps["c_t"], c[:, -1].float())
+
+
+@pytest.fixture(scope="module")
+def tiny_policy(pusht_demo_file, tmp_path_factory):
+    from jepa_envs.datasets.hdf5 import load_dataset
+    from jepa_policy.policy import Policy
+    from jepa_policy.train import load_config, train
+
+    demos = load_dataset(pusht_demo_file, task="PushT", image_size=32)
+    cfg = load_config("PushT", "quick", out_dir=str(tmp_path_factory.mktemp("vis")), steps=2, warmup_steps=0,
+                      batch_size=4, model={"width": 48, "layers": 1, "heads": 2})
+    checkpoint = train(cfg, demos)["checkpoint"]
+    return Policy.from_checkpoint(checkpoint), demos, checkpoint, pusht_demo_file
+
+
+def test_visibility_audit_agrees_with_a_window_by_window_recompute(tiny_policy):
+    """The batched audit equals d_NMSE computed one window at a time from the fault's own frames (fault_frames,
+    the window's seed): the change of the realized latent, the straddling and inside NMSE, and their rates."""
+    from jepa_envs.tasks.faults import fault_frames
+    from jepa_policy.audit import visibility_audit
+
+    policy, demos, _, _ = tiny_policy
+    model, spec, seed, n = policy.model, policy.spec, 4, 12
+    out = visibility_audit(policy, demos, faults=["camera_shift", {"name": "colour_shift", "brightness": 0.5,
+                                                                    "label": "dark"}], samples=n, seed=seed,
+                           batch_size=5)
+    assert list(out["faults"]) == ["camera_shift", "dark"] and out["samples"] == n
+    windows = WindowDataset.from_demos(demos)
+    idx = manifest(len(windows), n, seed)
+    keys = spec.image_keys
+    for label, name, options in (("camera_shift", "camera_shift", {}), ("dark", "colour_shift", {"brightness": 0.5})):
+        clean_err, enc, straddle, inside = [], [], [], []
+        for w in idx:
+            batch = windows[np.array([w])]
+            obs, fut = batch["obs"], batch["future_obs"]
+            frames = [{k: obs[k][0, j].numpy() for k in keys} for j in range(obs[keys[0]].shape[1])]
+            shown = fault_frames(spec, [*frames, {k: fut[k][0].numpy() for k in keys}], name,
+                                 seed * 1_000_003 + int(w), **options)
+            f_obs = {**obs, **{k: torch.from_numpy(np.stack([f[k] for f in shown[:-1]]))[None] for k in keys}}
+            f_fut = {k: torch.from_numpy(shown[-1][k])[None] for k in keys}
+            with torch.inference_mode():
+                z_hat = model.predict(obs)[1].double().numpy()
+                z = model.encode_future(fut).double().numpy()
+                zf_hat = model.predict(f_obs)[1].double().numpy()
+                zf = model.encode_future(f_fut).double().numpy()
+            clean_err.append(nmse_rows(z_hat, z)[0])
+            enc.append(nmse_rows(z, zf)[0])
+            straddle.append(nmse_rows(z_hat, zf)[0])
+            inside.append(nmse_rows(zf_hat, zf)[0])
+        clean_err, straddle, inside = map(np.array, (clean_err, straddle, inside))
+        row = out["faults"][label]
+        assert row["encoder_median"] == pytest.approx(np.median(enc), rel=1e-5)
+        assert row["fault"]["name"] == name
+        for view, values in (("straddle", straddle), ("inside", inside)):
+            assert row[view]["median_ratio"] == pytest.approx(np.median(values / clean_err), rel=1e-5)
+            assert row[view]["exceed_decision"] == np.mean(values > np.quantile(clean_err, 0.9))
+    assert out["clean"]["nmse"]["median"] == pytest.approx(np.median(clean_err), rel=1e-5)
+
+
+def test_a_change_the_encoder_cannot_see_sits_at_the_clean_rates(tiny_policy):
+    """A colour 'shift' of gain 1 changes no pixel: the latent does not move, every ratio is 1 and every exceed
+    rate is the clean windows' own rate above their quantile (about alpha); a real darkening moves the latent."""
+    from jepa_policy.audit import visibility_audit
+
+    policy, demos, _, _ = tiny_policy
+    out = visibility_audit(policy, demos, samples=40, faults=[
+        {"name": "colour_shift", "brightness": 1.0, "gains": [1, 1, 1], "label": "none"},
+        {"name": "colour_shift", "brightness": 0.3, "label": "dark"}])
+    none, dark = out["faults"]["none"], out["faults"]["dark"]
+    assert none["encoder_median"] == 0.0 and none["encoder_vs_persistence"] == 0.0
+    for view in ("straddle", "inside"):
+        assert none[view]["median_ratio"] == pytest.approx(1.0, abs=1e-6)
+        assert 0.05 <= none[view]["exceed_decision"] <= 0.1 and none[view]["exceed_episode"] <= 0.025
+    assert dark["encoder_median"] > 0 and dark["straddle"]["median_ratio"] != pytest.approx(1.0, abs=1e-3)
+
+
+def test_the_visibility_audit_refuses_what_it_cannot_measure(tiny_policy, capsys):
+    from jepa_policy.audit import visibility_audit
+    from jepa_policy.cli import main
+
+    policy, demos, checkpoint, demo_file = tiny_policy
+    with pytest.raises(ValueError, match=r"\['block_displaced'\] is not one .*jepa-policy eval --faults"):
+        visibility_audit(policy, demos, faults=["camera_shift", "block_displaced"], samples=4)
+    with pytest.raises(ValueError, match="share a label"):
+        visibility_audit(policy, demos, faults=["camera_shift", {"name": "camera_shift"}], samples=4)
+    with pytest.raises(ValueError, match="camera shift must be >= 1 pixel"):
+        visibility_audit(policy, demos, faults=[{"name": "camera_shift", "pixels": 0}], samples=4)
+    with pytest.raises(ValueError, match="alpha must lie in"):
+        visibility_audit(policy, demos, samples=4, alpha=1.5)
+    base = ["audit", "--checkpoint", str(checkpoint), "--dataset", str(demo_file), "--kind", "visibility",
+            "--no-progress", "--samples", "6"]
+    assert main([*base, "--faults", "action_latency"]) != 0
+    err = capsys.readouterr().err
+    assert "action_latency" in err and "eval --faults" in err and "Traceback" not in err
+    assert main([*base, "--faults", "camera_shift;camera_shift:pixels=5,label=camera_5px"]) == 0
+    report = json.loads(capsys.readouterr().out)["visibility"]
+    assert list(report["faults"]) == ["camera_shift", "camera_5px"] and report["samples"] == 6
+    assert report["faults"]["camera_5px"]["fault"] == {"name": "camera_shift", "pixels": 5, "label": "camera_5px"}
+    assert main([*base[:-2]]) == 0   # no --faults: every image fault of the task
+    assert set(json.loads(capsys.readouterr().out)["visibility"]["faults"]) == {
+        "background_tint", "camera_shift", "colour_shift", "distractors", "sensor_noise"}

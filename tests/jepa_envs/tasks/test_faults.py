@@ -8,8 +8,8 @@ import gymnasium as gym
 import numpy as np
 import pytest
 
-from jepa_envs.tasks.faults import (FAULTED_ENV, FAULTS, KINDS, ActionLatency, CameraShift, ColourShift, faults_for,
-                                    wrap_fault)
+from jepa_envs.tasks.faults import (FAULTED_ENV, FAULTS, IMAGE_FAULTS, KINDS, ActionLatency, CameraShift, ColourShift,
+                                    FrameReplay, fault_frames, faults_for, wrap_fault)
 from jepa_envs.tasks.pusht import COLORS
 from jepa_envs.tasks.spec import get_task_spec
 
@@ -221,3 +221,37 @@ def test_sensor_noise_draws_share_the_frames_up_to_the_onset_and_differ_after_it
     for bad in (-1, 1.5, True, "1"):
         with pytest.raises(ValueError, match="draw must be an integer"):
             _faulted("sensor_noise", 7, draw=bad)
+
+
+@pytest.mark.parametrize("name", IMAGE_FAULTS)
+@pytest.mark.parametrize("seed", [3, 8])
+def test_recorded_frames_show_an_image_fault_as_a_live_episode_does(name, seed):
+    """fault_frames on a clean episode's recorded frames gives, image for image, what the live faulted episode of
+    the same seed showed after the onset (the per-episode draws, the step-keyed noise, PushT's plain background)."""
+    clean, _ = _clean(seed)
+    live, _ = _faulted(name, seed)
+    shown = fault_frames(get_task_spec("PushT"), clean[ONSET + 1:], name, seed, first_step=ONSET + 1)
+    assert len(shown) == len(live) - ONSET - 1
+    for j, frame in enumerate(shown):
+        assert _same(frame, live[ONSET + 1 + j]), f"{name}: recorded frame {ONSET + 1 + j} differs from the live one"
+    assert not _same(shown[0], clean[ONSET + 1])
+
+
+def test_fault_frames_refuses_what_needs_a_live_episode():
+    spec = get_task_spec("PushT")
+    clean, _ = _clean(1)
+    assert set(IMAGE_FAULTS) == {"background_tint", "camera_shift", "colour_shift", "distractors", "sensor_noise"}
+    for name in ("block_displaced", "action_latency", "light_dimmed"):
+        with pytest.raises(ValueError, match=f"{name} changes the .* of a live episode.*jepa-policy eval --faults"):
+            fault_frames(spec, clean, name, 0)
+    with pytest.raises(ValueError, match="unknown fault 'nope'"):
+        fault_frames(spec, clean, "nope", 0)
+    with pytest.raises(ValueError, match="first_step must be >= 1"):
+        fault_frames(spec, clean, "camera_shift", 0, first_step=0)
+    with pytest.raises(KeyError, match="lack"):
+        FrameReplay(spec, [{"state": np.zeros(2)}])
+    replay = FrameReplay(spec, clean[:2])
+    replay.reset()
+    replay.step(None)
+    with pytest.raises(RuntimeError, match="only 2 frames; reset it"):
+        replay.step(None)
