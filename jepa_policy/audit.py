@@ -32,7 +32,8 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from jepa_envs.tasks.faults import IMAGE_FAULTS, fault_frames, faults_for
+from jepa_envs.tasks.fault_replay import IMAGE_FAULTS, fault_frames
+from jepa_envs.tasks.faults import faults_for
 from jepa_policy.dataset import WindowDataset
 from monitor_service.scoring import nmse_rows
 

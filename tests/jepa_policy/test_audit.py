@@ -170,7 +170,7 @@ def tiny_policy(pusht_demo_file, tmp_path_factory):
 def test_visibility_audit_agrees_with_a_window_by_window_recompute(tiny_policy):
     """The batched audit equals d_NMSE computed one window at a time from the fault's own frames (fault_frames,
     the window's seed): the change of the realized latent, the straddling and inside NMSE, and their rates."""
-    from jepa_envs.tasks.faults import fault_frames
+    from jepa_envs.tasks.fault_replay import fault_frames
     from jepa_policy.audit import visibility_audit
 
     policy, demos, _, _ = tiny_policy

@@ -8,8 +8,9 @@ import gymnasium as gym
 import numpy as np
 import pytest
 
-from jepa_envs.tasks.faults import (FAULTED_ENV, FAULTS, IMAGE_FAULTS, KINDS, ActionLatency, CameraShift, ColourShift,
-                                    FrameReplay, fault_frames, faults_for, wrap_fault)
+from jepa_envs.tasks.fault_replay import IMAGE_FAULTS, FrameReplay, fault_frames
+from jepa_envs.tasks.faults import (FAULTED_ENV, FAULTS, KINDS, ActionLatency, CameraShift, ColourShift, faults_for,
+                                    wrap_fault)
 from jepa_envs.tasks.pusht import COLORS
 from jepa_envs.tasks.spec import get_task_spec
 
