@@ -258,7 +258,7 @@ def average_interaction(rows: list[dict]) -> dict:
 
 
 VISIBILITY_ALPHA = 0.1
-EPISODE_DECISIONS = 10   # the decisions an episode-level alpha is spread over (the prefix view's length)
+TEN_DECISIONS = 10   # the decisions an episode-level alpha is spread over (the prefix view's length)
 
 
 def _faulted_batch(spec, obs: dict, future: dict, fault: dict, seeds) -> tuple[dict, dict]:
@@ -303,10 +303,11 @@ def visibility_audit(policy, demos, faults=None, samples: int = 1024, seed: int 
     Each is compared with the same windows' clean values: the median per-window ratio, and the fraction of
     windows above two quantiles of the clean values: (1 - ``alpha``) (``exceed_decision``: by construction
     ``alpha`` of the clean windows are above it, a single decision's chance of standing out at a per-decision
-    false-alarm rate of ``alpha``) and (1 - ``alpha`` / ``EPISODE_DECISIONS``) (``exceed_episode``: the budget an
-    episode-level rate of ``alpha`` leaves each of 10 decisions, closer to what the service's rules spend). A
-    fault whose rates sit near those levels is one the monitor cannot see in the decisions after its onset,
-    whatever the alert rule; high rates say it can, not that its failures will be caught (that needs rollouts:
+    false-alarm rate of ``alpha``) and (1 - ``alpha`` / ``TEN_DECISIONS``) (``exceed_ten_decisions``, still a
+    per-decision rate: the budget an episode-level rate of ``alpha`` leaves each of 10 decisions; the service's
+    rules spend alpha over whole episodes, often more decisions). A score whose rates sit at those levels does not
+    tell the faulted windows from clean ones; high rates say a score moves, not that the fault's failures will be
+    caught in time (the policy's reaction, the rollout's states and the rule decide that: rollouts,
     ``jepa-policy eval --faults`` and ``jepa-monitor compare``). Faults that change the simulation or the actions
     are refused (``fault_frames``).
 
@@ -315,9 +316,12 @@ def visibility_audit(policy, demos, faults=None, samples: int = 1024, seed: int 
     (default: the name)."""
     model, spec = policy.model, policy.spec
     if not model.cfg.has_future_token:
-        raise ValueError(f"arm {model.cfg.arm!r} predicts no future latent: the visibility audit reads its NMSE")
+        raise ValueError(f"arm {model.cfg.arm!r} predicts no future latent: the visibility audit reads its NMSE; "
+                         "give a checkpoint of an arm with a future head (jepa)")
     if not 0 < alpha < 1:
         raise ValueError(f"alpha must lie in (0, 1), got {alpha}")
+    if samples < 1:
+        raise ValueError(f"the visibility audit needs at least 1 window, got samples={samples}")
     chosen = [f if isinstance(f, dict) else {"name": f}
               for f in (faults or [f for f in faults_for(spec) if f in IMAGE_FAULTS])]
     refused = [f["name"] for f in chosen if f["name"] not in IMAGE_FAULTS]
@@ -368,7 +372,7 @@ def visibility_audit(policy, demos, faults=None, samples: int = 1024, seed: int 
             for name, v in f_extra.items():
                 faulted[f][name].append(np.asarray(v, np.float64))
     base = {k: np.concatenate(v) for k, v in clean.items()}
-    levels = {"exceed_decision": 1 - alpha, "exceed_episode": 1 - alpha / EPISODE_DECISIONS}
+    levels = {"exceed_decision": 1 - alpha, "exceed_ten_decisions": 1 - alpha / TEN_DECISIONS}
     q = {k: {level: float(np.quantile(v, p)) for level, p in levels.items()} for k, v in base.items()}
     out = {"samples": int(len(idx)), "seed": seed, "alpha": alpha, "k": int(model.cfg.future_k), "levels": levels,
            "clean": {k: {"median": float(np.median(v)), "quantiles": q[k]} for k, v in base.items()},

@@ -322,14 +322,26 @@ def cmd_audit(args) -> int:
     from jepa_policy.policy import Policy
     from jepa_policy.train import resolve_device
 
-    policy = Policy.from_checkpoint(args.checkpoint, device=resolve_device(args.device))
-    demos = load_dataset(resolve_dataset(args.dataset, policy.spec.name), task=policy.spec.name,
-                         image_size=policy.spec.image_size)
     kinds = args.kind.split(",")
     unknown = sorted(set(kinds) - {"collapse", "retrieval", "gradients", "visibility"})
     if unknown:
         raise ValueError(f"unknown audit(s) {unknown}; choose from collapse, retrieval, gradients, visibility")
-    report = {"checkpoint": str(args.checkpoint), "arm": policy.model.cfg.arm}
+    if args.samples is not None and args.samples < 1:
+        raise ValueError(f"--samples must be >= 1 window, got {args.samples}")
+    if args.seed < 0:
+        raise ValueError(f"--seed must be >= 0, got {args.seed}")
+    faults = None
+    if args.faults is not None:
+        if "visibility" not in kinds:
+            raise ValueError("--faults is read by the visibility audit only; add --kind visibility")
+        faults = [_fault_spec(x) for x in args.faults.split(";") if x.strip()]
+        if not faults:
+            raise ValueError(f"--faults {args.faults!r} names no fault; give NAME[:k=v,...][;NAME...], e.g. "
+                             "camera_shift;camera_shift:pixels=6,label=camera_6px")
+    policy = Policy.from_checkpoint(args.checkpoint, device=resolve_device(args.device))
+    demos = load_dataset(resolve_dataset(args.dataset, policy.spec.name), task=policy.spec.name,
+                         image_size=policy.spec.image_size)
+    report = {"checkpoint": str(args.checkpoint), "dataset": str(args.dataset), "arm": policy.model.cfg.arm}
     progress = not args.no_progress
     if "collapse" in kinds:
         report["collapse"] = audit_checkpoint(policy, demos, samples=args.samples or 4096, seed=args.seed,
@@ -340,7 +352,6 @@ def cmd_audit(args) -> int:
     if "gradients" in kinds:
         report["gradients"] = gradient_audit(policy, demos, batches=args.batches, seed=args.seed, progress=progress)
     if "visibility" in kinds:
-        faults = [_fault_spec(x) for x in args.faults.split(";") if x.strip()] if args.faults else None
         report["visibility"] = visibility_audit(policy, demos, faults=faults, samples=args.samples or 1024,
                                                 seed=args.seed, progress=progress)
     print(json.dumps(report, indent=2))

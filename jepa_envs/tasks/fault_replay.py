@@ -3,7 +3,7 @@ live episode's, through the fault's own wrapper, without the simulator (``jepa-p
 
 ``FrameReplay`` plays recorded observations back as an episode; ``fault_frames`` wraps it in an image fault
 (``IMAGE_FAULTS``: those that change camera images only) and returns what the fault shows, equal frame for frame to
-a live faulted episode of the same seed (tests/jepa_envs/tasks/test_faults.py).
+a live faulted episode of the same seed and a fixed onset (tests/jepa_envs/tasks/test_faults.py).
 """
 from __future__ import annotations
 
@@ -49,25 +49,31 @@ class FrameReplay(gym.Env):
 
 
 def _image_only(cls: type) -> bool:
-    """A fault that changes only camera images: its effect can be applied to recorded frames."""
+    """A fault that changes only camera images: its effect can be applied to recorded frames. Read from which
+    methods it overrides; an image fault whose ``image`` read the simulator's state would pass this check and must
+    not be added to ``FAULTS`` without a replay test (tests/jepa_envs/tasks/test_faults.py)."""
     return (cls.image is not FaultWrapper.image and cls.begin is FaultWrapper.begin
             and cls.action is FaultWrapper.action and cls.step is FaultWrapper.step)
 
 
 def fault_frames(spec, frames: list[dict], fault: str, seed: int, first_step: int = 1, **kwargs) -> list[dict]:
     """``frames`` (recorded observations of task ``spec``, in time order, ``frames[0]`` that of env step
-    ``first_step``) as an image fault with its onset at ``first_step - 1`` shows them: the same images a live
-    episode reset with ``seed`` shows at those steps (the fault's per-episode draws, the shift's direction or the
-    distractors' places, come from the seed; ``sensor_noise``'s from the step). ``kwargs``: the fault's options.
-    Refuses faults that change the simulation or the actions (they need a live env)."""
+    ``first_step``) as an image fault with its onset fixed at ``first_step - 1`` shows them: the same images a live
+    episode with that fixed onset, reset with ``seed``, shows at those steps (the fault's per-episode draws, the
+    shift's direction or the distractors' places, come from the seed; ``sensor_noise``'s from the step). A live
+    episode whose onset is drawn from a range spends a draw on the onset first, so its draws differ from these
+    (they follow the same law). ``kwargs``: the fault's options. Refuses faults that change the simulation or the
+    actions (they need a live env)."""
     if fault not in FAULTS:
         raise ValueError(f"unknown fault {fault!r}; choose one of {sorted(FAULTS)}")
     if fault not in IMAGE_FAULTS:
         raise ValueError(f"{fault} changes the {FAULTS[fault].kind} of a live episode, not recorded frames; image "
                          f"faults are {IMAGE_FAULTS} (measure {fault} with jepa-policy eval --faults)")
-    if first_step < 1 or "onset" in kwargs:
-        raise ValueError(f"first_step must be >= 1 (the onset is first_step - 1), got first_step={first_step}"
-                         f"{' and an onset' if 'onset' in kwargs else ''}")
+    if "onset" in kwargs:
+        raise ValueError(f"fault_frames sets {fault}'s onset itself (first_step - 1, before the first frame); drop "
+                         "onset= from its options")
+    if first_step < 1:
+        raise ValueError(f"first_step must be >= 1 (the onset is first_step - 1), got first_step={first_step}")
     env = wrap_fault(FrameReplay(spec, [frames[0]] * first_step + list(frames)), fault, onset=first_step - 1,
                      **kwargs)
     env.reset(seed=seed)

@@ -157,6 +157,7 @@ def test_collapse_audit_views_on_a_trained_checkpoint(pusht_demo_file, tmp_path)
 @pytest.fixture(scope="module")
 def tiny_policy(pusht_demo_file, tmp_path_factory):
     from jepa_envs.datasets.hdf5 import load_dataset
+    from jepa_policy.detectors import fit_detectors
     from jepa_policy.policy import Policy
     from jepa_policy.train import load_config, train
 
@@ -164,7 +165,9 @@ def tiny_policy(pusht_demo_file, tmp_path_factory):
     cfg = load_config("PushT", "quick", out_dir=str(tmp_path_factory.mktemp("vis")), steps=2, warmup_steps=0,
                       batch_size=4, model={"width": 48, "layers": 1, "heads": 2})
     checkpoint = train(cfg, demos)["checkpoint"]
-    return Policy.from_checkpoint(checkpoint), demos, checkpoint, pusht_demo_file
+    fit_detectors(Policy.from_checkpoint(checkpoint, detectors=False), checkpoint, demos, samples=256)
+    policy = Policy.from_checkpoint(checkpoint, detectors=True)   # RND, PCA-kmeans, Mahalanobis beside z_hat
+    return policy, demos, checkpoint, pusht_demo_file
 
 
 def test_visibility_audit_agrees_with_a_window_by_window_recompute(tiny_policy):
@@ -183,7 +186,8 @@ def test_visibility_audit_agrees_with_a_window_by_window_recompute(tiny_policy):
     idx = manifest(len(windows), n, seed)
     keys = spec.image_keys
     for label, name, options in (("camera_shift", "camera_shift", {}), ("dark", "colour_shift", {"brightness": 0.5})):
-        clean_err, enc, straddle, inside = [], [], [], []
+        clean_err, persistence, enc, straddle, inside = [], [], [], [], []
+        embed_clean, embed_fault = [], []
         for w in idx:
             batch = windows[np.array([w])]
             obs, fut = batch["obs"], batch["future_obs"]
@@ -193,22 +197,41 @@ def test_visibility_audit_agrees_with_a_window_by_window_recompute(tiny_policy):
             f_obs = {**obs, **{k: torch.from_numpy(np.stack([f[k] for f in shown[:-1]]))[None] for k in keys}}
             f_fut = {k: torch.from_numpy(shown[-1][k])[None] for k in keys}
             with torch.inference_mode():
-                z_hat = model.predict(obs)[1].double().numpy()
+                _, z_hat, c = model.predict_embedded(obs)
                 z = model.encode_future(fut).double().numpy()
-                zf_hat = model.predict(f_obs)[1].double().numpy()
+                z_now = model.encode_future({k: obs[k][:, -1] for k in keys}).double().numpy()
+                _, zf_hat, cf = model.predict_embedded(f_obs)
                 zf = model.encode_future(f_fut).double().numpy()
+            z_hat, zf_hat = z_hat.double().numpy(), zf_hat.double().numpy()
+            embed_clean.append(policy.detectors.score(c.numpy()))
+            embed_fault.append(policy.detectors.score(cf.numpy()))
+            persistence.append(nmse_rows(z_now, z)[0])
             clean_err.append(nmse_rows(z_hat, z)[0])
             enc.append(nmse_rows(z, zf)[0])
             straddle.append(nmse_rows(z_hat, zf)[0])
             inside.append(nmse_rows(zf_hat, zf)[0])
-        clean_err, straddle, inside = map(np.array, (clean_err, straddle, inside))
+        clean_err, persistence, enc, straddle, inside = map(np.array, (clean_err, persistence, enc, straddle, inside))
         row = out["faults"][label]
         assert row["encoder_median"] == pytest.approx(np.median(enc), rel=1e-5)
+        assert row["encoder_vs_persistence"] == pytest.approx(np.median(enc / persistence), rel=1e-5)
         assert row["fault"]["name"] == name
-        for view, values in (("straddle", straddle), ("inside", inside)):
-            assert row[view]["median_ratio"] == pytest.approx(np.median(values / clean_err), rel=1e-5)
-            assert row[view]["exceed_decision"] == np.mean(values > np.quantile(clean_err, 0.9))
+        views = [("straddle", straddle, clean_err), ("inside", inside, clean_err)]
+        for score in ("rnd", "pca_kmeans", "mahalanobis"):
+            views.append((score, np.array([float(e[score][0]) for e in embed_fault]),
+                          np.array([float(e[score][0]) for e in embed_clean])))
+        for view, values, clean in views:
+            ratio = np.median(values / np.maximum(np.abs(clean), 1e-12))
+            assert row[view]["median_ratio"] == pytest.approx(ratio, rel=1e-4), view
+            # near-ties between a faulted value and a clean quantile must not decide: compare with a margin
+            for level, q in (("exceed_decision", 0.9), ("exceed_ten_decisions", 0.99)):
+                t = np.quantile(clean, q)
+                assert np.mean(values > t * (1 + 1e-5)) <= row[view][level] <= np.mean(values > t * (1 - 1e-5)), \
+                    (view, level)
     assert out["clean"]["nmse"]["median"] == pytest.approx(np.median(clean_err), rel=1e-5)
+    assert out["clean"]["persistence"]["median"] == pytest.approx(np.median(persistence), rel=1e-5)
+    assert out["levels"] == {"exceed_decision": 0.9, "exceed_ten_decisions": pytest.approx(0.99)}
+    for level, q in (("exceed_decision", 0.9), ("exceed_ten_decisions", 0.99)):
+        assert out["clean"]["nmse"]["quantiles"][level] == pytest.approx(np.quantile(clean_err, q), rel=1e-5)
 
 
 def test_a_change_the_encoder_cannot_see_sits_at_the_clean_rates(tiny_policy):
@@ -224,7 +247,7 @@ def test_a_change_the_encoder_cannot_see_sits_at_the_clean_rates(tiny_policy):
     assert none["encoder_median"] == 0.0 and none["encoder_vs_persistence"] == 0.0
     for view in ("straddle", "inside"):
         assert none[view]["median_ratio"] == pytest.approx(1.0, abs=1e-6)
-        assert 0.05 <= none[view]["exceed_decision"] <= 0.1 and none[view]["exceed_episode"] <= 0.025
+        assert 0.05 <= none[view]["exceed_decision"] <= 0.1 and none[view]["exceed_ten_decisions"] <= 0.025
     assert dark["encoder_median"] > 0 and dark["straddle"]["median_ratio"] != pytest.approx(1.0, abs=1e-3)
 
 
@@ -246,8 +269,18 @@ def test_the_visibility_audit_refuses_what_it_cannot_measure(tiny_policy, capsys
     assert main([*base, "--faults", "action_latency"]) != 0
     err = capsys.readouterr().err
     assert "action_latency" in err and "eval --faults" in err and "Traceback" not in err
+    for bad, says in ((["--faults", "camera_shift:onset=5"], "drop onset="), (["--faults", ";"], "names no fault"),
+                      (["--samples", "0"], "--samples must be >= 1"), (["--seed", "-1"], "--seed must be >= 0")):
+        assert main([*base, *bad]) != 0, bad
+        err = capsys.readouterr().err
+        assert says in err and "Traceback" not in err, (bad, err)
+    assert main(["audit", "--checkpoint", str(checkpoint), "--dataset", str(demo_file), "--kind", "collapse",
+                 "--faults", "camera_shift"]) != 0
+    assert "add --kind visibility" in capsys.readouterr().err
     assert main([*base, "--faults", "camera_shift;camera_shift:pixels=5,label=camera_5px"]) == 0
-    report = json.loads(capsys.readouterr().out)["visibility"]
+    printed = json.loads(capsys.readouterr().out)
+    assert printed["dataset"] == str(demo_file)
+    report = printed["visibility"]
     assert list(report["faults"]) == ["camera_shift", "camera_5px"] and report["samples"] == 6
     assert report["faults"]["camera_5px"]["fault"] == {"name": "camera_shift", "pixels": 5, "label": "camera_5px"}
     assert main([*base[:-2]]) == 0   # no --faults: every image fault of the task

@@ -238,6 +238,30 @@ def test_recorded_frames_show_an_image_fault_as_a_live_episode_does(name, seed):
     assert not _same(shown[0], clean[ONSET + 1])
 
 
+@pytest.mark.parametrize("name", IMAGE_FAULTS)
+def test_recorded_standard_pusht_frames_match_a_live_episode(name):
+    """The same on gym-pusht's task (its own renderer; the tint offsets the whole image there, live and replayed)."""
+    env_id, onset = "JEPA/PushTStandard-v0", 3
+    clean, _ = _run(gym.make(env_id, image_size=SIZE), 4, steps=8)
+    live, _ = _run(gym.make(FAULTED_ENV, base=env_id, fault=name, image_size=SIZE,
+                            fault_kwargs={"onset": onset}), 4, steps=8)
+    shown = fault_frames(get_task_spec("PushTStandard"), clean[onset + 1:], name, 4, first_step=onset + 1)
+    assert all(_same(a, b) for a, b in zip(shown, live[onset + 1:])) and len(shown) == len(live) - onset - 1
+
+
+def test_the_tint_offsets_every_pixel_of_frames_not_rendered_by_pushts_own_env():
+    """FrameReplay masks the background only for PushT's frames; Lift's are offset whole, as BackgroundTint does
+    live on robosuite (a frame full of PushT's background colour makes a mask-everywhere bug visible)."""
+    spec = get_task_spec("Lift")
+    rng = np.random.default_rng(0)
+    frame = {k: rng.integers(0, 256, (8, 8, 3), dtype=np.uint8) for k in spec.image_keys}
+    frame[spec.image_keys[0]][:4] = COLORS["background"]
+    shown = fault_frames(spec, [frame], "background_tint", 0)[0]
+    for k in spec.image_keys:
+        expected = np.clip(frame[k].astype(np.int16) + np.array([-12, -4, 10]), 0, 255).astype(np.uint8)
+        assert np.array_equal(shown[k], expected), k
+
+
 def test_fault_frames_refuses_what_needs_a_live_episode():
     spec = get_task_spec("PushT")
     clean, _ = _clean(1)
@@ -249,6 +273,8 @@ def test_fault_frames_refuses_what_needs_a_live_episode():
         fault_frames(spec, clean, "nope", 0)
     with pytest.raises(ValueError, match="first_step must be >= 1"):
         fault_frames(spec, clean, "camera_shift", 0, first_step=0)
+    with pytest.raises(ValueError, match="sets camera_shift's onset itself.*drop onset="):
+        fault_frames(spec, clean, "camera_shift", 0, onset=4)
     with pytest.raises(KeyError, match="lack"):
         FrameReplay(spec, [{"state": np.zeros(2)}])
     replay = FrameReplay(spec, clean[:2])
