@@ -16,7 +16,9 @@ resynchronised every second with ``/proc/self/fd``) and reads the process's resi
 (or its process) stops the robot, fail-safe. Each trip is counted (``connection_guard``, ``memory_guard``) and
 logged, and the guard arms again once the use is back under ``REARM`` of its bound; memory, which a process seldom
 gives back, also trips again each time it grows by ``MEMORY_STEP`` of its bound past the last trip's reading (so
-a second flood after the operator's clear latches again, before the kernel's OOM kill). It never releases the latch:
+a second flood after the operator's clear latches again, before the kernel's OOM kill). A descriptor trip and a
+re-arm are each decided on a fresh count of ``/proc/self/fd``: the monitors' events run behind the descriptors, so
+between resynchronisations the estimate can count a connection twice or miss one. It never releases the latch:
 after the flood, ``status`` and ``clear-estop`` work again and the operator clears it.
 
 The guard also hands the control socket's disconnects to the event loop (a socket has one monitor), which needs
@@ -164,10 +166,11 @@ class ResourceGuard:
                         self._count("disconnects_dropped")
 
     # ------------------------------------------------------------ the bounds
-    def descriptors(self, now: float) -> int:
-        """Descriptors in use: the count at the last resynchronisation plus the connections opened since."""
+    def descriptors(self, now: float, fresh: bool = False) -> int:
+        """Descriptors in use: the count at the last resynchronisation plus the connections opened since (``fresh``:
+        resynchronise now)."""
         connections = sum(self.connections.values())
-        if now - self._synced >= RESYNC_S:
+        if fresh or now - self._synced >= RESYNC_S:
             counted = open_descriptors()
             if counted is not None:
                 self._baseline = max(0, counted - connections)
@@ -177,7 +180,14 @@ class ResourceGuard:
     def check(self, now: float) -> None:
         """One look at both bounds; trips (presses the e-stop) where one is passed and the guard is armed."""
         used = self.descriptors(now)
-        if used >= FD_FRACTION * self.limit:
+        bound, rearm = FD_FRACTION * self.limit, REARM * self.limit
+        armed = self._armed["descriptors"]
+        if (armed and used >= bound) or (not armed and used < rearm):
+            # a trip or a re-arm is decided on a fresh count: the monitors' events run behind the descriptors, so
+            # the estimate can count a connection twice (its descriptor counted at a resynchronisation, its accept
+            # event read after it) or not at all (its disconnect read before libzmq closed it)
+            used = self.descriptors(now, fresh=True)
+        if used >= bound:
             if self._armed["descriptors"]:
                 self._armed["descriptors"] = False
                 c = self.connections
@@ -186,7 +196,7 @@ class ResourceGuard:
                            + f"), past {FD_FRACTION:.0%} of its limit: a flood of connections could leave no "
                              "descriptor for the operator's e-stop, so the robot holds (fail-safe); find the process "
                              "that opens them (ss -tnp), stop it, then clear-estop")
-        elif used < REARM * self.limit:
+        elif used < rearm:
             self._armed["descriptors"] = True
         self.rss_mb = resident_mb()
         if self.max_rss_mb is None or self.rss_mb is None:
