@@ -17,9 +17,9 @@ resynchronised every second with ``/proc/self/fd``) and reads the process's resi
 logged, and the guard arms again once the use is back under ``REARM`` of its bound; memory, which a process seldom
 gives back, also trips again each time it grows by ``MEMORY_STEP`` of its bound past the last trip's reading (so
 a second flood after the operator's clear latches again, before the kernel's OOM kill). A descriptor trip and a
-re-arm are each decided on a fresh count of ``/proc/self/fd``: the monitors' events run behind the descriptors, so
-between resynchronisations the estimate can count a connection twice or miss one. It never releases the latch:
-after the flood, ``status`` and ``clear-estop`` work again and the operator clears it.
+re-arm are each decided on a fresh count of ``/proc/self/fd`` (the estimate where it cannot be read): the monitors'
+events run behind the descriptors, so between resynchronisations the estimate can count a connection twice. It
+never releases the latch: after the flood, ``status`` and ``clear-estop`` work again and the operator clears it.
 
 The guard also hands the control socket's disconnects to the event loop (a socket has one monitor), which needs
 them to see the controlling client's connection close (``RobotBridge._serve_monitor``).
@@ -183,9 +183,11 @@ class ResourceGuard:
         bound, rearm = FD_FRACTION * self.limit, REARM * self.limit
         armed = self._armed["descriptors"]
         if (armed and used >= bound) or (not armed and used < rearm):
-            # a trip or a re-arm is decided on a fresh count: the monitors' events run behind the descriptors, so
-            # the estimate can count a connection twice (its descriptor counted at a resynchronisation, its accept
-            # event read after it) or not at all (its disconnect read before libzmq closed it)
+            # a trip or a re-arm is decided on a fresh count (the estimate where none can be read, e.g. at the
+            # limit itself): the monitors' events run behind the descriptors, so the estimate can count a
+            # connection twice, its descriptor at a resynchronisation and its accept event after it (the
+            # connections a closed flood left in the listen backlog, accepted once the guard re-armed, could so
+            # trip it a second time)
             used = self.descriptors(now, fresh=True)
         if used >= bound:
             if self._armed["descriptors"]:

@@ -134,10 +134,11 @@ def test_memory_that_never_falls_back_still_trips_the_guard_again(monkeypatch):
 
 
 def test_the_guard_decides_a_trip_and_a_rearm_on_a_fresh_count(monkeypatch):
-    """The monitors' events run behind the descriptors (fault injected: /proc/self/fd read as the test says). A
-    connection counted twice (its descriptor at a resynchronisation, its accept event after it) does not trip the
-    guard; a real flood does, once; while its closing descriptors are still open after their disconnect events, the
-    guard stays disarmed, so the rest of the same flood cannot trip it a second time."""
+    """The monitors' events run behind the descriptors (fault injected: /proc/self/fd read as the test says). A flood
+    trips the guard once; after it closes the guard re-arms, and the connections it left in the listen backlog, then
+    accepted and counted twice (their descriptors at a resynchronisation, their accept events after it), do not
+    trip it again; a second real flood does. Where the count cannot be read (at the limit itself listing
+    /proc/self/fd fails), the estimate decides."""
     from jepa_robot import guard as guard_module
     from jepa_robot.estop import EStop
 
@@ -149,26 +150,32 @@ def test_the_guard_decides_a_trip_and_a_rearm_on_a_fresh_count(monkeypatch):
     estop = EStop(lambda: None)
     guard = guard_module.ResourceGuard(ctx, {"control": sock}, estop, None)
     guard.limit = 256   # trips at 192 descriptors, re-arms under 153.6
+
+    def trips() -> int:
+        return guard.counts().get("connection_guard", 0)
+
     try:
         t = time.monotonic() + 10
-        fds["open"] = 26 + 90          # 90 connections open; their accept events not read yet
-        guard.check(t)                 # a resynchronisation counts them
-        guard.connections["control"] = 90
-        guard.check(t + 0.05)          # the estimate reads 206: each counted twice
-        assert not estop.latched and guard.counts().get("connection_guard", 0) == 0
         fds["open"], guard.connections["control"] = 26 + 200, 200
-        guard.check(t + 0.1)
-        assert estop.latched and guard.counts()["connection_guard"] == 1
-        guard.connections["control"] = 0   # every disconnect read; libzmq has not closed their descriptors yet
-        guard.check(t + 0.15)
-        fds["open"] = 26 + 180
-        guard.check(t + 1.2)               # the next resynchronisation sees them still open
-        assert guard.counts()["connection_guard"] == 1
-        fds["open"] = 26
-        guard.check(t + 2.3)               # closed by the next resynchronisation: the guard re-arms
-        fds["open"], guard.connections["control"] = 26 + 200, 200
-        guard.check(t + 2.35)              # a second flood trips it again
-        assert guard.counts()["connection_guard"] == 2
+        guard.check(t)
+        assert estop.latched and trips() == 1
+        fds["open"], guard.connections["control"] = 26, 0     # the flood closed, its disconnects read
+        guard.check(t + 0.05)
+        assert guard._armed["descriptors"]
+        fds["open"] = 26 + 85                                 # its backlog accepted; their events not read yet
+        guard.check(t + 1.1)                                  # a resynchronisation counts their descriptors
+        guard.connections["control"] = 85                     # then their accept events: the estimate reads 196
+        guard.check(t + 1.15)
+        assert trips() == 1 and guard._armed["descriptors"]
+        fds["open"], guard.connections["control"] = 26 + 200, 285   # a second flood
+        guard.check(t + 1.2)
+        assert trips() == 2
+        fds["open"], guard.connections["control"] = 26, 0
+        guard.check(t + 2.3)
+        assert guard._armed["descriptors"]
+        fds["open"], guard.connections["control"] = None, 200      # at the limit: no listing; the estimate trips
+        guard.check(t + 2.35)
+        assert trips() == 3
     finally:
         guard.stop()
         sock.close(linger=0)
