@@ -30,7 +30,7 @@ class FrameReplay(gym.Env):
         if missing:
             raise KeyError(f"the recorded frames lack {missing}; the task {spec.name} has cameras {spec.image_keys}")
         self.task_spec, self.frames, self.i = spec, frames, 0
-        self.plain_background = spec.name == "PushT"   # PushTEnv rendered them: one background colour
+        self.plain_background = spec.name == "PushT"   # PushTEnv rendered them (its plain_background)
         first = frames[0]
         self.observation_space = gym.spaces.Dict({k: gym.spaces.Box(0, 255, np.shape(first[k]), np.uint8)
                                                   for k in spec.image_keys})

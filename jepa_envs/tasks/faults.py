@@ -365,9 +365,8 @@ class BackgroundTint(FaultWrapper):
         if tint.shape != (3,) or (np.abs(tint) > 64).any():
             raise ValueError(f"tint must be three RGB offsets within +-64, got {tint}")
         self.tint = tint
-        base = env.unwrapped
         self.background = np.asarray(COLORS["background"], np.uint8) \
-            if isinstance(base, PushTEnv) or getattr(base, "plain_background", False) else None
+            if getattr(env.unwrapped, "plain_background", False) else None
 
     def image(self, image: np.ndarray, key: str) -> np.ndarray:
         shifted = np.clip(image.astype(np.int16) + self.tint, 0, 255).astype(np.uint8)

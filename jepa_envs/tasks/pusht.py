@@ -318,6 +318,7 @@ class PushTEnv(JEPAEnv):
     """
 
     metadata = {"render_modes": ["rgb_array"], "render_fps": 10}
+    plain_background = True   # its frames' background is one colour, COLORS["background"] (BackgroundTint reads it)
 
     def __init__(self, task: str = "PushT", image_size: int | None = None, render_mode: str | None = None,
                  difficulty: str | PushTDifficulty = "easy", render_size: int = 256, **options):
