@@ -182,12 +182,12 @@ class ResourceGuard:
         used = self.descriptors(now)
         bound, rearm = FD_FRACTION * self.limit, REARM * self.limit
         armed = self._armed["descriptors"]
-        if (armed and used >= bound) or (not armed and used < rearm):
+        if ((armed and used >= bound) or (not armed and used < rearm)) and self._synced != now:
             # a trip or a re-arm is decided on a fresh count (the estimate where none can be read, e.g. at the
             # limit itself): the monitors' events run behind the descriptors, so the estimate can count a
             # connection twice, its descriptor at a resynchronisation and its accept event after it (the
             # connections a closed flood left in the listen backlog, accepted once the guard re-armed, could so
-            # trip it a second time)
+            # trip it a second time); not twice in one look, when the estimate has just been resynchronised
             used = self.descriptors(now, fresh=True)
         if used >= bound:
             if self._armed["descriptors"]:
